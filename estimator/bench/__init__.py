@@ -1,0 +1,1 @@
+"""Benchmarks behind ``swarmvo bench NAME``: each prints a table and writes JSON/PNG."""

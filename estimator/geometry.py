@@ -1,0 +1,188 @@
+"""Shared rigid-body math: quaternions, SE(3) and the Kabsch/Arun fit.
+
+Every other module uses these functions; there is exactly one implementation of each
+operation. Quaternions are scalar-first ``(w, x, y, z)`` and unit norm. All quaternion
+functions broadcast over leading axes, so ``quat_rotate(q[:, None], points[None])`` rotates
+every point by every quaternion at once (particles x points), which is what the swarm needs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = [
+    "compose",
+    "invert_pose",
+    "kabsch",
+    "make_pose",
+    "matrix_to_quat",
+    "quat_conjugate",
+    "quat_multiply",
+    "quat_normalize",
+    "quat_rotate",
+    "quat_to_matrix",
+    "quat_to_rotation_vector",
+    "rotation_angle_deg",
+    "rotation_vector_to_quat",
+    "transform_points",
+]
+
+
+# ----------------------------------------------------------------------------- quaternions
+
+
+def quat_normalize(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion(s) with w >= 0 (one representative of +-q)."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0.0, -q, q)
+
+
+def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product p * q, broadcasting over leading axes."""
+    pw, px, py, pz = np.moveaxis(np.asarray(p, dtype=float), -1, 0)
+    qw, qx, qy, qz = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
+    return np.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_conjugate(q: np.ndarray) -> np.ndarray:
+    """q^-1 for a unit quaternion."""
+    q = np.asarray(q, dtype=float)
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """q v q^-1 in Rodrigues form: v + 2w (u x v) + 2 u x (u x v), u the vector part.
+
+    Cheaper than two Hamilton products and broadcast-friendly: ``q`` (..., 4) and ``v``
+    (..., 3) broadcast against each other.
+    """
+    q = np.asarray(q, dtype=float)
+    v = np.asarray(v, dtype=float)
+    w = q[..., :1]
+    u = q[..., 1:]
+    uv = np.cross(u, v)
+    return v + 2.0 * (w * uv + np.cross(u, uv))
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix (..., 3, 3) of unit quaternion(s) (..., 4)."""
+    w, x, y, z = np.moveaxis(quat_normalize(q), -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=-2,
+    )
+
+
+def matrix_to_quat(rotation: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w >= 0) of rotation matrix/matrices, via scipy (numerically robust)."""
+    xyzw = Rotation.from_matrix(np.asarray(rotation, dtype=float)).as_quat()
+    return quat_normalize(np.roll(xyzw, 1, axis=-1))
+
+
+def rotation_vector_to_quat(rotvec: np.ndarray) -> np.ndarray:
+    """Exponential map: axis-angle 3-vector(s) -> unit quaternion(s), exact for any input.
+
+    Any 3-vector maps to a valid unit quaternion, which makes it a 3-DOF parameterisation
+    a swarm can move freely without ever leaving the rotation group.
+    """
+    rotvec = np.asarray(rotvec, dtype=float)
+    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
+    half = 0.5 * angle
+    # sin(a/2)/a with its Taylor series near zero, so tiny rotations stay exact.
+    small = angle < 1e-8
+    safe = np.where(small, 1.0, angle)
+    scale = np.where(small, 0.5 - angle**2 / 48.0, np.sin(half) / safe)
+    return np.concatenate([np.cos(half), rotvec * scale], axis=-1)
+
+
+def quat_to_rotation_vector(q: np.ndarray) -> np.ndarray:
+    """Logarithm map of unit quaternion(s) (w >= 0 branch): the inverse of the exponential map."""
+    q = quat_normalize(q)
+    vec = q[..., 1:]
+    sin_half = np.linalg.norm(vec, axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(sin_half, q[..., :1])
+    small = sin_half < 1e-12
+    scale = np.where(small, 2.0, angle / np.where(small, 1.0, sin_half))
+    return vec * scale
+
+
+# ----------------------------------------------------------------------------- SE(3)
+
+
+def make_pose(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """4x4 homogeneous transform from R (3x3) and t (3,)."""
+    pose = np.eye(4)
+    pose[:3, :3] = rotation
+    pose[:3, 3] = np.asarray(translation, dtype=float).reshape(3)
+    return pose
+
+
+def invert_pose(pose: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform without a general matrix inverse."""
+    rotation = pose[..., :3, :3]
+    translation = pose[..., :3, 3]
+    inverse = np.zeros_like(pose, dtype=float)
+    inverse[..., :3, :3] = np.swapaxes(rotation, -1, -2)
+    inverse[..., :3, 3] = -np.einsum("...ji,...j->...i", rotation, translation)
+    inverse[..., 3, 3] = 1.0
+    return inverse
+
+
+def compose(*poses: np.ndarray) -> np.ndarray:
+    """Left-to-right product of 4x4 transforms: compose(A, B, C) = A @ B @ C."""
+    result = np.eye(4)
+    for pose in poses:
+        result = result @ pose
+    return result
+
+
+def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 rigid transform to points (N, 3)."""
+    return points @ pose[:3, :3].T + pose[:3, 3]
+
+
+def rotation_angle_deg(rotation: np.ndarray) -> np.ndarray:
+    """Geodesic angle of rotation matrix/matrices in degrees (robust near 0 and 180)."""
+    return np.degrees(np.linalg.norm(Rotation.from_matrix(rotation).as_rotvec(), axis=-1))
+
+
+# ----------------------------------------------------------------------------- Kabsch / Arun
+
+
+def kabsch(
+    source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid fit target ~ R source + t (Arun et al. 1987, with the det guard).
+
+    The SVD of the cross-covariance can return a reflection (det = -1) for noisy or
+    degenerate sets; flipping the sign of the smallest singular direction gives the closest
+    proper rotation instead. ``weights`` (N,) allows a weighted fit.
+    """
+    source = np.asarray(source, dtype=float)
+    target = np.asarray(target, dtype=float)
+    if weights is None:
+        weights = np.ones(len(source))
+    weights = np.asarray(weights, dtype=float)
+    total = weights.sum()
+    source_mean = weights @ source / total
+    target_mean = weights @ target / total
+    covariance = (source - source_mean).T @ ((target - target_mean) * weights[:, None])
+    u, _, vt = np.linalg.svd(covariance)
+    sign = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    rotation = vt.T @ np.diag([1.0, 1.0, sign]) @ u.T
+    translation = target_mean - rotation @ source_mean
+    return rotation, translation

@@ -1,0 +1,94 @@
+"""The one public entry point for rigid 3D-3D registration and its result type.
+
+``register(source, target, method=...)`` validates the input once, then dispatches to an
+estimator registered under ``method``. Estimators register themselves with
+``@register_method("name")``; every one returns a :class:`RegistrationResult`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["METHODS", "RegistrationResult", "available_methods", "register", "register_method"]
+
+
+@dataclass
+class RegistrationResult:
+    """target ~ rotation @ source + translation, with the pairs that support it."""
+
+    rotation: np.ndarray  # (3, 3), det +1
+    translation: np.ndarray  # (3,)
+    quaternion: np.ndarray  # (w, x, y, z), unit norm, w >= 0
+    inliers: np.ndarray  # (N,) bool
+    support: int
+    cost: float
+    iterations: int
+    elapsed_s: float
+    success: bool
+    method: str = ""
+    message: str = ""
+
+
+EstimatorFn = Callable[..., RegistrationResult]
+METHODS: dict[str, EstimatorFn] = {}
+
+
+def register_method(name: str) -> Callable[[EstimatorFn], EstimatorFn]:
+    """Decorator: make an estimator reachable as ``register(..., method=name)``."""
+
+    def decorate(function: EstimatorFn) -> EstimatorFn:
+        METHODS[name] = function
+        return function
+
+    return decorate
+
+
+def available_methods() -> list[str]:
+    _load_builtin_methods()
+    return sorted(METHODS)
+
+
+def _load_builtin_methods() -> None:
+    # Imported for their @register_method side effect; kept lazy to avoid import cycles.
+    from estimator import baselines, pso_support  # noqa: F401
+
+
+def _validated(points: np.ndarray, name: str) -> np.ndarray:
+    array = np.asarray(points, dtype=float)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"{name} must be an (N, 3) array of points, got shape {array.shape}")
+    bad = ~np.isfinite(array).all(axis=1)
+    if bad.any():
+        rows = np.flatnonzero(bad)[:5].tolist()
+        raise ValueError(f"{name} has {int(bad.sum())} row(s) with NaN or inf (first: {rows})")
+    return array
+
+
+def register(
+    source: np.ndarray,
+    target: np.ndarray,
+    method: str = "pso-robust",
+    seed: int | None = None,
+    **options,
+) -> RegistrationResult:
+    """Estimate R, t with target ~ R @ source + t from corresponding points, robust to outliers.
+
+    Raises ``ValueError`` for malformed input (shape, NaN/inf, unknown method); returns a
+    result with ``success=False`` (never raises) when the data cannot support an estimate.
+    """
+    _load_builtin_methods()
+    source = _validated(source, "source")
+    target = _validated(target, "target")
+    if source.shape != target.shape:
+        raise ValueError(f"source {source.shape} and target {target.shape} differ in shape")
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; available: {', '.join(sorted(METHODS))}")
+    start = time.perf_counter()
+    result = METHODS[method](source, target, seed=seed, **options)
+    result.elapsed_s = time.perf_counter() - start
+    result.method = method
+    return result

@@ -1,0 +1,1 @@
+"""swarmvo service: the odometry behind a FastAPI REST + WebSocket API."""

@@ -1,0 +1,32 @@
+"""Shared fixtures: the real EuRoC data beside the project, skipped with a reason when absent."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = PROJECT_ROOT.parent / "shared" / "data"
+
+
+def _dataset(name: str) -> Path:
+    path = SHARED_DATA / name
+    if not (path / "mav0").is_dir():
+        pytest.skip(
+            f"real EuRoC data not found at {path} (it lives in ../shared/data beside the "
+            "project, present in CI; a fresh clone without it skips these tests)"
+        )
+    return path
+
+
+@pytest.fixture(scope="session")
+def euroc_v101_micro() -> Path:
+    """EuRoC V1_01 first 95 stereo frames + IMU + ground truth (standing still)."""
+    return _dataset("euroc_v101_micro")
+
+
+@pytest.fixture(scope="session")
+def euroc_v102_imu_segment() -> Path:
+    """EuRoC V1_02 40 s of real IMU + ground truth, fast motion, no images."""
+    return _dataset("euroc_v102_imu_segment")
