@@ -13,6 +13,9 @@ import sys
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("estimator.commands.bench", "run a benchmark (tables + JSON + PNG)"),
+    "serve": ("estimator.commands.serve", "run the HTTP/WebSocket odometry service"),
+    "run": ("estimator.commands.run", "run the odometry over a EuRoC/KITTI sequence"),
+    "synth": ("estimator.commands.synth", "render a stereo + IMU sequence with ground truth"),
 }
 
 

@@ -28,13 +28,86 @@ class FrontendConfig(_Section):
 
     detector: Literal["orb", "sift"] = "orb"
     max_features: int = Field(1200, gt=0)
+    # Detection: over-sample, then keep the best corners cell by cell (docs/frontend.md).
+    detection_oversampling: float = Field(2.0, ge=1.0)
+    grid_rows: int = Field(6, gt=0)
+    grid_cols: int = Field(8, gt=0)
+    fast_threshold: int = Field(12, gt=0)  # ORB's FAST threshold (grey levels)
+    orb_levels: int = Field(1, gt=0)  # one level: half the cost, same accuracy at 20 Hz
+    orb_scale_factor: float = Field(1.2, gt=1.0)
+    # Descriptor acceptance: Hamming bits for ORB, L2 for SIFT (unit 512-norm descriptors).
+    max_hamming: int = Field(64, ge=0, le=256)
+    max_sift_distance: float = Field(250.0, gt=0)
+    # Stereo matching on rectified images.
+    stereo_row_tolerance_px: float = Field(1.5, ge=0)
+    min_disparity_px: float = Field(1.0, gt=0)
+    max_disparity_px: float = Field(160.0, gt=0)
+    stereo_ratio: float = Field(0.9, gt=0, le=1)
+    # Disparity refinement: SAD patch search + equiangular fit, Lucas-Kanade, or none.
+    subpixel: Literal["sad", "lk", "none"] = "sad"
+    subpixel_window: int = Field(5, ge=1, le=15)  # half size of the patch
+    disparity_sigma_px: float = Field(0.5, gt=0)  # disparity noise behind depth_sigma
+    min_depth_m: float = Field(0.2, gt=0)
+    max_depth_m: float = Field(30.0, gt=0)
+    # Temporal matching (current frame <-> reference frame).
+    temporal_ratio: float = Field(0.85, gt=0, le=1)
+    search_radius_px: float = Field(40.0, ge=0)  # around the predicted position; 0 = anywhere
+    temporal_refine: bool = True  # sub-pixel current positions by Lucas-Kanade
+    temporal_refine_window: int = Field(5, ge=1, le=15)  # half size of the LK window
+    min_matches: int = Field(12, ge=3)  # fewer 3D-3D pairs: the frame is not estimated
+    min_inlier_ratio: float = Field(0.25, ge=0, le=1)  # fewer inliers per match: failed
+    # Without an estimate the pose coasts at the last velocity (status degraded) for at most
+    # this many consecutive frames, then it is held (status lost). 0 = always hold.
+    max_coast_frames: int = Field(5, ge=0)
+    # Tracking against a keyframe (no creeping drift while the view overlaps) or frame-to-frame.
+    tracking: Literal["keyframe", "frame"] = "keyframe"
+    keyframe_min_inliers: int = Field(80, ge=3)
+    keyframe_max_translation_m: float = Field(0.25, gt=0)
+    keyframe_max_rotation_deg: float = Field(10.0, gt=0)
 
 
 class BackendConfig(_Section):
-    """GTSAM fusion of relative poses with IMU rotation priors."""
+    """GTSAM fusion of relative poses with IMU rotation priors (docs/backend.md)."""
 
     enabled: bool = True
     use_imu: bool = True
+    # Solver: a fixed-lag smoother keeps the per-frame cost flat; "isam2" keeps all history.
+    smoother: Literal["fixed-lag", "isam2"] = "fixed-lag"
+    smoother_lag_s: float = Field(1.0, gt=0)
+    # iSAM2 relinearizes a variable when its update exceeds these (per component).
+    relinearize_rotation_rad: float = Field(0.02, gt=0)
+    relinearize_translation_m: float = Field(0.05, gt=0)
+    relinearize_bias: float = Field(0.005, gt=0)  # rad/s
+    extra_iterations: int = Field(1, ge=0, le=10)  # extra iSAM2 steps per frame
+    # Robust kernel on the front-end relative poses (threshold on the whitened 6-DOF error).
+    robust_kernel: Literal["huber", "cauchy", "none"] = "cauchy"
+    robust_parameter: float = Field(3.0, gt=0)
+    # Relative poses further than this (squared Mahalanobis distance, 6 DOF) from the
+    # prediction (gyro rotation, constant-velocity translation) are not added; None: keep all.
+    outlier_gate_chi2: float | None = Field(30.0, gt=0)
+    # Relative-pose covariance from the registration inliers (backend/noise.py).
+    point_spread_m: float = Field(1.5, gt=0)  # typical RMS distance of inliers from centroid
+    translation_sigma_scale: float = Field(1.0, gt=0)
+    rotation_sigma_scale: float = Field(1.0, gt=0)
+    min_translation_sigma_m: float = Field(0.002, gt=0)
+    max_translation_sigma_m: float = Field(0.5, gt=0)
+    min_rotation_sigma_rad: float = Field(0.0005, gt=0)
+    max_rotation_sigma_rad: float = Field(0.2, gt=0)
+    fallback_residual_m: float = Field(0.05, gt=0)  # when no residuals are given
+    # Constant-velocity prior between consecutive frames (per frame interval): on every frame
+    # ("always": lets the robust kernel see a wrong relative pose) or only without vision.
+    motion_prior: Literal["always", "gaps"] = "gaps"
+    cv_translation_sigma_m: float = Field(0.05, gt=0)
+    cv_rotation_sigma_rad: float = Field(0.05, gt=0)
+    # IMU: noise from sensor.yaml times a scale; bias random walk override (rad/s^2/sqrt(Hz)).
+    imu_noise_scale: float = Field(1.0, gt=0)
+    gyro_random_walk: float | None = Field(None, gt=0)
+    gyro_bias_prior_sigma: float = Field(0.05, gt=0)  # rad/s, on the first bias
+    imu_time_offset_s: float = 0.0  # t_imu = t_camera + offset (Kalibr's convention)
+    imu_max_gap_s: float = Field(0.02, gt=0)  # larger holes in the gyro -> no IMU factor
+    gravity_align: bool = True
+    # 16 numbers, row-major T_BS of the left camera; overrides the calibration when given.
+    body_from_camera: list[float] | None = Field(None, min_length=16, max_length=16)
 
 
 class SwarmvoConfig(_Section):

@@ -13,13 +13,17 @@ from scipy.spatial.transform import Rotation
 
 __all__ = [
     "compose",
+    "horn",
     "invert_pose",
+    "is_degenerate",
     "kabsch",
+    "kabsch_batched",
     "make_pose",
     "matrix_to_quat",
     "quat_conjugate",
     "quat_multiply",
     "quat_normalize",
+    "quat_quadratic_forms",
     "quat_rotate",
     "quat_to_matrix",
     "quat_to_rotation_vector",
@@ -186,3 +190,95 @@ def kabsch(
     rotation = vt.T @ np.diag([1.0, 1.0, sign]) @ u.T
     translation = target_mean - rotation @ source_mean
     return rotation, translation
+
+
+def kabsch_batched(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unweighted Kabsch for a batch of small sets at once: (B, k, 3) -> R (B, 3, 3), t (B, 3).
+
+    One batched SVD instead of B Python calls; this is what makes scoring many minimal
+    (3-point) hypotheses per numpy call possible. Same det guard as :func:`kabsch`.
+    """
+    source = np.asarray(source, dtype=float)
+    target = np.asarray(target, dtype=float)
+    source_mean = source.mean(axis=-2)
+    target_mean = target.mean(axis=-2)
+    covariance = np.swapaxes(source - source_mean[..., None, :], -1, -2) @ (
+        target - target_mean[..., None, :]
+    )
+    u, _, vt = np.linalg.svd(covariance)
+    v_ut = np.swapaxes(vt, -1, -2) @ np.swapaxes(u, -1, -2)
+    sign = np.where(np.linalg.det(v_ut) < 0.0, -1.0, 1.0)
+    flip = np.ones((*source.shape[:-2], 3))
+    flip[..., 2] = sign
+    rotation = np.swapaxes(vt, -1, -2) @ (flip[..., :, None] * np.swapaxes(u, -1, -2))
+    translation = target_mean - np.einsum("...ij,...j->...i", rotation, source_mean)
+    return rotation, translation
+
+
+def is_degenerate(points: np.ndarray, relative_tolerance: float = 1e-6) -> bool:
+    """True when points cannot fix a rotation: fewer than 3, coincident, or all on one line.
+
+    Uses the singular values of the centred set: a line has one non-zero value, a single
+    location none. The line test is relative to the spread, so it does not depend on units.
+    """
+    points = np.asarray(points, dtype=float)
+    if len(points) < 3:
+        return True
+    centred = points - points.mean(axis=0)
+    # Eigenvalues of the 3x3 scatter are the squared singular values of the centred set.
+    spread = np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred), 0.0))
+    # Coincident: no spread beyond rounding of the coordinates; a line: no second direction.
+    coincident = spread[2] <= 1e-12 * max(float(np.abs(points).max()), 1e-300)
+    return bool(coincident or spread[1] <= relative_tolerance * spread[2])
+
+
+def _horn_matrix(c: np.ndarray) -> np.ndarray:
+    """Horn's symmetric 4x4 matrix of a 3x3 correlation c[a, b] = sum s_a t_b (..., 3, 3)."""
+    xx, xy, xz = c[..., 0, 0], c[..., 0, 1], c[..., 0, 2]
+    yx, yy, yz = c[..., 1, 0], c[..., 1, 1], c[..., 1, 2]
+    zx, zy, zz = c[..., 2, 0], c[..., 2, 1], c[..., 2, 2]
+    rows = [
+        [xx + yy + zz, yz - zy, zx - xz, xy - yx],
+        [yz - zy, xx - yy - zz, xy + yx, zx + xz],
+        [zx - xz, xy + yx, yy - xx - zz, yz + zy],
+        [xy - yx, zx + xz, yz + zy, zz - xx - yy],
+    ]
+    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
+
+
+# The Horn matrix is linear in the correlation: one (9, 16) map applies it to many at once.
+_HORN_BASIS = _horn_matrix(np.eye(9).reshape(9, 3, 3)).reshape(9, 16)
+
+
+def quat_quadratic_forms(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Horn's (1987) symmetric 4x4 matrices: target_j . (q source_j q^-1) = q^T N_j q.
+
+    For a unit quaternion the alignment of every pair is a quadratic form in q, so the
+    squared residual ||t_j - q s_j q^-1||^2 = |t_j|^2 + |s_j|^2 - 2 q^T N_j q of P
+    quaternions against M pairs is one (P, 16) @ (16, M) product: no rotation matrices and
+    no per-particle rotations of the points. Returns (..., 4, 4) for (..., 3) inputs.
+    """
+    s = np.asarray(source, dtype=float)
+    t = np.asarray(target, dtype=float)
+    correlation = (s[..., :, None] * t[..., None, :]).reshape(*s.shape[:-1], 9)
+    return (correlation @ _HORN_BASIS).reshape(*s.shape[:-1], 4, 4)
+
+
+def horn(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares rigid fit target ~ q source q^-1 + t in closed form (Horn 1987).
+
+    Same optimum as :func:`kabsch`, but the rotation comes out as a unit quaternion (the
+    top eigenvector of the summed Horn matrix; always a proper rotation), so no
+    matrix-to-quaternion conversion is needed. Returns (quaternion with w >= 0, R, t).
+    """
+    source = np.asarray(source, dtype=float)
+    target = np.asarray(target, dtype=float)
+    source_mean = source.mean(axis=0)
+    target_mean = target.mean(axis=0)
+    correlation = (source - source_mean).T @ (target - target_mean)
+    _, vectors = np.linalg.eigh((correlation.reshape(9) @ _HORN_BASIS).reshape(4, 4))
+    quaternion = vectors[:, -1] / np.linalg.norm(vectors[:, -1])
+    quaternion = -quaternion if quaternion[0] < 0.0 else quaternion
+    # t . R s = q^T N(s t^T) q, so the same basis read backwards gives R (transposed).
+    rotation = (_HORN_BASIS @ np.outer(quaternion, quaternion).reshape(16)).reshape(3, 3).T
+    return quaternion, rotation, target_mean - rotation @ source_mean

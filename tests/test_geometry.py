@@ -61,3 +61,56 @@ def test_kabsch_recovers_and_never_reflects() -> None:
     # A mirrored target has a reflection as best orthogonal fit; the guard returns a rotation.
     r_mirror, _ = g.kabsch(source, source * [1.0, 1.0, -1.0])
     assert np.isclose(np.linalg.det(r_mirror), 1.0)
+
+
+def test_kabsch_batched_matches_kabsch_and_never_reflects() -> None:
+    rng = np.random.default_rng(7)
+    source = rng.normal(size=(40, 3, 3))
+    target = rng.normal(size=(40, 3, 3))  # unrelated sets: many raw SVD fits would reflect
+    rotations, translations = g.kabsch_batched(source, target)
+    np.testing.assert_allclose(np.linalg.det(rotations), 1.0, atol=1e-9)
+    for i in range(40):
+        rotation, translation = g.kabsch(source[i], target[i])
+        np.testing.assert_allclose(rotations[i], rotation, atol=1e-9)
+        np.testing.assert_allclose(translations[i], translation, atol=1e-9)
+
+
+def test_is_degenerate_flags_lines_points_and_tiny_sets() -> None:
+    line = np.outer(np.arange(6.0), [1.0, 2.0, 3.0]) + 5.0
+    assert g.is_degenerate(line)
+    assert g.is_degenerate(np.ones((5, 3)))
+    assert g.is_degenerate(np.zeros((2, 3)))
+    triangle = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    assert not g.is_degenerate(triangle)
+    assert not g.is_degenerate(triangle * 1e-4 + 1e3)  # small but well-formed, far away
+
+
+def test_quat_quadratic_forms_give_the_rotated_alignment() -> None:
+    rng = np.random.default_rng(3)
+    quats = g.quat_normalize(rng.normal(size=(6, 4)))
+    source, target = rng.normal(size=(9, 3)), rng.normal(size=(9, 3))
+    forms = g.quat_quadratic_forms(source, target)
+    assert forms.shape == (9, 4, 4)
+    np.testing.assert_allclose(forms, np.swapaxes(forms, -1, -2))
+    via_forms = np.einsum("pi,jik,pk->pj", quats, forms, quats)
+    rotated = g.quat_rotate(quats[:, None, :], source[None, :, :])
+    np.testing.assert_allclose(via_forms, np.einsum("jb,pjb->pj", target, rotated), atol=1e-12)
+
+
+def test_horn_agrees_with_kabsch_and_returns_a_unit_quaternion() -> None:
+    rng = np.random.default_rng(5)
+    for trial in range(6):
+        source = rng.normal(size=(15, 3))
+        related = g.transform_points(
+            g.make_pose(Rotation.random(random_state=trial).as_matrix(), rng.normal(size=3)),
+            source,
+        )
+        # Alternate a noisy true relation with unrelated sets (where a reflection is closer).
+        noise = rng.normal(size=(15, 3))
+        target = related + 0.01 * noise if trial % 2 else noise
+        quaternion, rotation, translation = g.horn(source, target)
+        expected_rotation, expected_translation = g.kabsch(source, target)
+        assert np.isclose(np.linalg.norm(quaternion), 1.0) and quaternion[0] >= 0.0
+        np.testing.assert_allclose(g.quat_to_matrix(quaternion), rotation, atol=1e-12)
+        np.testing.assert_allclose(rotation, expected_rotation, atol=1e-9)
+        np.testing.assert_allclose(translation, expected_translation, atol=1e-9)

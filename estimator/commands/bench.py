@@ -6,7 +6,12 @@ import argparse
 import importlib
 
 # benchmark name -> module in estimator.bench providing add_arguments(parser) and run(args)
-BENCHMARKS: dict[str, str] = {}
+BENCHMARKS: dict[str, str] = {
+    "registration": "estimator.bench.registration",
+    "frontend": "estimator.bench.frontend",
+    "odometry": "estimator.bench.odometry",
+    "backend": "estimator.bench.backend",
+}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,0 +1,433 @@
+"""The factor graph: front-end relative poses + gyro rotation factors + a motion prior.
+
+One Pose3 per frame (body in world) and, with an IMU, one gyro bias per frame. Per frame k:
+
+* the front-end relative pose (left camera, moved into the body frame) as a robust
+  ``BetweenFactorPose3`` with a covariance from the registration inliers (``noise.py``),
+  unless it fails the outlier gate against the prediction (gyro rotation, constant-velocity
+  translation);
+* the gyro preintegrated over the frame interval (shifted by the camera-IMU time offset) as a
+  rotation factor on (X_k-1, X_k, B_k-1) (``factors.py``) and a bias random walk B_k-1 -> B_k;
+* a constant-velocity prior X_k-1 -> X_k (the previous estimated motion, rescaled to this
+  interval) with a loose covariance, on frames without an accepted relative pose (or on every
+  frame with ``motion_prior="always"``). It carries the translation when vision fails; with the
+  gyro present its rotation part is left free so it cannot bend the bias.
+
+World frame: the first body pose, rotated so that z is up (roll and pitch from the mean
+accelerometer reading of the first frame's IMU batch, yaw = 0) when the IMU is used; without
+IMU (or without accelerometer data with the first frame) the world is the first body pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from estimator.backend.factors import gyro_rotation_factor
+from estimator.backend.imu import (
+    GyroPreintegration,
+    ImuBuffer,
+    gravity_aligned_rotation,
+    preintegrate_gyro,
+    rotation_params,
+)
+from estimator.backend.noise import pose_noise, relative_pose_sigmas, robust
+from estimator.config import BackendConfig
+from estimator.geometry import invert_pose, make_pose
+from estimator.types import FrameStatus, ImuBatch, ImuNoise
+
+__all__ = ["FusedEstimate", "FusionBackend"]
+
+# The first pose defines the world: pinned with a tight prior.
+_ORIGIN_SIGMA = 1e-6
+# Rotation spread added to the gyro prediction in the outlier gate: covers an unconverged gyro
+# bias (0.1 rad/s over 50 ms) and small camera-IMU misalignment.
+_GATE_GYRO_FLOOR_RAD = 0.005
+# Rotation sigma of the motion prior when the gyro provides the rotation (effectively free).
+_FREE_ROTATION_SIGMA = 10.0
+
+
+def _pose_key(index: int) -> int:
+    return gtsam.symbol("x", index)
+
+
+def _bias_key(index: int) -> int:
+    return gtsam.symbol("b", index)
+
+
+@dataclass(frozen=True)
+class FusedEstimate:
+    """The back end's answer for one frame."""
+
+    pose: np.ndarray  # (4, 4) left camera in world
+    body_pose: np.ndarray  # (4, 4) body (IMU) in world
+    status: FrameStatus
+    message: str = ""
+    gyro_bias: np.ndarray | None = None  # (3,) rad/s, current estimate (None without IMU)
+    # Body motion T_prev_cur as estimated now (the previous pose is revised too, so this is
+    # smoother than the difference of two consecutive ``body_pose`` outputs).
+    body_motion: np.ndarray | None = None
+
+
+def _check_pose(name: str, pose: np.ndarray) -> np.ndarray:
+    pose = np.asarray(pose, dtype=float)
+    if pose.shape != (4, 4):
+        raise ValueError(f"{name} must be a 4x4 matrix, got shape {pose.shape}")
+    if not np.all(np.isfinite(pose)):
+        raise ValueError(f"{name} contains NaN or inf")
+    rotation = pose[:3, :3]
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-5) or np.linalg.det(rotation) < 0:
+        raise ValueError(f"{name} does not have a proper rotation block")
+    if not np.allclose(pose[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f"{name} bottom row must be [0, 0, 0, 1]")
+    return pose
+
+
+class FusionBackend:
+    """Incremental fusion of per-frame relative poses with the gyro (see module doc)."""
+
+    def __init__(
+        self,
+        config: BackendConfig,
+        body_from_camera: np.ndarray,
+        imu_noise: ImuNoise | None,
+    ) -> None:
+        self.config = config
+        if config.body_from_camera is not None:
+            body_from_camera = np.asarray(config.body_from_camera, dtype=float).reshape(4, 4)
+        self.body_from_camera = _check_pose("body_from_camera", body_from_camera)
+        self.camera_from_body = invert_pose(self.body_from_camera)
+        self.use_imu = bool(config.use_imu and imu_noise is not None)
+        self._imu_params = None
+        self._bias_sigma_density = 0.0
+        if self.use_imu:
+            assert imu_noise is not None
+            self._imu_params = rotation_params(imu_noise, config.imu_noise_scale)
+            self._bias_sigma_density = (
+                config.gyro_random_walk
+                if config.gyro_random_walk is not None
+                else imu_noise.gyro_random_walk * config.imu_noise_scale
+            )
+        self._offset_ns = round(config.imu_time_offset_s * 1e9)
+        self._max_gap_ns = round(config.imu_max_gap_s * 1e9)
+        self._buffer = ImuBuffer()
+        self._smoother = self._make_smoother()
+        self._index = -1
+        self._start_ns = 0
+        self._last_ns = 0
+        self._body_pose = np.eye(4)
+        self._previous_motion: np.ndarray | None = None  # body T_k-2,k-1 (estimated)
+        self._previous_dt = 0.0
+        self._bias = np.zeros(3)
+        self._misses = 0  # consecutive frames without an accepted relative pose
+
+    # ------------------------------------------------------------------ public
+
+    @property
+    def frame_count(self) -> int:
+        return self._index + 1
+
+    def add_frame(
+        self,
+        timestamp_ns: int,
+        relative_pose: np.ndarray | None,
+        inlier_residuals: np.ndarray | None,
+        inlier_count: int,
+        imu: ImuBatch | None,
+    ) -> FusedEstimate:
+        """Add frame ``timestamp_ns``; ``relative_pose`` is the front-end T_prev_cur (camera)."""
+        timestamp_ns = int(timestamp_ns)
+        if self._index >= 0 and timestamp_ns <= self._last_ns:
+            raise ValueError(
+                f"frame timestamps must increase: {timestamp_ns} after {self._last_ns}"
+            )
+        sigmas = None
+        if relative_pose is not None:
+            relative_pose = _check_pose("relative_pose", relative_pose)
+            sigmas = relative_pose_sigmas(inlier_residuals, inlier_count, self.config)
+        if inlier_count < 0:
+            raise ValueError(f"inlier_count must be >= 0, got {inlier_count}")
+        if imu is not None and self.use_imu:
+            self._buffer.extend(imu)
+        if self._index < 0:
+            return self._start(timestamp_ns)
+        return self._advance(timestamp_ns, relative_pose, sigmas)
+
+    # ------------------------------------------------------------------ graph building
+
+    def _make_smoother(self) -> gtsam.ISAM2 | gtsam.IncrementalFixedLagSmoother:
+        params = gtsam.ISAM2Params()
+        thresholds = gtsam.ISAM2ThresholdMap()
+        rotation, translation = (
+            self.config.relinearize_rotation_rad,
+            self.config.relinearize_translation_m,
+        )
+        thresholds.insert(("x", np.array([rotation] * 3 + [translation] * 3)))
+        thresholds.insert(("b", np.full(3, self.config.relinearize_bias)))
+        params.setRelinearizeThreshold(thresholds)
+        # QR: the bias random walk (~4e-6 rad/s per frame) against a 0.05 rad/s prior is too
+        # ill-conditioned for Cholesky when no gyro factor ties the biases to the poses.
+        params.setFactorization("QR")
+        params.relinearizeSkip = 1
+        if self.config.smoother == "isam2":
+            return gtsam.ISAM2(params)
+        return gtsam.IncrementalFixedLagSmoother(self.config.smoother_lag_s, params)
+
+    def _update(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: list[int]):
+        if isinstance(self._smoother, gtsam.ISAM2):
+            self._smoother.update(factors, values)
+            for _ in range(self.config.extra_iterations):
+                self._smoother.update()
+            return
+        stamp = (self._last_ns - self._start_ns) * 1e-9
+        self._smoother.update(factors, values, dict.fromkeys(keys, stamp))
+        for _ in range(self.config.extra_iterations):
+            self._smoother.update()
+
+    def _pose_estimate(self, index: int) -> np.ndarray:
+        return self._smoother.calculateEstimatePose3(_pose_key(index)).matrix()
+
+    def _bias_estimate(self, index: int) -> np.ndarray:
+        return np.asarray(self._smoother.calculateEstimateVector(_bias_key(index)))
+
+    def _start(self, timestamp_ns: int) -> FusedEstimate:
+        self._index = 0
+        self._start_ns = self._last_ns = timestamp_ns
+        message = "world = first body pose"
+        rotation = np.eye(3)
+        if self.use_imu and self.config.gravity_align:
+            accel = self._buffer.accel[self._buffer.timestamps_ns <= timestamp_ns + self._offset_ns]
+            if len(accel):
+                try:
+                    rotation = gravity_aligned_rotation(accel)
+                    message = f"world gravity-aligned from {len(accel)} accelerometer samples"
+                except ValueError as error:
+                    message = f"world = first body pose ({error})"
+            else:
+                message = "world = first body pose (no accelerometer samples with frame 0)"
+        self._body_pose = make_pose(rotation, np.zeros(3))
+        factors = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        keys = [_pose_key(0)]
+        origin = gtsam.Pose3(self._body_pose)
+        factors.add(
+            gtsam.PriorFactorPose3(
+                _pose_key(0), origin, gtsam.noiseModel.Isotropic.Sigma(6, _ORIGIN_SIGMA)
+            )
+        )
+        values.insert(_pose_key(0), origin)
+        if self.use_imu:
+            factors.add(
+                gtsam.PriorFactorVector(
+                    _bias_key(0),
+                    np.zeros(3),
+                    gtsam.noiseModel.Isotropic.Sigma(3, self.config.gyro_bias_prior_sigma),
+                )
+            )
+            values.insert(_bias_key(0), np.zeros(3))
+            keys.append(_bias_key(0))
+        self._update(factors, values, keys)
+        return self._estimate(FrameStatus.OK, message)
+
+    def _preintegrate(self, start_ns: int, end_ns: int) -> GyroPreintegration | None:
+        start_ns += self._offset_ns
+        end_ns += self._offset_ns
+        if not self._buffer.covers(start_ns, end_ns, self._max_gap_ns):
+            return None
+        stamps, gyro = self._buffer.window(start_ns, end_ns)
+        preintegration = preintegrate_gyro(
+            stamps, gyro, start_ns, end_ns, self._imu_params, self._bias
+        )
+        self._buffer.drop_before(end_ns)
+        return preintegration
+
+    def _motion_prior(self, dt: float) -> np.ndarray:
+        """Constant body twist: the previous motion rescaled to this frame interval."""
+        if self._previous_motion is None:
+            return np.eye(4)
+        twist = gtsam.Pose3.Logmap(gtsam.Pose3(self._previous_motion))
+        return gtsam.Pose3.Expmap(twist * (dt / self._previous_dt)).matrix()
+
+    def _restart(self, index: int, body_pose: np.ndarray) -> None:
+        """A fresh smoother anchored at ``body_pose``: the trajectory goes on from here."""
+        self._smoother = self._make_smoother()
+        factors = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        keys = [_pose_key(index)]
+        anchor = gtsam.Pose3(body_pose)
+        factors.add(
+            gtsam.PriorFactorPose3(
+                _pose_key(index), anchor, gtsam.noiseModel.Isotropic.Sigma(6, _ORIGIN_SIGMA)
+            )
+        )
+        values.insert(_pose_key(index), anchor)
+        if self.use_imu:
+            factors.add(
+                gtsam.PriorFactorVector(
+                    _bias_key(index),
+                    self._bias,
+                    gtsam.noiseModel.Isotropic.Sigma(3, self.config.gyro_bias_prior_sigma),
+                )
+            )
+            values.insert(_bias_key(index), self._bias)
+            keys.append(_bias_key(index))
+        self._update(factors, values, keys)
+
+    def _gate_distance(
+        self,
+        measured: np.ndarray,
+        predicted: np.ndarray,
+        sigmas: tuple[float, float],
+        preintegration: GyroPreintegration | None,
+    ) -> float:
+        """Squared Mahalanobis distance of a relative pose from the prediction.
+
+        The prediction's spread: the gyro covariance plus a floor for the bias uncertainty
+        (else the constant-velocity sigma) for rotation, the constant-velocity sigma for
+        translation; the motion-prior parts widen with every frame without accepted vision,
+        so the gate reopens after a gap.
+        """
+        if self._previous_motion is None and preintegration is None:
+            return 0.0  # nothing to compare with yet
+        rotation_sigma, translation_sigma = sigmas
+        widen = (1.0 + self._misses) ** 2
+        rotation_error = gtsam.Rot3.Logmap(gtsam.Rot3(predicted[:3, :3].T @ measured[:3, :3]))
+        if preintegration is not None:
+            rotation_cov = preintegration.covariance + np.eye(3) * _GATE_GYRO_FLOOR_RAD**2
+        else:
+            rotation_cov = np.eye(3) * self.config.cv_rotation_sigma_rad**2 * widen
+        rotation_cov = rotation_cov + np.eye(3) * rotation_sigma**2
+        distance = float(rotation_error @ np.linalg.solve(rotation_cov, rotation_error))
+        if self._previous_motion is not None:
+            translation_var = self.config.cv_translation_sigma_m**2 * widen + translation_sigma**2
+            translation_error = measured[:3, 3] - predicted[:3, 3]
+            distance += float(translation_error @ translation_error) / translation_var
+        return distance
+
+    def _advance(
+        self,
+        timestamp_ns: int,
+        relative_pose: np.ndarray | None,
+        sigmas: tuple[float, float] | None,
+    ) -> FusedEstimate:
+        previous, current = self._index, self._index + 1
+        dt = (timestamp_ns - self._last_ns) * 1e-9
+        factors = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        keys = [_pose_key(current)]
+        notes: list[str] = []
+
+        preintegration = None
+        if self.use_imu:
+            preintegration = self._preintegrate(self._last_ns, timestamp_ns)
+            if preintegration is not None:
+                factors.add(
+                    gyro_rotation_factor(
+                        _pose_key(previous), _pose_key(current), _bias_key(previous), preintegration
+                    )
+                )
+            else:
+                notes.append("no gyro for this interval")
+            walk = self._bias_sigma_density * np.sqrt(dt)
+            factors.add(
+                gtsam.BetweenFactorVector(
+                    _bias_key(previous),
+                    _bias_key(current),
+                    np.zeros(3),
+                    gtsam.noiseModel.Isotropic.Sigma(3, walk),
+                )
+            )
+            values.insert(_bias_key(current), self._bias)
+            keys.append(_bias_key(current))
+
+        motion = self._motion_prior(dt)
+
+        # Prediction (initial guess and outlier gate): gyro rotation (else constant velocity)
+        # with the constant-velocity translation.
+        prediction = motion.copy()
+        if preintegration is not None:
+            prediction[:3, :3] = preintegration.delta_rotation
+        guess = prediction
+        accepted = False
+        if relative_pose is not None and sigmas is not None:
+            body_motion = self.body_from_camera @ relative_pose @ self.camera_from_body
+            distance = self._gate_distance(body_motion, prediction, sigmas, preintegration)
+            gate = self.config.outlier_gate_chi2
+            if gate is None or distance <= gate:
+                accepted = True
+                guess = body_motion
+                base = pose_noise(*sigmas)
+                factors.add(
+                    gtsam.BetweenFactorPose3(
+                        _pose_key(previous),
+                        _pose_key(current),
+                        gtsam.Pose3(body_motion),
+                        robust(base, self.config.robust_kernel, self.config.robust_parameter),
+                    )
+                )
+            else:
+                notes.append(
+                    f"relative pose rejected (squared Mahalanobis distance {distance:.0f} "
+                    f"> {gate:g} from the prediction)"
+                )
+        if self.config.motion_prior == "always" or not accepted:
+            # With the gyro the prior carries translation only: its rotation part would
+            # otherwise leak into the bias estimate.
+            rotation_sigma = (
+                _FREE_ROTATION_SIGMA
+                if preintegration is not None
+                else self.config.cv_rotation_sigma_rad
+            )
+            factors.add(
+                gtsam.BetweenFactorPose3(
+                    _pose_key(previous),
+                    _pose_key(current),
+                    gtsam.Pose3(motion),
+                    pose_noise(rotation_sigma, self.config.cv_translation_sigma_m),
+                )
+            )
+        values.insert(_pose_key(current), gtsam.Pose3(self._body_pose @ guess))
+
+        self._last_ns = timestamp_ns
+        self._index = current
+        try:
+            self._update(factors, values, keys)
+            previous_pose = self._pose_estimate(previous)
+        except RuntimeError as error:  # numerical failure inside GTSAM: restart the graph
+            previous_pose = self._body_pose
+            self._restart(current, self._body_pose @ guess)
+            notes.append(f"back end restarted at this frame ({str(error).strip().splitlines()[0]})")
+
+        if accepted:
+            status = FrameStatus.OK
+            self._misses = 0
+        else:
+            self._misses += 1
+            if preintegration is not None:
+                status = FrameStatus.DEGRADED
+                notes.insert(0, "no vision: rotation from gyro, translation from motion prior")
+            else:
+                status = FrameStatus.LOST
+                notes.insert(0, "no vision, no gyro: pose from the constant-velocity prior")
+        self._previous_motion = invert_pose(previous_pose) @ self._pose_estimate(current)
+        self._previous_dt = dt
+        return self._estimate(status, "; ".join(notes), self._previous_motion.copy())
+
+    def _estimate(
+        self, status: FrameStatus, message: str, motion: np.ndarray | None = None
+    ) -> FusedEstimate:
+        self._body_pose = self._pose_estimate(self._index)
+        bias = None
+        if self.use_imu:
+            self._bias = self._bias_estimate(self._index)
+            bias = self._bias.copy()
+        return FusedEstimate(
+            pose=self._body_pose @ self.body_from_camera,
+            body_pose=self._body_pose.copy(),
+            status=status,
+            message=message,
+            gyro_bias=bias,
+            body_motion=motion,
+        )

@@ -1,0 +1,214 @@
+"""Reference estimators the swarm is measured against: plain SVD and MSAC.
+
+``svd``  - Arun/Kabsch on all pairs: optimal without outliers, breaks with the first one.
+``msac`` - Torr & Zisserman's MSAC: random 3-point hypotheses scored by the truncated
+           quadratic cost sum_j min(r_j^2, T^2), adaptive number of hypotheses, Kabsch refit
+           on the inliers. Hypotheses are generated and scored in batches (one batched SVD
+           and one (B, N) residual matrix per batch) so its timing is a fair comparison.
+
+Also the small result builders every estimator shares.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from estimator.geometry import (
+    is_degenerate,
+    kabsch,
+    kabsch_batched,
+    matrix_to_quat,
+    quat_to_matrix,
+)
+from estimator.registration import RegistrationResult, register_method
+
+__all__ = [
+    "check_positive",
+    "failed_result",
+    "msac",
+    "pose_result",
+    "reject_unknown_options",
+    "residual_norms",
+    "svd",
+]
+
+
+def residual_norms(
+    rotation: np.ndarray, translation: np.ndarray, source: np.ndarray, target: np.ndarray
+) -> np.ndarray:
+    """||target_j - (R source_j + t)|| for every pair."""
+    difference = target - source @ rotation.T - translation
+    return np.sqrt(np.einsum("ij,ij->i", difference, difference))
+
+
+def pose_result(
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    inliers: np.ndarray,
+    *,
+    cost: float,
+    iterations: int,
+    quaternion: np.ndarray | None = None,
+    success: bool = True,
+    message: str = "",
+) -> RegistrationResult:
+    """A successful-looking result whose rotation and unit quaternion agree.
+
+    Without ``quaternion`` the rotation is converted and rebuilt from it; with one (a fit
+    that produced both, e.g. ``geometry.horn``) both are taken as they are.
+    """
+    if quaternion is None:
+        quaternion = matrix_to_quat(rotation)
+        rotation = quat_to_matrix(quaternion)
+    return RegistrationResult(
+        rotation=np.asarray(rotation, dtype=float),
+        translation=np.asarray(translation, dtype=float).copy(),
+        quaternion=np.asarray(quaternion, dtype=float),
+        inliers=np.asarray(inliers, dtype=bool),
+        support=int(np.count_nonzero(inliers)),
+        cost=float(cost),
+        iterations=int(iterations),
+        elapsed_s=0.0,
+        success=success,
+        message=message,
+    )
+
+
+def failed_result(count: int, message: str, iterations: int = 0) -> RegistrationResult:
+    """Identity pose, no inliers, ``success=False``: the data cannot support an estimate."""
+    return RegistrationResult(
+        rotation=np.eye(3),
+        translation=np.zeros(3),
+        quaternion=np.array([1.0, 0.0, 0.0, 0.0]),
+        inliers=np.zeros(count, dtype=bool),
+        support=0,
+        cost=math.inf,
+        iterations=iterations,
+        elapsed_s=0.0,
+        success=False,
+        message=message,
+    )
+
+
+@register_method("svd")
+def svd(
+    source: np.ndarray, target: np.ndarray, *, seed: int | None = None, **unknown: object
+) -> RegistrationResult:
+    """Arun et al. (1987) least squares on all pairs (``seed`` unused: deterministic)."""
+    reject_unknown_options("svd", unknown)
+    count = len(source)
+    if count < 3:
+        return failed_result(count, f"svd needs at least 3 pairs, got {count}")
+    if is_degenerate(source) or is_degenerate(target):
+        return failed_result(count, "points are coincident or collinear: rotation undetermined")
+    rotation, translation = kabsch(source, target)
+    residual = residual_norms(rotation, translation, source, target)
+    return pose_result(
+        rotation,
+        translation,
+        np.ones(count, dtype=bool),
+        cost=float(residual @ residual),
+        iterations=1,
+    )
+
+
+@register_method("msac")
+def msac(
+    source: np.ndarray,
+    target: np.ndarray,
+    *,
+    seed: int | None = None,
+    threshold: float = 0.15,
+    confidence: float = 0.999,
+    max_iterations: int = 20000,
+    batch_size: int = 64,
+    refits: int = 3,
+    **unknown: object,
+) -> RegistrationResult:
+    """MSAC: minimise sum_j min(r_j^2, T^2) over random 3-point Kabsch hypotheses.
+
+    ``threshold`` T (metres) separates inliers; the number of hypotheses adapts to the best
+    inlier ratio w found so far, k = log(1 - confidence) / log(1 - w^3), capped at
+    ``max_iterations``. The winner is refitted on its inliers ``refits`` times.
+    """
+    reject_unknown_options("msac", unknown)
+    check_positive(threshold=threshold, batch_size=batch_size, max_iterations=max_iterations)
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    count = len(source)
+    if count < 4:
+        # Three pairs fit any hypothesis exactly: a fourth is needed to check it at all.
+        return failed_result(count, f"msac needs at least 4 pairs, got {count}")
+    if is_degenerate(source) or is_degenerate(target):
+        return failed_result(count, "points are coincident or collinear: rotation undetermined")
+    rng = np.random.default_rng(seed)
+    squared_cap = threshold * threshold
+    best_cost, best_pose = math.inf, (np.eye(3), np.zeros(3))
+    needed, drawn = max_iterations, 0
+    while drawn < min(needed, max_iterations):
+        batch = min(batch_size, max_iterations - drawn)
+        samples = _triplets(rng, count, batch)
+        rotations, translations = kabsch_batched(source[samples], target[samples])
+        predicted = source @ rotations.transpose(0, 2, 1) + translations[:, None, :]
+        squared = np.sum((target - predicted) ** 2, axis=2)  # (B, N)
+        costs = np.minimum(squared, squared_cap).sum(axis=1)
+        drawn += batch
+        winner = int(np.argmin(costs))
+        if costs[winner] < best_cost:
+            best_cost = float(costs[winner])
+            best_pose = (rotations[winner], translations[winner])
+            ratio = np.count_nonzero(squared[winner] < squared_cap) / count
+            needed = _hypotheses_needed(ratio, confidence, max_iterations)
+    rotation, translation = best_pose
+    inliers = residual_norms(rotation, translation, source, target) < threshold
+    for _ in range(refits):
+        if np.count_nonzero(inliers) < 3 or is_degenerate(source[inliers]):
+            break
+        rotation, translation = kabsch(source[inliers], target[inliers])
+        residual = residual_norms(rotation, translation, source, target)
+        refitted = residual < threshold
+        if np.array_equal(refitted, inliers):
+            break
+        inliers = refitted
+    squared = residual_norms(rotation, translation, source, target) ** 2
+    cost = float(np.minimum(squared, squared_cap).sum())
+    if np.count_nonzero(inliers) < 3:
+        return failed_result(count, "msac found fewer than 3 inliers", iterations=drawn)
+    return pose_result(rotation, translation, inliers, cost=cost, iterations=drawn)
+
+
+def _triplets(rng: np.random.Generator, count: int, batch: int) -> np.ndarray:
+    """(batch, 3) indices of three distinct pairs each, drawn without a Python loop."""
+    first = rng.integers(0, count, batch)
+    second = (first + rng.integers(1, count, batch)) % count
+    third = rng.integers(0, count - 2, batch)
+    # Skip over the two taken indices in increasing order so the third is distinct.
+    low, high = np.minimum(first, second), np.maximum(first, second)
+    third = third + (third >= low)
+    third = third + (third >= high)
+    return np.stack([first, second, third], axis=1)
+
+
+def _hypotheses_needed(ratio: float, confidence: float, cap: int) -> int:
+    """Standard RANSAC stopping rule for 3-point samples."""
+    good = ratio**3
+    if good <= 0.0:
+        return cap
+    if good >= 1.0:
+        return 1
+    return min(cap, math.ceil(math.log(1.0 - confidence) / math.log(1.0 - good)))
+
+
+def check_positive(**values: float) -> None:
+    """ValueError naming the first option that is not > 0."""
+    for name, value in values.items():
+        if not value > 0:
+            raise ValueError(f"{name} must be positive, got {value}")
+
+
+def reject_unknown_options(method: str, unknown: dict[str, object]) -> None:
+    """A misspelt option must fail loudly, not be silently ignored."""
+    if unknown:
+        raise ValueError(f"{method}: unknown option(s) {sorted(unknown)}")

@@ -1,0 +1,220 @@
+"""``swarmvo bench frontend``: per-stage speed of the odometry on real 752x480 EuRoC frames.
+
+Frames are read into memory first, so the timings are the pipeline's (rectify, detect, stereo,
+temporal, estimate, fuse) and not the disk's. OpenCV runs on one thread; start the command with
+``OMP_NUM_THREADS=1`` so that NumPy's BLAS does too (the value is recorded in the JSON). When
+the data has ground truth the same run also reports the drift against it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from estimator.config import SwarmvoConfig
+from estimator.odometry import Odometry
+
+__all__ = ["add_arguments", "run", "summarise"]
+
+DEFAULT_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "euroc_v101_micro"
+STAGES = ("rectify", "detect", "stereo", "temporal", "estimate", "fuse", "total")
+TARGET_FPS = 30.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="EuRoC/KITTI sequence")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/frontend"))
+    parser.add_argument(
+        "--method", default=None, help="registration method (default: the config's)"
+    )
+    parser.add_argument("--tracking", choices=("keyframe", "frame"), default=None)
+    parser.add_argument("--backend", action="store_true", help="include the GTSAM back end")
+    parser.add_argument("--repeat", type=int, default=3, help="passes over the sequence")
+    parser.add_argument("--frames", type=int, default=None, help="use only the first N frames")
+
+
+def _config(args: argparse.Namespace) -> SwarmvoConfig:
+    config = SwarmvoConfig()
+    if args.method is not None:
+        config.registration.method = args.method
+    if args.tracking is not None:
+        config.frontend.tracking = args.tracking
+    config.backend.enabled = bool(args.backend)
+    return SwarmvoConfig.model_validate(config.model_dump())  # re-validate the overrides
+
+
+def summarise(timings: list[dict[str, float]]) -> dict[str, dict[str, float]]:
+    """Median and 95th percentile per stage, in milliseconds."""
+    table = {}
+    for stage in STAGES:
+        values = np.array([t.get(stage, 0.0) for t in timings]) * 1e3
+        table[stage] = {
+            "median_ms": float(np.median(values)),
+            "p95_ms": float(np.percentile(values, 95)),
+        }
+    return table
+
+
+def _drift(sequence, reports) -> dict[str, float] | None:
+    from estimator.evaluation import camera_ground_truth, eq20_errors, relative_to_first
+    from estimator.geometry import invert_pose, rotation_angle_deg
+
+    if sequence.ground_truth is None:
+        return None
+    timestamps = np.array([r.timestamp_ns for r in reports], dtype=np.int64)
+    covered = sequence.ground_truth.covers(timestamps)
+    if covered.sum() < 2:
+        return None
+    truth = relative_to_first(
+        camera_ground_truth(sequence.ground_truth, timestamps[covered], sequence.rig.left.T_BS)
+    )
+    result = {}
+    for name in ("frontend_pose", "pose"):
+        poses = relative_to_first(np.array([getattr(r, name) for r in reports])[covered])
+        final = invert_pose(truth[-1]) @ poses[-1]
+        result[f"{name}_final_translation_error_m"] = float(np.linalg.norm(final[:3, 3]))
+        result[f"{name}_final_rotation_error_deg"] = float(rotation_angle_deg(final[:3, :3]))
+        result[f"{name}_eq20_rms"] = float(np.sqrt(np.mean(eq20_errors(poses, truth) ** 2)))
+    result["ground_truth_path_m"] = float(
+        np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1).sum()
+    )
+    return result
+
+
+def run(args: argparse.Namespace) -> int:
+    from estimator.datasets import open_sequence
+
+    if args.repeat < 1:
+        raise ValueError(f"--repeat must be >= 1, got {args.repeat}")
+    cv2.setNumThreads(1)
+    config = _config(args)
+    sequence = open_sequence(args.data)
+    count = len(sequence) if args.frames is None else min(args.frames, len(sequence))
+    if count < 2:
+        raise ValueError(f"need at least 2 frames, {args.data} gives {count}")
+    start = time.perf_counter()
+    frames = [sequence.load(i) for i in range(count)]
+    load_s = time.perf_counter() - start
+    imu = [
+        sequence.imu_between(
+            frames[i - 1].timestamp_ns if i else frames[0].timestamp_ns - 50_000_000,
+            frames[i].timestamp_ns,
+        )
+        for i in range(count)
+    ]
+
+    # Warm-up: JIT compilation and first-call allocations are not the steady state.
+    warmup = Odometry(sequence.rig, config, imu_noise=sequence.imu_noise)
+    for frame, batch in zip(frames[:3], imu[:3], strict=True):
+        warmup.process(frame, batch)
+
+    timings: list[dict[str, float]] = []
+    cpu_ms: list[float] = []
+    walls = []
+    reports = []
+    for _ in range(args.repeat):
+        odometry = Odometry(sequence.rig, config, imu_noise=sequence.imu_noise)
+        reports = []
+        wall = time.perf_counter()
+        for index, (frame, batch) in enumerate(zip(frames, imu, strict=True)):
+            cpu = time.process_time()
+            reports.append(odometry.process(frame, batch))
+            if index:  # frame 0 has no estimate
+                cpu_ms.append((time.process_time() - cpu) * 1e3)
+        walls.append(time.perf_counter() - wall)
+        timings.extend(report.timings_s for report in reports[1:])
+    table = summarise(timings)
+    fps_median = 1e3 / table["total"]["median_ms"]
+    fps_wall = count / float(np.median(walls))
+    # CPU time is what one quiet core would need; wall time also counts waiting for a core
+    # on a shared machine.
+    fps_cpu = 1e3 / float(np.median(cpu_ms))
+    statuses = {str(s): sum(r.status == s for r in reports) for s in {r.status for r in reports}}
+    result = {
+        "data": str(args.data),
+        "frames": count,
+        "image_size": list(sequence.rig.size),
+        "repeat": args.repeat,
+        "config": config.model_dump(),
+        "stages": table,
+        "fps_from_median_total": fps_median,
+        "fps_wall_clock": fps_wall,
+        "cpu_ms_per_frame": {
+            "median": float(np.median(cpu_ms)),
+            "p95": float(np.percentile(cpu_ms, 95)),
+        },
+        "fps_from_cpu_time": fps_cpu,
+        "target_fps": TARGET_FPS,
+        "meets_target_wall": bool(fps_median >= TARGET_FPS),
+        "meets_target_cpu": bool(fps_cpu >= TARGET_FPS),
+        "median_matches": float(np.median([r.matches for r in reports[1:]])),
+        "median_inliers": float(np.median([r.inliers for r in reports[1:]])),
+        "status_counts": statuses,
+        "drift": _drift(sequence, reports),
+        "image_load_s": load_s,
+        "environment": {
+            "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS"),
+            "opencv_threads": cv2.getNumThreads(),
+            "opencv": cv2.__version__,
+            "numpy": np.__version__,
+            "machine": platform.machine(),
+            "processor": platform.processor(),
+            "cpu_count": os.cpu_count(),
+            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        },
+    }
+    text = _markdown(result)
+    print(text)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "frontend.json").write_text(json.dumps(result, indent=2) + "\n")
+    (args.out / "frontend.md").write_text(text + "\n")
+    print(f"wrote {args.out / 'frontend.json'} and {args.out / 'frontend.md'}")
+    return 0
+
+
+def _markdown(result: dict) -> str:
+    config = result["config"]
+    lines = [
+        f"Front end on {result['frames']} frames {result['image_size'][0]}x"
+        f"{result['image_size'][1]} x {result['repeat']} passes "
+        f"(method {config['registration']['method']}, tracking {config['frontend']['tracking']}, "
+        f"back end {'on' if config['backend']['enabled'] else 'off'}, "
+        f"OMP_NUM_THREADS={result['environment']['OMP_NUM_THREADS']}, "
+        f"load average {result['environment']['load_average']})",
+        "",
+        "| stage | median ms | p95 ms |",
+        "|---|---:|---:|",
+    ]
+    for stage, row in result["stages"].items():
+        lines.append(f"| {stage} | {row['median_ms']:.2f} | {row['p95_ms']:.2f} |")
+    lines += [
+        "",
+        f"frames/s: {result['fps_from_median_total']:.1f} (median wall time per frame), "
+        f"{result['fps_wall_clock']:.1f} (wall clock over the run), "
+        f"{result['fps_from_cpu_time']:.1f} (median CPU time per frame, "
+        f"{result['cpu_ms_per_frame']['median']:.1f} ms, p95 "
+        f"{result['cpu_ms_per_frame']['p95']:.1f} ms); target {result['target_fps']:.0f}: "
+        f"wall {'met' if result['meets_target_wall'] else 'NOT met'}, "
+        f"CPU {'met' if result['meets_target_cpu'] else 'NOT met'}",
+        f"median matches {result['median_matches']:.0f}, inliers {result['median_inliers']:.0f}, "
+        f"status {result['status_counts']}",
+    ]
+    drift = result["drift"]
+    if drift:
+        lines.append(
+            "drift vs ground truth (front end / fused): final translation "
+            f"{drift['frontend_pose_final_translation_error_m'] * 100:.2f} / "
+            f"{drift['pose_final_translation_error_m'] * 100:.2f} cm, final rotation "
+            f"{drift['frontend_pose_final_rotation_error_deg']:.3f} / "
+            f"{drift['pose_final_rotation_error_deg']:.3f} deg, eq. 20 RMS "
+            f"{drift['frontend_pose_eq20_rms']:.4f} / {drift['pose_eq20_rms']:.4f} "
+            f"(ground-truth path {drift['ground_truth_path_m'] * 100:.1f} cm)"
+        )
+    return "\n".join(lines)

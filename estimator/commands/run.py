@@ -1,0 +1,246 @@
+"""``swarmvo run DATASET_DIR``: odometry over a whole EuRoC/KITTI sequence, with its metrics.
+
+Writes ``trajectory.tum`` (left-camera poses, one line per input frame), ``metrics.json``
+(accuracy against ground truth when the dataset has it, failures, per-stage median times) and
+``trajectory.png`` into ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from pydantic import ValidationError
+from tqdm import tqdm
+
+from estimator.config import SwarmvoConfig
+from estimator.datasets import Sequence, open_sequence
+from estimator.evaluation import TrajectoryEvaluation, evaluate_trajectory
+from estimator.types import FrameReport, FrameStatus
+
+ESTIMATORS = ("pso-robust", "pso", "msac", "svd")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dataset", type=Path, help="EuRoC (folder with mav0) or KITTI sequence")
+    parser.add_argument("--format", choices=("euroc", "kitti"), help="default: detected")
+    parser.add_argument(
+        "--config",
+        type=Path,
+        help="SwarmvoConfig as JSON or YAML (the flags below override its fields)",
+    )
+    parser.add_argument(
+        "--estimator", choices=ESTIMATORS, help="registration method (default: pso-robust)"
+    )
+    parser.add_argument("--seed", type=int, help="default: 0")
+    parser.add_argument("--out", type=Path, help="output folder (default: runs/<sequence>)")
+    parser.add_argument("--limit", type=int, help="process only the first N frames")
+    parser.add_argument(
+        "--imu",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="feed the IMU to the back end when the dataset has one (default: yes)",
+    )
+    parser.add_argument(
+        "--backend",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="fuse in the GTSAM back end (default: yes); --no-backend = front end only",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def load_config(path: Path) -> SwarmvoConfig:
+    """SwarmvoConfig from a JSON or YAML file (a clear error for unknown or invalid fields)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text())  # YAML is a superset of JSON
+    except yaml.YAMLError as error:
+        raise ValueError(f"{path} is not valid JSON/YAML: {error}") from error
+    try:
+        return SwarmvoConfig.model_validate(data or {})
+    except ValidationError as error:
+        raise ValueError(f"{path}: invalid configuration: {error}") from error
+
+
+@dataclass
+class RunResult:
+    sequence: Sequence
+    config: SwarmvoConfig
+    reports: list[FrameReport]
+    wall_time_s: float
+
+    @property
+    def timestamps_ns(self) -> np.ndarray:
+        return np.array([r.timestamp_ns for r in self.reports], dtype=np.int64)
+
+    def poses(self, which: str = "pose") -> np.ndarray:
+        return np.array([getattr(r, which) for r in self.reports]).reshape(-1, 4, 4)
+
+
+def build_config(
+    estimator: str | None = None,
+    seed: int | None = None,
+    imu: bool | None = None,
+    backend: bool | None = None,
+    base: SwarmvoConfig | None = None,
+) -> SwarmvoConfig:
+    """``base`` (or the defaults) with the given fields overridden; None keeps the base value."""
+    data = (base or SwarmvoConfig()).model_dump()
+    if estimator is not None:
+        data["registration"]["method"] = estimator
+    if seed is not None:
+        data["seed"] = seed
+    if backend is not None:
+        data["backend"]["enabled"] = backend
+    if imu is not None:
+        data["backend"]["use_imu"] = imu
+    return SwarmvoConfig.model_validate(data)
+
+
+def run_sequence(
+    sequence: Sequence,
+    config: SwarmvoConfig,
+    limit: int | None = None,
+    use_imu: bool = True,
+    progress: bool = False,
+) -> RunResult:
+    """Feed every frame (and the IMU samples since the previous frame) through ``Odometry``."""
+    from estimator.odometry import Odometry  # the pipeline loads only when a run starts
+
+    if limit is not None and limit < 2:
+        raise ValueError(f"--limit must be at least 2 frames, got {limit}")
+    count = len(sequence) if limit is None else min(limit, len(sequence))
+    imu_available = use_imu and sequence.imu is not None
+    odometry = Odometry(
+        sequence.rig, config, imu_noise=sequence.imu_noise if imu_available else None
+    )
+    reports: list[FrameReport] = []
+    previous_ns: int | None = None
+    start = time.perf_counter()
+    for index in tqdm(range(count), desc=sequence.name, unit="frame", disable=not progress):
+        frame = sequence.load(index)
+        imu = None
+        if imu_available and previous_ns is not None:
+            imu = sequence.imu_between(previous_ns, frame.timestamp_ns)
+        reports.append(odometry.process(frame, imu))
+        previous_ns = frame.timestamp_ns
+    return RunResult(sequence, config, reports, time.perf_counter() - start)
+
+
+def _finite(value: Any) -> Any:
+    """JSON-safe: NaN/inf become null."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    return value
+
+
+def summarize(
+    result: RunResult, rpe_delta_m: float = 1.0
+) -> tuple[dict[str, Any], dict[str, TrajectoryEvaluation]]:
+    """metrics.json content and the evaluations behind it (empty without ground truth)."""
+    reports = result.reports
+    statuses = Counter(str(r.status) for r in reports)
+    stages = sorted({stage for r in reports for stage in r.timings_s})
+    medians = {
+        stage: float(np.median([r.timings_s[stage] for r in reports if stage in r.timings_s]))
+        for stage in stages
+    }
+    summary: dict[str, Any] = {
+        "sequence": result.sequence.name,
+        "format": result.sequence.format,
+        "estimator": result.config.registration.method,
+        "seed": result.config.seed,
+        "backend": result.config.backend.enabled,
+        "imu": (
+            result.config.backend.enabled
+            and result.config.backend.use_imu
+            and result.sequence.imu is not None
+        ),
+        "frames": len(reports),
+        "frames_failed": len(reports) - statuses.get(str(FrameStatus.OK), 0),
+        "status_counts": dict(statuses),
+        "inliers_median": float(np.median([r.inliers for r in reports[1:]] or [0])),
+        "matches_median": float(np.median([r.matches for r in reports[1:]] or [0])),
+        "median_stage_time_s": medians,
+        "wall_time_s": result.wall_time_s,
+        "fps": len(reports) / result.wall_time_s if result.wall_time_s > 0 else None,
+    }
+    evaluations: dict[str, TrajectoryEvaluation] = {}
+    ground_truth = result.sequence.ground_truth
+    if ground_truth is not None:
+        T_BS = result.sequence.rig.left.T_BS
+        timestamps = result.timestamps_ns
+        sections = {"fused": "pose", "frontend": "frontend_pose"}
+        if not result.config.backend.enabled:
+            sections = {"frontend": "frontend_pose"}
+        try:
+            for label, attribute in sections.items():
+                evaluations[label] = evaluate_trajectory(
+                    timestamps, result.poses(attribute), ground_truth, T_BS, rpe_delta_m
+                )
+        except ValueError as error:
+            # E.g. ground truth that does not cover the frames: keep the run's outputs.
+            summary["evaluation_error"] = str(error)
+            return _finite(summary), {}
+        main = evaluations["fused" if "fused" in evaluations else "frontend"]
+        summary.update(main.metrics)
+        summary["frames"] = len(reports)
+        summary["frames_evaluated"] = main.metrics["frames"]
+        if len(evaluations) > 1:
+            for label, evaluation in evaluations.items():
+                summary[label] = evaluation.metrics
+    return _finite(summary), evaluations
+
+
+def write_outputs(result: RunResult, out: Path) -> dict[str, Any]:
+    from estimator.plots import plot_run
+    from estimator.trajectory_io import write_tum
+
+    out.mkdir(parents=True, exist_ok=True)
+    summary, evaluations = summarize(result)
+    write_tum(out / "trajectory.tum", result.timestamps_ns, result.poses("pose"))
+    (out / "metrics.json").write_text(json.dumps(summary, indent=2) + "\n")
+    plot_run(
+        out / "trajectory.png",
+        result.timestamps_ns,
+        result.poses("pose"),
+        np.array([r.inliers for r in result.reports]),
+        evaluations,
+        title=f"{result.sequence.name} - {result.config.registration.method}",
+    )
+    return summary
+
+
+def run(args: argparse.Namespace) -> int:
+    base = load_config(args.config) if args.config is not None else None
+    sequence = open_sequence(args.dataset, args.format)
+    config = build_config(args.estimator, args.seed, args.imu, args.backend, base)
+    result = run_sequence(
+        sequence, config, args.limit, config.backend.use_imu, progress=not args.quiet
+    )
+    out = args.out if args.out is not None else Path("runs") / sequence.name
+    summary = write_outputs(result, out)
+    line = f"{summary['frames']} frames, {summary['frames_failed']} failed"
+    if "ate_rmse_m" in summary:
+        line += (
+            f"; ATE {summary['ate_rmse_m']:.4f} m, RPE {summary['rpe_trans_rmse_m']:.4f} m / "
+            f"{summary['rpe_rot_rmse_deg']:.4f} deg per frame, "
+            f"path {summary['path_length_m']:.2f} m"
+        )
+    print(
+        f"{line}\nwrote {out / 'trajectory.tum'}, {out / 'metrics.json'}, {out / 'trajectory.png'}"
+    )
+    return 0

@@ -1,0 +1,228 @@
+"""Trajectory accuracy against ground truth, computed with evo's library API.
+
+Metrics (all on left-camera poses; ground-truth body poses become camera poses through
+``T_W_cam = T_W_body @ T_BS`` and are interpolated at the camera timestamps):
+
+- ``ate_rmse_m``: absolute trajectory error, RMSE of position differences after the SE(3)
+  Umeyama alignment of the estimate onto the ground truth (rotation + translation, no scale;
+  evo's ``align``, or the Kabsch fit when evo rejects degenerate, e.g. collinear, positions).
+- ``rpe_trans_rmse_m`` / ``rpe_rot_rmse_deg``: relative pose error between consecutive frames
+  (delta = 1 frame): RMSE of the translation norm and of the rotation angle of
+  ``(G_i^-1 G_j)^-1 (E_i^-1 E_j)``.
+- ``rpe_dist_*``: the same over pairs ``delta_m`` metres apart along the ground-truth path,
+  translation as a percentage of delta (KITTI style) and rotation in deg per metre.
+- ``eq20_rms``: rotation error e_R = ||I - R_gt R_est^T||_F per frame (eq. 20), with both
+  trajectories expressed relative to their own first pose (so the unknown world frame of the
+  estimate plays no role), and its RMS over frames. It equals 2 sqrt(2) |sin(angle / 2)|.
+- ``final_drift_m`` / ``final_rot_drift_deg``: position and rotation error of the last frame,
+  both trajectories relative to their first pose; ``final_drift_pct`` = final_drift_m / path
+  length x 100, reported only when the ground-truth path is at least ``MIN_PATH_FOR_PCT_M``
+  long (null otherwise: a percentage of a few centimetres of travel means nothing).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from evo.core import metrics
+from evo.core.filters import FilterException
+from evo.core.geometry import GeometryException
+from evo.core.trajectory import PoseTrajectory3D
+
+from estimator.datasets import GroundTruth
+from estimator.geometry import invert_pose, kabsch, make_pose, rotation_angle_deg
+
+__all__ = [
+    "MIN_PATH_FOR_PCT_M",
+    "TrajectoryEvaluation",
+    "camera_ground_truth",
+    "eq20_errors",
+    "evaluate_trajectory",
+    "path_length",
+]
+
+MIN_PATH_FOR_PCT_M = 1.0
+
+
+@dataclass
+class TrajectoryEvaluation:
+    """Per-frame errors and the summary metrics of one estimated trajectory."""
+
+    timestamps_ns: np.ndarray  # (M,) frames that have ground truth
+    estimate: np.ndarray  # (M, 4, 4) as given
+    reference: np.ndarray  # (M, 4, 4) ground-truth camera poses
+    aligned: np.ndarray  # (M, 4, 4) estimate after SE(3) alignment onto the reference
+    ate_errors_m: np.ndarray  # (M,)
+    rpe_trans_m: np.ndarray  # (M - 1,)
+    rpe_rot_deg: np.ndarray  # (M - 1,)
+    eq20: np.ndarray  # (M,)
+    metrics: dict[str, Any] = field(default_factory=dict)
+
+
+def camera_ground_truth(
+    ground_truth: GroundTruth, timestamps_ns: np.ndarray, T_BS: np.ndarray
+) -> np.ndarray:
+    """Ground-truth camera-in-world poses at the given times (interpolated where needed)."""
+    return ground_truth.interpolate(timestamps_ns) @ np.asarray(T_BS, dtype=float)
+
+
+def path_length(poses: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
+
+
+def relative_to_first(poses: np.ndarray) -> np.ndarray:
+    return invert_pose(poses[0]) @ poses
+
+
+def eq20_errors(estimate: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """||I - R_gt R_est^T||_F per frame, both trajectories relative to their first pose."""
+    r_est = relative_to_first(estimate)[:, :3, :3]
+    r_gt = relative_to_first(reference)[:, :3, :3]
+    product = r_gt @ np.swapaxes(r_est, -1, -2)
+    return np.linalg.norm(np.eye(3) - product, axis=(-2, -1))
+
+
+def _evo_trajectory(timestamps_ns: np.ndarray, poses: np.ndarray) -> PoseTrajectory3D:
+    seconds = (timestamps_ns - timestamps_ns[0]) * 1e-9  # relative: keeps float precision
+    return PoseTrajectory3D(poses_se3=list(poses), timestamps=seconds)
+
+
+def _aligned(
+    estimate: PoseTrajectory3D, reference: PoseTrajectory3D
+) -> tuple[PoseTrajectory3D, str]:
+    """Estimate moved by the SE(3) Umeyama fit of its positions onto the reference.
+
+    evo refuses rank-deficient position sets (a straight line, standing still); the least-
+    squares fit is then not unique but still well defined, and the det-guarded Kabsch fit
+    gives one minimiser, so the ATE stays defined for such runs.
+    """
+    aligned = copy.deepcopy(estimate)
+    try:
+        aligned.align(reference, correct_scale=False)
+        return aligned, "umeyama"
+    except GeometryException:
+        rotation, translation = kabsch(estimate.positions_xyz, reference.positions_xyz)
+        aligned.transform(make_pose(rotation, translation))
+        return aligned, "kabsch (degenerate positions)"
+
+
+def _rmse(values: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(values)))) if len(values) else float("nan")
+
+
+def _rpe(
+    reference: PoseTrajectory3D,
+    estimate: PoseTrajectory3D,
+    relation: metrics.PoseRelation,
+    delta: float,
+    unit: metrics.Unit,
+) -> np.ndarray:
+    metric = metrics.RPE(relation, delta=delta, delta_unit=unit, pairs_from_reference=True)
+    metric.process_data((reference, estimate))
+    return np.asarray(metric.error, dtype=float)
+
+
+def evaluate_trajectory(
+    timestamps_ns: np.ndarray,
+    poses: np.ndarray,
+    ground_truth: GroundTruth,
+    T_BS: np.ndarray | None = None,
+    rpe_delta_m: float = 1.0,
+) -> TrajectoryEvaluation:
+    """Compare estimated left-camera poses (N, 4, 4) at ``timestamps_ns`` with ground truth.
+
+    Frames outside the ground-truth time range are left out (counted in
+    ``frames_without_gt``); at least two frames must remain.
+    """
+    timestamps_ns = np.asarray(timestamps_ns, dtype=np.int64)
+    poses = np.asarray(poses, dtype=float)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) != len(timestamps_ns):
+        raise ValueError(
+            f"need (N, 4, 4) poses for N timestamps, got {poses.shape} for {len(timestamps_ns)}"
+        )
+    if not np.isfinite(poses).all():
+        raise ValueError("estimated poses contain NaN or inf")
+    covered = ground_truth.covers(timestamps_ns)
+    if covered.sum() < 2:
+        raise ValueError(
+            f"only {int(covered.sum())} of {len(timestamps_ns)} frames fall inside the "
+            "ground-truth time range; need at least 2 to evaluate"
+        )
+    timestamps_ns, estimate = timestamps_ns[covered], poses[covered]
+    reference = camera_ground_truth(
+        ground_truth, timestamps_ns, np.eye(4) if T_BS is None else T_BS
+    )
+
+    traj_ref = _evo_trajectory(timestamps_ns, reference)
+    traj_est = _evo_trajectory(timestamps_ns, estimate)
+    traj_aligned, alignment = _aligned(traj_est, traj_ref)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((traj_ref, traj_aligned))
+    ate_errors = np.asarray(ape.error, dtype=float)
+
+    rpe_trans = _rpe(
+        traj_ref, traj_est, metrics.PoseRelation.translation_part, 1, metrics.Unit.frames
+    )
+    rpe_rot = _rpe(
+        traj_ref, traj_est, metrics.PoseRelation.rotation_angle_deg, 1, metrics.Unit.frames
+    )
+    length = path_length(reference)
+    try:
+        dist_trans = _rpe(
+            traj_ref,
+            traj_est,
+            metrics.PoseRelation.translation_part,
+            rpe_delta_m,
+            metrics.Unit.meters,
+        )
+        dist_rot = _rpe(
+            traj_ref,
+            traj_est,
+            metrics.PoseRelation.rotation_angle_deg,
+            rpe_delta_m,
+            metrics.Unit.meters,
+        )
+    except FilterException:
+        dist_trans = dist_rot = np.zeros(0)  # the path is shorter than one delta
+
+    eq20 = eq20_errors(estimate, reference)
+    final = invert_pose(relative_to_first(reference)[-1]) @ relative_to_first(estimate)[-1]
+    final_drift = float(np.linalg.norm(final[:3, 3]))
+    summary: dict[str, Any] = {
+        "frames": len(timestamps_ns),
+        "frames_without_gt": int((~covered).sum()),
+        "alignment": alignment,
+        "path_length_m": length,
+        "ate_rmse_m": _rmse(ate_errors),
+        "ate_mean_m": float(ate_errors.mean()),
+        "ate_max_m": float(ate_errors.max()),
+        "rpe_trans_rmse_m": _rmse(rpe_trans),
+        "rpe_rot_rmse_deg": _rmse(rpe_rot),
+        "rpe_rot_max_deg": float(rpe_rot.max()),
+        "rpe_delta_m": rpe_delta_m,
+        "rpe_dist_pairs": len(dist_trans),
+        "rpe_dist_trans_pct": _rmse(dist_trans) / rpe_delta_m * 100 if len(dist_trans) else None,
+        "rpe_dist_rot_deg_per_m": _rmse(dist_rot) / rpe_delta_m if len(dist_rot) else None,
+        "eq20_rms": _rmse(eq20),
+        "eq20_max": float(eq20.max()),
+        "final_drift_m": final_drift,
+        "final_rot_drift_deg": float(rotation_angle_deg(final[:3, :3])),
+        "final_drift_pct": final_drift / length * 100 if length >= MIN_PATH_FOR_PCT_M else None,
+        "ate_pct_of_path": _rmse(ate_errors) / length * 100
+        if length >= MIN_PATH_FOR_PCT_M
+        else None,
+    }
+    return TrajectoryEvaluation(
+        timestamps_ns=timestamps_ns,
+        estimate=estimate,
+        reference=reference,
+        aligned=np.array(traj_aligned.poses_se3),
+        ate_errors_m=ate_errors,
+        rpe_trans_m=rpe_trans,
+        rpe_rot_deg=rpe_rot,
+        eq20=eq20,
+        metrics=summary,
+    )

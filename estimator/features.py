@@ -1,0 +1,201 @@
+"""Feature detection spread over the image, and descriptor matching between candidate pairs.
+
+Registration is only as good as the geometry of its points: corners bunched in one textured
+corner give a poorly conditioned rotation. Detection therefore over-samples and then keeps the
+strongest corners cell by cell (grid bucketing), round-robin over the cells, up to a budget.
+
+Matching works on *candidate pairs* that the caller has already restricted geometrically (the
+same row band for stereo, a search radius in time), so the descriptor distances computed are
+only the plausible ones and the ratio / mutual checks happen within those candidates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from estimator.config import FrontendConfig
+
+__all__ = [
+    "FeatureDetector",
+    "Features",
+    "MatchSet",
+    "descriptor_distances",
+    "grid_select",
+    "match_candidates",
+]
+
+
+@dataclass(frozen=True)
+class Features:
+    """Keypoints of one image: pixel positions, descriptors and corner strength."""
+
+    points: np.ndarray  # (N, 2) float64, (x, y) pixels
+    descriptors: np.ndarray  # (N, 32) uint8 for ORB, (N, 128) float32 for SIFT
+    response: np.ndarray  # (N,) detector response
+    binary: bool  # True: Hamming distance, False: L2
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def subset(self, index: np.ndarray) -> Features:
+        return Features(
+            self.points[index], self.descriptors[index], self.response[index], self.binary
+        )
+
+
+@dataclass(frozen=True)
+class MatchSet:
+    """Accepted pairs (a[i] <-> b[i]) with their descriptor distances."""
+
+    a: np.ndarray  # (M,) int
+    b: np.ndarray  # (M,) int
+    distance: np.ndarray  # (M,) float
+
+    def __len__(self) -> int:
+        return len(self.a)
+
+
+def grid_select(
+    points: np.ndarray,
+    response: np.ndarray,
+    image_size: tuple[int, int],
+    grid: tuple[int, int],
+    budget: int,
+) -> np.ndarray:
+    """Indices of at most ``budget`` points: every cell's best, then every cell's second, ...
+
+    Round-robin by rank spreads the budget evenly where there is texture and hands the share of
+    empty cells to the textured ones, instead of wasting it.
+    """
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.intp)
+    width, height = image_size
+    rows, cols = grid
+    col = np.clip((points[:, 0] * cols / width).astype(np.intp), 0, cols - 1)
+    row = np.clip((points[:, 1] * rows / height).astype(np.intp), 0, rows - 1)
+    cell = row * cols + col
+    by_cell = np.lexsort((-response, cell))  # within each cell, strongest first
+    sorted_cell = cell[by_cell]
+    starts = np.flatnonzero(np.r_[True, sorted_cell[1:] != sorted_cell[:-1]])
+    counts = np.diff(np.r_[starts, len(sorted_cell)])
+    rank = np.empty(len(points), dtype=np.intp)
+    rank[by_cell] = np.arange(len(points)) - np.repeat(starts, counts)
+    order = np.lexsort((-response, rank))
+    return np.sort(order[:budget])
+
+
+class FeatureDetector:
+    """ORB (default) or SIFT corners with descriptors, bucketed over a grid."""
+
+    def __init__(self, config: FrontendConfig) -> None:
+        self.config = config
+        candidates = int(np.ceil(config.max_features * config.detection_oversampling))
+        if config.detector == "orb":
+            self._detector = cv2.ORB_create(
+                nfeatures=candidates,
+                scaleFactor=config.orb_scale_factor,
+                nlevels=config.orb_levels,
+                fastThreshold=config.fast_threshold,
+            )
+        else:
+            self._detector = cv2.SIFT_create(nfeatures=candidates)
+        self.binary = config.detector == "orb"
+
+    def detect(self, image: np.ndarray) -> Features:
+        """Keypoints and descriptors of one 8-bit grey image."""
+        keypoints, descriptors = self._detector.detectAndCompute(image, None)
+        if not keypoints or descriptors is None:
+            width = 32 if self.binary else 128
+            dtype = np.uint8 if self.binary else np.float32
+            return Features(np.zeros((0, 2)), np.zeros((0, width), dtype), np.zeros(0), self.binary)
+        points = cv2.KeyPoint_convert(keypoints).astype(float)
+        response = np.fromiter((k.response for k in keypoints), float, len(keypoints))
+        height, width = image.shape[:2]
+        keep = grid_select(
+            points,
+            response,
+            (width, height),
+            (self.config.grid_rows, self.config.grid_cols),
+            self.config.max_features,
+        )
+        return Features(points[keep], descriptors[keep], response[keep], self.binary)
+
+
+def descriptor_distances(
+    a: np.ndarray, b: np.ndarray, ia: np.ndarray, ib: np.ndarray, binary: bool
+) -> np.ndarray:
+    """Distance between descriptors a[ia] and b[ib], pair by pair (Hamming or L2)."""
+    # np.take gathers whole rows much faster than fancy indexing of a 2-D array.
+    if binary:
+        # 64-bit words: 4 popcounts per 256-bit ORB descriptor instead of 32.
+        xor = np.bitwise_xor(np.take(_as_words(a), ia, axis=0), np.take(_as_words(b), ib, axis=0))
+        counts = np.bitwise_count(xor)
+        total = counts[:, 0].astype(float)
+        for word in range(1, counts.shape[1]):  # a few words; a sum over axis 1 is slower
+            total += counts[:, word]
+        return total
+    difference = np.take(a, ia, axis=0).astype(np.float32) - np.take(b, ib, axis=0)
+    return np.sqrt(np.einsum("ij,ij->i", difference, difference)).astype(float)
+
+
+def _as_words(descriptors: np.ndarray) -> np.ndarray:
+    """Binary descriptors viewed as 64-bit words (padded with zero bytes when needed)."""
+    descriptors = np.ascontiguousarray(descriptors, dtype=np.uint8)
+    width = descriptors.shape[1]
+    if width % 8:
+        descriptors = np.pad(descriptors, ((0, 0), (0, 8 - width % 8)))
+    return descriptors.view(np.uint64)
+
+
+def _best_per_group(group: np.ndarray, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Row index of each group's smallest distance, and that group's second-smallest distance.
+
+    Scatter-min reductions (``np.minimum.at``) instead of a sort: linear in the number of
+    candidate pairs. Ties go to the lowest row. Returns one entry per group that occurs.
+    """
+    size = int(group.max()) + 1  # groups are point indices: dense tables, no sorting
+    rows = np.arange(len(group))
+    best_distance = np.full(size, np.inf)
+    np.minimum.at(best_distance, group, distance)
+    is_best = distance == best_distance[group]
+    best_row = np.full(size, len(group))
+    np.minimum.at(best_row, group[is_best], rows[is_best])
+    present = best_row < len(group)
+    best_row = best_row[present]
+    others = np.ones(len(group), dtype=bool)
+    others[best_row] = False
+    second = np.full(size, np.inf)
+    np.minimum.at(second, group[others], distance[others])
+    return best_row, second[present]
+    return best_row, second
+
+
+def match_candidates(
+    ia: np.ndarray,
+    ib: np.ndarray,
+    distance: np.ndarray,
+    *,
+    ratio: float,
+    max_distance: float,
+    mutual: bool = True,
+) -> MatchSet:
+    """Pick one partner per ``a`` among candidate pairs (ia, ib, distance).
+
+    A pair is accepted when it is a's nearest candidate, clearly better than a's second one
+    (Lowe's ratio test), within ``max_distance`` and, with ``mutual``, also b's nearest.
+    """
+    if len(ia) == 0:
+        empty = np.zeros(0, dtype=np.intp)
+        return MatchSet(empty, empty, np.zeros(0))
+    best_of_a, second = _best_per_group(ia, distance)
+    accept = (distance[best_of_a] <= max_distance) & (distance[best_of_a] < ratio * second)
+    chosen = best_of_a[accept]
+    if mutual:
+        best_of_b, _ = _best_per_group(ib, distance)
+        owner = np.full(int(ib.max()) + 1, -1, dtype=np.intp)
+        owner[ib[best_of_b]] = ia[best_of_b]
+        chosen = chosen[owner[ib[chosen]] == ia[chosen]]
+    return MatchSet(ia[chosen].astype(np.intp), ib[chosen].astype(np.intp), distance[chosen])

@@ -1,0 +1,399 @@
+"""The stereo odometry pipeline: one stereo frame in, one pose report out.
+
+Per frame: rectify -> detect -> match stereo -> triangulate -> match in time -> estimate the
+relative pose by rigid 3D-3D registration -> chain it onto the reference pose -> fuse with the
+IMU in the back end. Frames are matched against a *reference*: by default a keyframe that is
+kept while the view still overlaps well, so that standing still (or hovering) measures the same
+relative pose again and again instead of integrating frame-to-frame noise into a creeping drift;
+``frontend.tracking = "frame"`` matches against the previous frame instead.
+
+Geometry runs in the rectified left camera frame; reported poses are of the original
+(unrectified) left camera, so the relative pose is conjugated by the rectifying rotation.
+When the keyframe cannot be tracked the previous frame is tried before giving up. A frame
+without any estimate coasts at the last measured velocity (``degraded``) for at most
+``frontend.max_coast_frames`` frames, after which the pose is held (``lost``); either way it
+becomes the new reference, so tracking restarts from it. With the back end enabled, the fused
+pose and status are the back end's (it bridges such frames with the IMU).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from estimator.calibration import StereoRig
+from estimator.config import SwarmvoConfig
+from estimator.features import FeatureDetector
+from estimator.geometry import invert_pose, make_pose, rotation_angle_deg, transform_points
+from estimator.registration import RegistrationResult, register
+from estimator.stereo import StereoMatcher, StereoPoints
+from estimator.temporal import Correspondences, match_temporal
+from estimator.types import FrameReport, FrameStatus, ImuBatch, ImuNoise, StereoFrame
+
+__all__ = ["Odometry", "frame_seed", "to_grey8"]
+
+
+def frame_seed(seed: int, index: int) -> int:
+    """Estimator seed of frame ``index``: reproducible in any process, distinct per frame."""
+    return int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
+
+
+def to_grey8(image: np.ndarray, name: str = "image") -> np.ndarray:
+    """8-bit grey from grey / BGR / BGRA images of 8 or 16 bits (16-bit scaled by 1/257)."""
+    image = np.asarray(image)
+    if image.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"{name} must be uint8 or uint16, got {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim == 3 and image.shape[2] in (3, 4):
+        code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        image = cv2.cvtColor(image, code)
+    if image.ndim != 2:
+        raise ValueError(f"{name} must be (H, W) grey or (H, W, 3|4) colour, got {image.shape}")
+    if image.dtype == np.uint16:
+        image = (image.astype(np.uint32) * 255 + 32767) // 65535  # full range onto 0..255
+    return np.ascontiguousarray(image, dtype=np.uint8)
+
+
+@dataclass
+class _Reference:
+    """The frame the current one is matched against, with its front-end pose."""
+
+    index: int
+    points: StereoPoints
+    image: np.ndarray  # rectified left image
+    pose: np.ndarray  # left camera in world (original camera frame)
+
+
+@dataclass
+class _Estimate:
+    """A relative pose of the current frame w.r.t. the reference, or why there is none."""
+
+    reference_from_current: np.ndarray | None  # rectified frames; None when the estimate failed
+    result: RegistrationResult | None
+    message: str
+    pairs: Correspondences | None = None
+    reference: _Reference | None = None  # the frame it was measured against
+
+
+class Odometry:
+    """Stereo visual odometry with an optional GTSAM/IMU back end (``config.backend``)."""
+
+    def __init__(
+        self,
+        rig: StereoRig,
+        config: SwarmvoConfig | None = None,
+        imu_noise: ImuNoise | None = None,
+        initial_pose: np.ndarray | None = None,
+        first_index: int = 0,
+    ) -> None:
+        self.rig = rig
+        self.config = config if config is not None else SwarmvoConfig()
+        self.rectification = rig.rectification
+        self.detector = FeatureDetector(self.config.frontend)
+        self.stereo = StereoMatcher(self.config.frontend, self.rectification)
+        self._rect_from_camera = make_pose(self.rectification.R_left, np.zeros(3))
+        self._camera_from_rect = invert_pose(self._rect_from_camera)
+        self._initial_pose = _checked_pose(initial_pose) if initial_pose is not None else None
+        self._backend = self._make_backend(imu_noise) if self.config.backend.enabled else None
+        self._world_from_backend = np.eye(4)  # anchors the back end's world on initial_pose
+        self._index = int(first_index) - 1
+        self._count = 0
+        self._last_timestamp_ns: int | None = None
+        self._pose = self._initial_pose if self._initial_pose is not None else np.eye(4)
+        self._reference: _Reference | None = None  # keyframe (or previous frame)
+        self._previous: _Reference | None = None
+        self._reference_from_previous = np.eye(4)  # rectified; for predicting the search
+        self._motion = np.eye(4)  # last frame-to-frame motion (rectified), constant velocity
+        self._failures = 0  # consecutive frames without a vision estimate
+
+    def _make_backend(self, imu_noise: ImuNoise | None):
+        try:
+            from estimator.backend import FusionBackend
+        except ImportError as error:  # pragma: no cover - the back end ships with the package
+            raise ValueError(
+                f"backend.enabled is set but the back end cannot be imported ({error}); "
+                "set backend.enabled = false"
+            ) from error
+        return FusionBackend(
+            self.config.backend, body_from_camera=self.rig.left.T_BS, imu_noise=imu_noise
+        )
+
+    @property
+    def frame_count(self) -> int:
+        return self._count
+
+    # ------------------------------------------------------------------ the algorithm
+
+    def process(self, frame: StereoFrame, imu: ImuBatch | None = None) -> FrameReport:
+        """Pose of the left camera at ``frame``; ``imu`` holds the samples since the last frame."""
+        timings: dict[str, float] = {}
+        with _stage(timings, "total"):
+            left, right = self._validated(frame)
+            self._index += 1
+            self._count += 1
+            with _stage(timings, "rectify"):
+                left, right = self.rectification.rectify(left, right)
+            with _stage(timings, "detect"):
+                left_features = self.detector.detect(left)
+                right_features = self.detector.detect(right)
+            with _stage(timings, "stereo"):
+                points = self.stereo.match(left_features, right_features, left, right)
+            if self._reference is None:
+                estimate = _Estimate(None, None, "")
+            else:
+                estimate = self._track(points, left, timings)
+            previous_pose = self._pose
+            frontend_pose, status, message = self._chain(estimate)
+            relative_pose = invert_pose(previous_pose) @ frontend_pose
+            with _stage(timings, "fuse"):
+                pose, status, message = self._fuse(
+                    frame, imu, frontend_pose, relative_pose, estimate, status, message
+                )
+            self._update_reference(points, left, frontend_pose, estimate)
+        result, pairs = estimate.result, estimate.pairs
+        return FrameReport(
+            index=self._index,
+            timestamp_ns=int(frame.timestamp_ns),
+            pose=pose,
+            frontend_pose=frontend_pose,
+            relative_pose=relative_pose,
+            status=status,
+            matches=len(pairs) if pairs is not None else 0,
+            inliers=int(result.inliers.sum()) if result is not None else 0,
+            support=int(result.support) if result is not None else 0,
+            timings_s=timings,
+            message=message,
+        )
+
+    # ------------------------------------------------------------------ stages
+
+    def _validated(self, frame: StereoFrame) -> tuple[np.ndarray, np.ndarray]:
+        timestamp = int(frame.timestamp_ns)
+        if self._last_timestamp_ns is not None and timestamp <= self._last_timestamp_ns:
+            raise ValueError(
+                f"frame timestamps must increase: {timestamp} ns after {self._last_timestamp_ns} ns"
+            )
+        left = to_grey8(frame.left, "left image")
+        right = to_grey8(frame.right, "right image")
+        expected = (self.rig.left.height, self.rig.left.width)
+        for name, image in (("left", left), ("right", right)):
+            if image.shape != expected:
+                raise ValueError(
+                    f"{name} image is {image.shape[1]}x{image.shape[0]}, the calibration "
+                    f"expects {expected[1]}x{expected[0]}"
+                )
+        self._last_timestamp_ns = timestamp
+        return left, right
+
+    def _track(
+        self, points: StereoPoints, image: np.ndarray, timings: dict[str, float]
+    ) -> _Estimate:
+        """Relative pose against the keyframe; if that fails, against the previous frame."""
+        assert self._reference is not None and self._previous is not None
+        keyframe_prediction = self._reference_from_previous @ self._motion
+        estimate = self._estimate_against(
+            self._reference, keyframe_prediction, points, image, timings
+        )
+        if estimate.reference_from_current is not None or self._previous is self._reference:
+            return estimate
+        retry = self._estimate_against(self._previous, self._motion, points, image, timings)
+        if retry.reference_from_current is None:
+            return estimate
+        retry.message = (
+            f"keyframe {self._reference.index} not tracked ({estimate.message}); "
+            "tracked against the previous frame"
+        )
+        return retry
+
+    def _estimate_against(
+        self,
+        reference: _Reference,
+        predicted_reference_from_current: np.ndarray,
+        points: StereoPoints,
+        image: np.ndarray,
+        timings: dict[str, float],
+    ) -> _Estimate:
+        with _stage(timings, "temporal"):
+            pairs = match_temporal(
+                reference.points,
+                points,
+                self.config.frontend,
+                self.rectification,
+                predicted_current_from_reference=invert_pose(predicted_reference_from_current),
+                images=(reference.image, image),
+            )
+        with _stage(timings, "estimate"):
+            estimate = self._estimate(pairs)
+        estimate.pairs, estimate.reference = pairs, reference
+        return estimate
+
+    def _estimate(self, correspondences: Correspondences) -> _Estimate:
+        """Rigid registration: reference points ~ R current points + t (T_ref_cur)."""
+        frontend = self.config.frontend
+        needed = frontend.min_matches
+        if len(correspondences) < needed:
+            return _Estimate(None, None, f"{len(correspondences)} temporal matches (< {needed})")
+        registration = self.config.registration
+        result = register(
+            correspondences.current_points,
+            correspondences.reference_points,
+            method=registration.method,
+            seed=frame_seed(self.config.seed, self._index),
+            **registration.options,
+        )
+        inliers = int(result.inliers.sum())
+        if not result.success:
+            return _Estimate(None, result, f"registration failed: {result.message}")
+        if inliers < needed:
+            return _Estimate(None, result, f"{inliers} registration inliers (< {needed})")
+        if inliers < frontend.min_inlier_ratio * len(correspondences):
+            # Matches that passed the ratio and mutual checks are mostly right in a static
+            # scene; a pose that explains only a sliver of them is a failed search.
+            return _Estimate(
+                None,
+                result,
+                f"only {inliers} of {len(correspondences)} matches are inliers "
+                f"(< {frontend.min_inlier_ratio:.0%})",
+            )
+        pose = make_pose(result.rotation, result.translation)
+        return _Estimate(pose, result, "")
+
+    def _chain(self, estimate: _Estimate) -> tuple[np.ndarray, FrameStatus, str]:
+        """pose_k = pose_ref @ T_ref_cur (paper eq. 2), in the original left camera frame."""
+        if self._reference is None:
+            message = (
+                "resumed from stored pose"
+                if self._initial_pose is not None
+                else ("first frame: world = this left camera")
+            )
+            return self._pose, FrameStatus.OK, message
+        if estimate.reference_from_current is None or estimate.reference is None:
+            if self._failures < self.config.frontend.max_coast_frames:
+                # Constant velocity: a moving camera keeps moving; a still one stays still.
+                motion = self._camera_from_rect @ self._motion @ self._rect_from_camera
+                message = f"{estimate.message}; pose predicted at constant velocity"
+                return self._pose @ motion, FrameStatus.DEGRADED, message
+            return self._pose, FrameStatus.LOST, f"{estimate.message}; pose held"
+        reference_from_current = (
+            self._camera_from_rect @ estimate.reference_from_current @ self._rect_from_camera
+        )
+        return estimate.reference.pose @ reference_from_current, FrameStatus.OK, estimate.message
+
+    def _fuse(
+        self,
+        frame: StereoFrame,
+        imu: ImuBatch | None,
+        frontend_pose: np.ndarray,
+        relative_pose: np.ndarray,
+        estimate: _Estimate,
+        status: FrameStatus,
+        message: str,
+    ) -> tuple[np.ndarray, FrameStatus, str]:
+        """Back-end pose and status (the front-end ones when the back end is off)."""
+        if self._backend is None:
+            return frontend_pose, status, message
+        failed = estimate.reference_from_current is None
+        first = self._reference is None
+        residuals = None
+        inliers = 0
+        if estimate.result is not None and not failed:
+            inliers = int(estimate.result.inliers.sum())
+            residuals = self._inlier_residuals(estimate)
+        fused = self._backend.add_frame(
+            int(frame.timestamp_ns),
+            relative_pose=None if failed and not first else relative_pose,
+            inlier_residuals=residuals,
+            inlier_count=inliers,
+            imu=imu,
+        )
+        if first:
+            self._world_from_backend = self._pose @ invert_pose(fused.pose)
+            if self._initial_pose is None:
+                self._world_from_backend = np.eye(4)
+        text = "; ".join(part for part in (message, fused.message) if part)
+        return self._world_from_backend @ fused.pose, fused.status, text
+
+    def _inlier_residuals(self, estimate: _Estimate) -> np.ndarray:
+        """||p - (R q + t)|| of the registration inliers (metres), for the back-end covariance."""
+        pairs, result = estimate.pairs, estimate.result
+        assert pairs is not None and result is not None
+        assert estimate.reference_from_current is not None
+        mask = result.inliers
+        moved = transform_points(estimate.reference_from_current, pairs.current_points[mask])
+        return np.linalg.norm(pairs.reference_points[mask] - moved, axis=1)
+
+    def _update_reference(
+        self, points: StereoPoints, image: np.ndarray, pose: np.ndarray, estimate: _Estimate
+    ) -> None:
+        """Keep the keyframe while it still tracks well; otherwise this frame becomes it.
+
+        A failed frame with too few points to be matched against (black, blurred) does not
+        replace the reference: the next usable frame is matched against the old one again.
+        """
+        frontend = self.config.frontend
+        self._pose = pose
+        current = _Reference(self._index, points, image, pose)
+        reference_from_current = estimate.reference_from_current
+        first = self._reference is None
+        failed = reference_from_current is None and not first
+        self._failures = self._failures + 1 if failed else 0
+        if failed:
+            if self._failures > frontend.max_coast_frames:
+                self._motion = np.eye(4)  # the pose is held from now on
+            if len(points) < frontend.keyframe_min_inliers:
+                # Unusable frame: keep the references, and predict the next frame from here.
+                self._reference_from_previous = self._reference_from_previous @ self._motion
+                return
+        elif reference_from_current is not None:
+            if estimate.reference is self._reference:
+                self._motion = invert_pose(self._reference_from_previous) @ reference_from_current
+            else:
+                self._motion = reference_from_current  # measured against the previous frame
+        if first or failed or self._needs_new_reference(estimate):
+            self._reference = current
+            self._reference_from_previous = np.eye(4)
+        else:
+            assert reference_from_current is not None
+            self._reference_from_previous = reference_from_current
+        self._previous = current
+
+    def _needs_new_reference(self, estimate: _Estimate) -> bool:
+        frontend = self.config.frontend
+        if frontend.tracking == "frame" or estimate.reference is not self._reference:
+            return True
+        motion = estimate.reference_from_current
+        assert estimate.result is not None and motion is not None
+        return bool(
+            estimate.result.inliers.sum() < frontend.keyframe_min_inliers
+            or np.linalg.norm(motion[:3, 3]) > frontend.keyframe_max_translation_m
+            or rotation_angle_deg(motion[:3, :3]) > frontend.keyframe_max_rotation_deg
+        )
+
+
+def _checked_pose(pose: np.ndarray) -> np.ndarray:
+    matrix = np.asarray(pose, dtype=float)
+    if matrix.shape != (4, 4) or not np.isfinite(matrix).all():
+        raise ValueError(f"initial_pose must be a finite 4x4 matrix, got shape {matrix.shape}")
+    rotation = matrix[:3, :3]
+    if (
+        np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-6
+        or np.linalg.det(rotation) < 0
+        or not np.allclose(matrix[3], [0, 0, 0, 1])
+    ):
+        raise ValueError("initial_pose must be a rigid transform (rotation block orthonormal)")
+    return matrix
+
+
+@contextmanager
+def _stage(timings: dict[str, float], name: str) -> Iterator[None]:
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        timings[name] = timings.get(name, 0.0) + time.perf_counter() - start

@@ -1,0 +1,247 @@
+"""Stereo matching along rectified rows and triangulation with a per-point depth uncertainty.
+
+After rectification a 3D point lies on the same image row in both cameras, at a positive
+disparity d = x_left - x_right, and its depth is Z = f b / d. Matching therefore only compares
+descriptors of right keypoints inside a narrow row band and the allowed disparity range, which
+keeps the comparisons few and the false matches rare. Keypoints sit on the pixel grid (coarser
+on higher pyramid levels), so the disparity is refined by a zero-mean SAD patch search along the
+row with an equiangular fit through the best three costs (like ORB-SLAM's stereo matching, which
+fits a parabola), or by Lucas-Kanade. A disparity noise of sigma_d pixels gives
+sigma_Z = Z^2 sigma_d / (f b).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from estimator.calibration import Rectification
+from estimator.config import FrontendConfig
+from estimator.features import Features, descriptor_distances, match_candidates
+
+__all__ = ["StereoMatcher", "StereoPoints", "row_band_pairs", "triangulate"]
+
+# Disparity refinement searches this many pixels either side of the descriptor match.
+_REFINE_RADIUS = 1
+
+
+@dataclass(frozen=True)
+class StereoPoints:
+    """Triangulated stereo matches of one frame, in the rectified left camera frame."""
+
+    pixels: np.ndarray  # (N, 2) rectified left pixel (u, v) behind each point
+    disparity: np.ndarray  # (N,) pixels
+    points: np.ndarray  # (N, 3) metres, rectified left camera
+    depth_sigma: np.ndarray  # (N,) metres
+    descriptors: np.ndarray  # (N, D) left descriptors
+    binary: bool
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    @staticmethod
+    def empty(binary: bool = True) -> StereoPoints:
+        width, dtype = (32, np.uint8) if binary else (128, np.float32)
+        return StereoPoints(
+            np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3)), np.zeros(0),
+            np.zeros((0, width), dtype), binary,
+        )  # fmt: skip
+
+
+def row_band_pairs(
+    left: np.ndarray,
+    right: np.ndarray,
+    row_tolerance: float,
+    disparity_range: tuple[float, float],
+) -> tuple[np.ndarray, np.ndarray]:
+    """All (i, j) with |y_l - y_r| <= tol and min <= x_l - x_r <= max, without an N x M table.
+
+    Right points are sorted by row once; each left point's band is a contiguous slice found by
+    binary search, and the slices are expanded into index pairs with one ``np.repeat``.
+    """
+    if len(left) == 0 or len(right) == 0:
+        empty = np.zeros(0, dtype=np.intp)
+        return empty, empty
+    order = np.argsort(right[:, 1], kind="stable")
+    rows = right[order, 1]
+    low = np.searchsorted(rows, left[:, 1] - row_tolerance, side="left")
+    high = np.searchsorted(rows, left[:, 1] + row_tolerance, side="right")
+    counts = high - low
+    ia = np.repeat(np.arange(len(left)), counts)
+    offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    ib = order[np.repeat(low, counts) + offsets]
+    disparity = left[ia, 0] - right[ib, 0]
+    inside = (disparity >= disparity_range[0]) & (disparity <= disparity_range[1])
+    return ia[inside], ib[inside]
+
+
+def triangulate(
+    pixels: np.ndarray, disparity: np.ndarray, rectification: Rectification
+) -> np.ndarray:
+    """Rectified-left-camera points from pixels and disparities (Z = f b / d)."""
+    f, b = rectification.fx, rectification.baseline
+    depth = f * b / disparity
+    x = (pixels[:, 0] - rectification.cx) * depth / f
+    y = (pixels[:, 1] - rectification.cy) * depth / f
+    return np.column_stack([x, y, depth])
+
+
+class StereoMatcher:
+    """Match left to right keypoints of a rectified pair and triangulate them."""
+
+    def __init__(self, config: FrontendConfig, rectification: Rectification) -> None:
+        if config.min_disparity_px >= config.max_disparity_px:
+            raise ValueError(
+                f"min_disparity_px ({config.min_disparity_px}) must be below "
+                f"max_disparity_px ({config.max_disparity_px})"
+            )
+        if config.min_depth_m >= config.max_depth_m:
+            raise ValueError(
+                f"min_depth_m ({config.min_depth_m}) must be below max_depth_m "
+                f"({config.max_depth_m})"
+            )
+        self.config = config
+        self.rectification = rectification
+
+    def match(
+        self,
+        left: Features,
+        right: Features,
+        left_image: np.ndarray,
+        right_image: np.ndarray,
+    ) -> StereoPoints:
+        """Stereo points of one rectified frame (descriptors are the left keypoints')."""
+        config = self.config
+        ia, ib = row_band_pairs(
+            left.points,
+            right.points,
+            config.stereo_row_tolerance_px,
+            (config.min_disparity_px, config.max_disparity_px),
+        )
+        distance = descriptor_distances(left.descriptors, right.descriptors, ia, ib, left.binary)
+        max_distance = config.max_hamming if left.binary else config.max_sift_distance
+        matches = match_candidates(
+            ia, ib, distance, ratio=config.stereo_ratio, max_distance=max_distance, mutual=True
+        )
+        pixels = left.points[matches.a]
+        disparity = pixels[:, 0] - right.points[matches.b, 0]
+        keep = np.ones(len(matches), dtype=bool)
+        if config.subpixel == "sad" and len(matches):
+            pixels, disparity, keep = self._refine(
+                pixels, right.points[matches.b, 0], left_image, right_image
+            )
+        elif config.subpixel == "lk" and len(matches):
+            disparity, keep = self._refine_lk(
+                pixels, right.points[matches.b], left_image, right_image
+            )
+        keep &= disparity >= config.min_disparity_px
+        points = triangulate(pixels[keep], disparity[keep], self.rectification)
+        f_b = self.rectification.fx * self.rectification.baseline
+        depth_sigma = points[:, 2] ** 2 * config.disparity_sigma_px / f_b
+        in_range = (points[:, 2] >= config.min_depth_m) & (points[:, 2] <= config.max_depth_m)
+        return StereoPoints(
+            pixels=pixels[keep][in_range],
+            disparity=disparity[keep][in_range],
+            points=points[in_range],
+            depth_sigma=depth_sigma[in_range],
+            descriptors=left.descriptors[matches.a[keep][in_range]],
+            binary=left.binary,
+        )
+
+    def _refine_lk(
+        self,
+        pixels: np.ndarray,
+        right_pixels: np.ndarray,
+        left_image: np.ndarray,
+        right_image: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Sub-pixel disparities by aligning each left patch in the right image (Lucas-Kanade).
+
+        Started at the descriptor match; kept when it converges on the same row band and
+        within 1.5 px of that match.
+        """
+        size = 2 * self.config.subpixel_window + 1
+        start = np.column_stack([right_pixels[:, 0], pixels[:, 1]]).astype(np.float32)
+        refined, status, _ = cv2.calcOpticalFlowPyrLK(
+            left_image,
+            right_image,
+            pixels.astype(np.float32),
+            start.copy(),
+            winSize=(size, size),
+            maxLevel=0,
+            criteria=(cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01),
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        shift = refined - start
+        keep = (
+            (status.ravel() == 1)
+            & (np.abs(shift[:, 0]) < 1.5)
+            & (
+                np.abs(refined[:, 1] - pixels[:, 1])
+                <= max(self.config.stereo_row_tolerance_px, 0.5)
+            )
+        )
+        return pixels[:, 0] - refined[:, 0].astype(float), keep
+
+    def _refine(
+        self,
+        pixels: np.ndarray,
+        right_x: np.ndarray,
+        left_image: np.ndarray,
+        right_image: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Sub-pixel disparities by zero-mean SAD along the row; drops matches with no minimum.
+
+        The left patch is centred on the rounded left keypoint, which then becomes the point's
+        pixel; the right patch slides +-1 px around the descriptor match.
+        """
+        w = self.config.subpixel_window
+        radius = _REFINE_RADIUS
+        height, width = left_image.shape
+        u = np.rint(pixels[:, 0]).astype(np.intp)
+        v = np.rint(pixels[:, 1]).astype(np.intp)
+        ur = np.rint(right_x).astype(np.intp)
+        margin = w + radius + 1
+        inside = (
+            (u >= w) & (u < width - w) & (v >= w) & (v < height - w)
+            & (ur >= margin) & (ur < width - margin)
+        )  # fmt: skip
+        u_in, v_in, ur_in = u[inside], v[inside], ur[inside]
+        size = 2 * w + 1
+        shifts = np.arange(-radius - 1, radius + 2)  # one extra either side for the fit
+        # Patches are gathered through window views: one index per point, not per pixel.
+        left_windows = np.lib.stride_tricks.sliding_window_view(left_image, (size, size))
+        right_strips = np.lib.stride_tricks.sliding_window_view(
+            right_image, (size, size + len(shifts) - 1)
+        )
+        left_patch = left_windows[v_in - w, u_in - w].astype(np.int16)
+        strip = right_strips[v_in - w, ur_in + shifts[0] - w].astype(np.int16)
+        left_patch -= (left_patch.sum(axis=(1, 2), dtype=np.int32) // size**2).astype(np.int16)[
+            :, None, None
+        ]
+        cost = np.empty((len(u_in), len(shifts)))
+        for k in range(len(shifts)):  # a handful of shifts, each vectorised over all points
+            window = strip[:, :, k : k + size]
+            mean = (window.sum(axis=(1, 2), dtype=np.int32) // size**2).astype(np.int16)
+            cost[:, k] = np.abs(window - mean[:, None, None] - left_patch).sum(
+                axis=(1, 2), dtype=np.int32
+            )
+        best = np.argmin(cost[:, 1:-1], axis=1) + 1  # the minimum must have two neighbours
+        rows_index = np.arange(len(best))
+        c_minus, c_zero, c_plus = (cost[rows_index, best + k] for k in (-1, 0, 1))
+        # Equiangular (V-shaped) fit: SAD grows linearly away from the optimum, and a parabola
+        # through a V pulls the estimate towards whole pixels (Shimizu & Okutomi 2005).
+        rise = np.maximum(c_minus, c_plus) - c_zero
+        valid = rise > 0
+        delta = np.zeros(len(best))
+        delta[valid] = 0.5 * (c_minus[valid] - c_plus[valid]) / rise[valid]
+        valid &= np.abs(delta) <= 0.5
+        refined_right = ur_in + shifts[best] + delta
+        keep = np.zeros(len(pixels), dtype=bool)
+        keep[np.flatnonzero(inside)[valid]] = True
+        new_pixels = np.column_stack([u, v]).astype(float)
+        disparity = np.zeros(len(pixels))
+        disparity[inside] = u_in - refined_right
+        return new_pixels, disparity, keep

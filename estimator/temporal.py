@@ -1,0 +1,144 @@
+"""Matching stereo points through time: the 3D-3D correspondences the registration solves.
+
+The reference frame (the keyframe, or the previous frame) and the current frame each carry
+triangulated points with left-image descriptors. A reference point may only pair with current
+points near where it is expected to appear: its own pixel, or, better, its projection under a
+predicted motion. Among those candidates the ratio and mutual checks pick at most one partner.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from estimator.calibration import Rectification
+from estimator.config import FrontendConfig
+from estimator.features import descriptor_distances, match_candidates
+from estimator.geometry import transform_points
+from estimator.stereo import StereoPoints, triangulate
+
+__all__ = ["Correspondences", "match_temporal", "project", "refine_pixels"]
+
+# A refined position further than this from the descriptor match is a different corner.
+_MAX_REFINE_SHIFT_PX = 1.5
+
+
+@dataclass(frozen=True)
+class Correspondences:
+    """Paired points: reference_points[i] (previous P) <-> current_points[i] (current Q)."""
+
+    reference_index: np.ndarray  # (M,) into the reference StereoPoints
+    current_index: np.ndarray  # (M,) into the current StereoPoints
+    reference_points: np.ndarray  # (M, 3)
+    current_points: np.ndarray  # (M, 3)
+
+    def __len__(self) -> int:
+        return len(self.reference_index)
+
+
+def project(points: np.ndarray, fx: float, cx: float, cy: float) -> np.ndarray:
+    """Rectified pixels of camera-frame points (NaN behind the camera)."""
+    depth = np.where(points[:, 2] > 1e-6, points[:, 2], np.nan)
+    return np.column_stack([fx * points[:, 0] / depth + cx, fx * points[:, 1] / depth + cy])
+
+
+def _candidate_pairs(
+    expected: np.ndarray, observed: np.ndarray, radius: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(i, j) with observed[j] within ``radius`` pixels of expected[i] (all pairs if 0)."""
+    if radius <= 0:
+        ia, ib = np.meshgrid(np.arange(len(expected)), np.arange(len(observed)), indexing="ij")
+        return ia.ravel(), ib.ravel()
+    finite = np.flatnonzero(np.isfinite(expected).all(axis=1))
+    if len(finite) == 0 or len(observed) == 0:
+        empty = np.zeros(0, dtype=np.intp)
+        return empty, empty
+    pairs = cKDTree(expected[finite]).sparse_distance_matrix(
+        cKDTree(observed), radius, output_type="ndarray"
+    )
+    return finite[pairs["i"]], pairs["j"].astype(np.intp)
+
+
+def match_temporal(
+    reference: StereoPoints,
+    current: StereoPoints,
+    config: FrontendConfig,
+    rectification: Rectification,
+    predicted_current_from_reference: np.ndarray | None = None,
+    images: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Correspondences:
+    """3D-3D correspondences between a reference frame's and the current frame's points.
+
+    ``predicted_current_from_reference`` (4x4, rectified frames) moves reference points into
+    the predicted current camera; their projections centre the search windows. Without it the
+    window is centred on the reference pixel (small-motion assumption). With ``images``
+    (reference, current rectified left images) and ``config.temporal_refine`` the current
+    pixels are refined to sub-pixel precision (see :func:`refine_pixels`).
+    """
+    rect = rectification
+    if predicted_current_from_reference is None:
+        expected = reference.pixels
+    else:
+        moved = transform_points(predicted_current_from_reference, reference.points)
+        expected = project(moved, rect.fx, rect.cx, rect.cy)
+    ia, ib = _candidate_pairs(expected, current.pixels, config.search_radius_px)
+    distance = descriptor_distances(
+        reference.descriptors, current.descriptors, ia, ib, reference.binary
+    )
+    max_distance = config.max_hamming if reference.binary else config.max_sift_distance
+    matches = match_candidates(
+        ia, ib, distance, ratio=config.temporal_ratio, max_distance=max_distance, mutual=True
+    )
+    reference_index, current_index = matches.a, matches.b
+    current_points = current.points[current_index]
+    if images is not None and config.temporal_refine and len(matches):
+        pixels, found = refine_pixels(
+            images[0],
+            images[1],
+            reference.pixels[reference_index],
+            current.pixels[current_index],
+            config.temporal_refine_window,
+        )
+        reference_index, current_index = reference_index[found], current_index[found]
+        current_points = triangulate(pixels[found], current.disparity[current_index], rect)
+    return Correspondences(
+        reference_index=reference_index,
+        current_index=current_index,
+        reference_points=reference.points[reference_index],
+        current_points=current_points,
+    )
+
+
+def refine_pixels(
+    reference_image: np.ndarray,
+    current_image: np.ndarray,
+    reference_pixels: np.ndarray,
+    current_pixels: np.ndarray,
+    half_window: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel positions in the current image of the reference pixels (Lucas-Kanade).
+
+    Keypoints sit on the integer grid (or coarser on higher pyramid levels), so a scene that
+    moves by a fraction of a pixel shows up as 0 or 1 pixel jumps: metres of noise at the
+    scale of a standstill. LK, started at the descriptor match, aligns the reference patch in
+    the current image continuously. Returns the refined pixels and a mask of those that
+    converged within 1.5 px of the match; the disparity measured at the match is reused (it
+    varies smoothly over such a shift).
+    """
+    size = 2 * half_window + 1
+    start = current_pixels.astype(np.float32)
+    refined, status, _ = cv2.calcOpticalFlowPyrLK(
+        reference_image,
+        current_image,
+        reference_pixels.astype(np.float32),
+        start.copy(),
+        winSize=(size, size),
+        maxLevel=0,
+        criteria=(cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01),
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    found = (status.ravel() == 1) & (np.linalg.norm(refined - start, axis=1) < _MAX_REFINE_SHIFT_PX)
+    return refined.astype(float), found

@@ -1,0 +1,840 @@
+"""FastAPI application: routes validate, authenticate, queue and persist; the odometry itself
+runs in :mod:`service.sessions` workers behind a :class:`~service.pipeline.PipelineFactory`."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import re
+import tempfile
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from fastapi import Depends, FastAPI, HTTPException, Query, Request, Response, WebSocket
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, PlainTextResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import ValidationError
+from starlette.concurrency import run_in_threadpool
+from starlette.datastructures import FormData, UploadFile
+from starlette.formparsers import MultiPartException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.websockets import WebSocketDisconnect
+
+from service.auth import AuthError, bearer_token, owner_for
+from service.metrics import Metrics
+from service.pipeline import (
+    EstimatorFactory,
+    PipelineFactory,
+    euroc_calibration,
+    euroc_imu_noise,
+    kitti_calibration,
+)
+from service.schemas import (
+    ErrorOut,
+    Health,
+    ImuBatchIn,
+    ImuBatchOut,
+    PoseOut,
+    SessionCreate,
+    SessionList,
+    SessionOut,
+    TrajectoryOut,
+)
+from service.sessions import FrameDropped, FrameRejected, ImuSamples, SessionManager
+from service.settings import ServiceSettings
+from service.storage import SessionRecord, Store
+
+logger = logging.getLogger("swarmvo.service")
+
+SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
+MAX_CALIBRATION_FILE = 1024 * 1024
+MAX_TEXT_FIELD = 4 * 1024 * 1024
+# Answers (poses, refusals, errors) a WebSocket client may leave unread before the server
+# stops reading its socket; each is a small JSON message (images are not kept with them).
+MAX_UNSENT_REPLIES = 64
+
+
+@dataclass
+class ServiceState:
+    settings: ServiceSettings
+    store: Store
+    manager: SessionManager
+    metrics: Metrics
+    factory: PipelineFactory
+
+
+# ----------------------------------------------------------------------------- request size
+
+
+class BodyLimit:
+    """Refuse oversized request bodies early: by Content-Length, and while streaming in."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int, metrics: Metrics) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+        self.metrics = metrics
+
+    async def _refuse(self, send: Send, counted: bool = False) -> None:
+        if not counted:
+            self.metrics.errors.labels("too_large").inc()
+        body = json.dumps(
+            {"detail": f"request body exceeds the limit of {self.max_bytes} bytes"}
+        ).encode()
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 413,
+                "headers": [
+                    (b"content-type", b"application/json"),
+                    (b"content-length", str(len(body)).encode()),
+                    (b"connection", b"close"),
+                ],
+            }
+        )
+        await send({"type": "http.response.body", "body": body})
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        for name, value in scope.get("headers", []):
+            if name == b"content-length":
+                try:
+                    declared = int(value)
+                except ValueError:
+                    declared = -1
+                if declared < 0 or declared > self.max_bytes:
+                    await self._refuse(send)
+                    return
+        received = 0
+        started = False
+
+        async def limited_receive() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    self.metrics.errors.labels("too_large").inc()
+                    raise _TooLarge(self.max_bytes)
+            return message
+
+        async def tracking_send(message: Message) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        try:
+            await self.app(scope, limited_receive, tracking_send)
+        except _TooLarge:
+            if not started:
+                await self._refuse(send, counted=True)
+
+
+class _TooLarge(HTTPException):
+    """Raised from ``receive``; an HTTPException so body parsers pass it through as 413."""
+
+    def __init__(self, max_bytes: int) -> None:
+        super().__init__(413, f"request body exceeds the limit of {max_bytes} bytes")
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+bearer_scheme = HTTPBearer(auto_error=False, description="API key: 'Authorization: Bearer KEY'")
+
+
+def _state(request: Request) -> ServiceState:
+    return request.app.state.swarmvo
+
+
+def current_owner(
+    request: Request,
+    _credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)],
+) -> str:
+    state = _state(request)
+    try:
+        return owner_for(bearer_token(request.headers.get("authorization")), state.settings)
+    except AuthError as error:
+        state.metrics.errors.labels("auth").inc()
+        raise HTTPException(401, str(error), headers={"WWW-Authenticate": "Bearer"}) from error
+
+
+Owner = Annotated[str, Depends(current_owner)]
+State = Annotated[ServiceState, Depends(_state)]
+
+
+def _unknown(session_id: str) -> HTTPException:
+    return HTTPException(404, f"unknown session {session_id!r}")
+
+
+def _lookup(state: ServiceState, session_id: str, owner: str) -> SessionRecord:
+    """The owner's session or 404 (another key's session is indistinguishable from none)."""
+    record = state.store.get_session(session_id, owner) if SESSION_ID.match(session_id) else None
+    if record is None:
+        state.metrics.errors.labels("unknown_session").inc()
+        raise _unknown(session_id)
+    return record
+
+
+async def _lookup_async(state: ServiceState, session_id: str, owner: str) -> SessionRecord:
+    worker = state.manager.workers.get(session_id)
+    if worker is not None and worker.owner == owner:
+        return worker.record
+    return await run_in_threadpool(_lookup, state, session_id, owner)
+
+
+def parse_imu(text: str | bytes | dict[str, Any], settings: ServiceSettings) -> ImuSamples:
+    """Validated IMU samples (finite numbers, bounded count) as arrays."""
+    try:
+        if isinstance(text, dict):
+            batch = ImuBatchIn.model_validate(text)
+        else:
+            batch = ImuBatchIn.model_validate_json(text)
+    except ValidationError as error:
+        raise HTTPException(422, f"invalid IMU samples: {_brief(error)}") from error
+    if len(batch.samples) > settings.max_imu_batch:
+        raise HTTPException(
+            413,
+            f"{len(batch.samples)} IMU samples in one batch; the limit is "
+            f"{settings.max_imu_batch}",
+        )
+    return ImuSamples(
+        np.array([s.timestamp_ns for s in batch.samples], dtype=np.int64),
+        np.array([s.gyro for s in batch.samples], dtype=float).reshape(-1, 3),
+        np.array([s.accel for s in batch.samples], dtype=float).reshape(-1, 3),
+    )
+
+
+def _brief(error: ValidationError) -> str:
+    parts = []
+    for item in error.errors()[:5]:
+        location = ".".join(str(p) for p in item.get("loc", ()))
+        parts.append(f"{location}: {item.get('msg')}" if location else str(item.get("msg")))
+    more = len(error.errors()) - 5
+    return "; ".join(parts) + (f" (and {more} more)" if more > 0 else "")
+
+
+async def _form(request: Request, max_files: int, max_fields: int) -> FormData:
+    content_type = request.headers.get("content-type", "")
+    if not content_type.startswith("multipart/form-data"):
+        raise HTTPException(415, "expected a multipart/form-data body")
+    try:
+        return await request.form(
+            max_files=max_files, max_fields=max_fields, max_part_size=MAX_TEXT_FIELD
+        )
+    except MultiPartException as error:
+        raise HTTPException(400, f"malformed multipart body: {error.message}") from error
+    except (ValueError, KeyError) as error:
+        raise HTTPException(400, f"malformed multipart body: {error}") from error
+
+
+async def _file(form: FormData, name: str, limit: int | None = None) -> bytes:
+    item = form.get(name)
+    if item is None:
+        raise HTTPException(422, f"missing file field {name!r}")
+    if not isinstance(item, UploadFile):
+        raise HTTPException(422, f"field {name!r} must be a file upload")
+    data = await item.read()
+    if limit is not None and len(data) > limit:
+        raise HTTPException(413, f"file {name!r} is larger than {limit} bytes")
+    return data
+
+
+def _text(form: FormData, name: str, required: bool = True) -> str | None:
+    item = form.get(name)
+    if item is None:
+        if required:
+            raise HTTPException(422, f"missing form field {name!r}")
+        return None
+    if not isinstance(item, str):
+        raise HTTPException(422, f"form field {name!r} must be text, not a file")
+    return item
+
+
+def _int_field(form: FormData, name: str, low: int, high: int) -> int:
+    text = _text(form, name)
+    assert text is not None
+    try:
+        value = int(text.strip())
+    except ValueError as error:
+        raise HTTPException(422, f"form field {name!r} must be an integer") from error
+    if not low <= value <= high:
+        raise HTTPException(422, f"form field {name!r} must be in [{low}, {high}]")
+    return value
+
+
+def _json_object(text: str | None, name: str) -> dict[str, Any]:
+    if text is None or not text.strip():
+        return {}
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise HTTPException(422, f"form field {name!r} is not valid JSON: {error}") from error
+    if not isinstance(value, dict):
+        raise HTTPException(422, f"form field {name!r} must be a JSON object")
+    return value
+
+
+def _create_session(
+    state: ServiceState,
+    owner: str,
+    name: str,
+    calibration: dict[str, Any],
+    config: dict[str, Any],
+    imu_noise: dict[str, Any] | None,
+) -> SessionOut:
+    if state.store.count_sessions(owner) >= state.settings.max_sessions_per_key:
+        state.metrics.errors.labels("too_many_sessions").inc()
+        raise HTTPException(
+            429,
+            f"session limit reached ({state.settings.max_sessions_per_key} per API key); "
+            "delete sessions you no longer need",
+        )
+    try:
+        prepared = state.factory.prepare(calibration, config, imu_noise)
+    except ValueError as error:
+        state.metrics.errors.labels("bad_session").inc()
+        raise HTTPException(422, str(error)) from error
+    record = state.store.create_session(
+        owner, name, prepared.calibration, prepared.config, prepared.imu_noise, prepared.image_size
+    )
+    return SessionOut.of(record)
+
+
+def _frame_error(error: FrameRejected) -> HTTPException:
+    return HTTPException(error.status_code, error.detail)
+
+
+_MULTIPART_FRAME = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["left", "right", "timestamp_ns"],
+                    "properties": {
+                        "left": {"type": "string", "format": "binary"},
+                        "right": {"type": "string", "format": "binary"},
+                        "timestamp_ns": {"type": "integer", "minimum": 0},
+                        "imu": {
+                            "type": "string",
+                            "description": 'JSON {"samples": [{"timestamp_ns", "gyro", '
+                            '"accel"}]}: IMU samples since the previous frame',
+                        },
+                    },
+                }
+            }
+        },
+    }
+}
+
+_MULTIPART_EUROC = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["cam0", "cam1"],
+                    "properties": {
+                        "cam0": {"type": "string", "format": "binary"},
+                        "cam1": {"type": "string", "format": "binary"},
+                        "imu0": {"type": "string", "format": "binary"},
+                        "name": {"type": "string"},
+                        "config": {"type": "string", "description": "JSON SwarmvoConfig"},
+                    },
+                }
+            }
+        },
+    }
+}
+
+_MULTIPART_KITTI = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["calib", "width", "height"],
+                    "properties": {
+                        "calib": {"type": "string", "format": "binary"},
+                        "width": {"type": "integer", "minimum": 1},
+                        "height": {"type": "integer", "minimum": 1},
+                        "name": {"type": "string"},
+                        "config": {"type": "string", "description": "JSON SwarmvoConfig"},
+                    },
+                }
+            }
+        },
+    }
+}
+
+_ERRORS: dict[int | str, dict[str, Any]] = {
+    code: {"model": ErrorOut} for code in (400, 401, 404, 409, 413, 415, 422, 429)
+}
+
+
+# ----------------------------------------------------------------------------- app
+
+
+def create_app(
+    settings: ServiceSettings,
+    factory: PipelineFactory | None = None,
+    store: Store | None = None,
+) -> FastAPI:
+    """The service app; ``factory`` defaults to the real odometry, ``store`` to settings' DB."""
+    settings.check_startable()
+    metrics = Metrics()
+    pipeline_factory = factory or EstimatorFactory()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        own_store = store is None
+        database = store or await run_in_threadpool(
+            Store.open, settings.resolved_database_url(), settings.sqlite_synchronous
+        )
+        manager = SessionManager(settings, database, pipeline_factory, metrics)
+        app.state.swarmvo = ServiceState(settings, database, manager, metrics, pipeline_factory)
+        try:
+            yield
+        finally:
+            await manager.shutdown()
+            if own_store:
+                database.close()
+
+    app = FastAPI(
+        title="swarmvo odometry service",
+        version="1",
+        description="Stereo visual odometry over HTTP and WebSocket. Every answered pose is "
+        "stored before the answer is sent.",
+        lifespan=lifespan,
+    )
+    app.add_middleware(BodyLimit, max_bytes=settings.max_request_bytes, metrics=metrics)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(_request: Request, error: RequestValidationError) -> JSONResponse:
+        metrics.errors.labels("validation").inc()
+        parts = []
+        for item in error.errors()[:5]:
+            location = ".".join(str(p) for p in item.get("loc", ()))
+            parts.append(f"{location}: {item.get('msg')}")
+        return JSONResponse({"detail": "; ".join(parts) or "invalid request"}, status_code=422)
+
+    @app.exception_handler(Exception)
+    async def _internal(_request: Request, error: Exception) -> JSONResponse:
+        logger.exception("unhandled error", exc_info=error)
+        metrics.errors.labels("internal").inc()
+        return JSONResponse({"detail": "internal server error"}, status_code=500)
+
+    # -- operations
+
+    @app.get("/healthz", response_model=Health, tags=["operations"])
+    async def healthz(request: Request) -> Health:
+        state = _state(request)
+        try:
+            await run_in_threadpool(state.store.ping)
+        except Exception as error:
+            raise HTTPException(503, f"database unavailable: {error}") from error
+        return Health(status="ok", sessions_active=len(state.manager.workers), database="ok")
+
+    @app.get("/metrics", response_class=PlainTextResponse, tags=["operations"])
+    async def prometheus_metrics() -> Response:
+        return Response(metrics.render(), media_type="text/plain; version=0.0.4; charset=utf-8")
+
+    # -- sessions
+
+    @app.post(
+        "/v1/sessions", status_code=201, response_model=SessionOut, tags=["sessions"],
+        responses=_ERRORS,
+    )
+    def create_session(body: SessionCreate, owner: Owner, state: State) -> SessionOut:
+        noise = None if body.imu_noise is None else body.imu_noise.model_dump()
+        return _create_session(state, owner, body.name, body.calibration, body.config, noise)
+
+    @app.post(
+        "/v1/sessions/euroc", status_code=201, response_model=SessionOut, tags=["sessions"],
+        openapi_extra=_MULTIPART_EUROC, responses=_ERRORS,
+    )
+    async def create_session_euroc(request: Request, owner: Owner, state: State) -> SessionOut:
+        """Session from EuRoC ``cam0/sensor.yaml``, ``cam1/sensor.yaml`` (and ``imu0``)."""
+        form = await _form(request, max_files=3, max_fields=2)
+        cam0 = await _file(form, "cam0", MAX_CALIBRATION_FILE)
+        cam1 = await _file(form, "cam1", MAX_CALIBRATION_FILE)
+        imu0 = await _file(form, "imu0", MAX_CALIBRATION_FILE) if "imu0" in form else None
+        name = _text(form, "name", required=False) or ""
+        config = _json_object(_text(form, "config", required=False), "config")
+        try:
+            calibration = await run_in_threadpool(euroc_calibration, cam0, cam1)
+            noise = None if imu0 is None else await run_in_threadpool(euroc_imu_noise, imu0)
+        except ValueError as error:
+            metrics.errors.labels("bad_session").inc()
+            raise HTTPException(422, str(error)) from error
+        return await run_in_threadpool(
+            _create_session, state, owner, name[:200], calibration, config, noise
+        )
+
+    @app.post(
+        "/v1/sessions/kitti", status_code=201, response_model=SessionOut, tags=["sessions"],
+        openapi_extra=_MULTIPART_KITTI, responses=_ERRORS,
+    )
+    async def create_session_kitti(request: Request, owner: Owner, state: State) -> SessionOut:
+        """Session from a KITTI ``calib.txt`` plus the image size."""
+        form = await _form(request, max_files=1, max_fields=4)
+        calib = await _file(form, "calib", MAX_CALIBRATION_FILE)
+        width = _int_field(form, "width", 1, settings.max_image_width)
+        height = _int_field(form, "height", 1, settings.max_image_height)
+        name = _text(form, "name", required=False) or ""
+        config = _json_object(_text(form, "config", required=False), "config")
+        try:
+            calibration = await run_in_threadpool(kitti_calibration, calib, (width, height))
+        except ValueError as error:
+            metrics.errors.labels("bad_session").inc()
+            raise HTTPException(422, str(error)) from error
+        return await run_in_threadpool(
+            _create_session, state, owner, name[:200], calibration, config, None
+        )
+
+    @app.get("/v1/sessions", response_model=SessionList, tags=["sessions"], responses=_ERRORS)
+    def list_sessions(owner: Owner, state: State) -> SessionList:
+        return SessionList(sessions=[SessionOut.of(r) for r in state.store.list_sessions(owner)])
+
+    @app.get(
+        "/v1/sessions/{session_id}", response_model=SessionOut, tags=["sessions"],
+        responses=_ERRORS,
+    )
+    def get_session(session_id: str, owner: Owner, state: State) -> SessionOut:
+        return SessionOut.of(_lookup(state, session_id, owner))
+
+    @app.delete(
+        "/v1/sessions/{session_id}", status_code=204, tags=["sessions"], responses=_ERRORS
+    )
+    async def delete_session(session_id: str, owner: Owner, state: State) -> Response:
+        await run_in_threadpool(_lookup, state, session_id, owner)
+        await state.manager.remove(session_id)
+        await run_in_threadpool(state.store.delete_session, session_id, owner)
+        return Response(status_code=204)
+
+    # -- frames and IMU
+
+    @app.post(
+        "/v1/sessions/{session_id}/frames", response_model=PoseOut, tags=["frames"],
+        openapi_extra=_MULTIPART_FRAME, responses={**_ERRORS, 503: {"model": ErrorOut}},
+    )
+    async def post_frame(session_id: str, request: Request, owner: Owner, state: State) -> PoseOut:
+        """Process one stereo pair; answers once its pose is stored."""
+        record = await _lookup_async(state, session_id, owner)
+        form = await _form(request, max_files=2, max_fields=2)
+        left = await _file(form, "left")
+        right = await _file(form, "right")
+        timestamp_ns = _int_field(form, "timestamp_ns", 0, 2**63 - 1)
+        imu_text = _text(form, "imu", required=False)
+        imu = parse_imu(imu_text, settings) if imu_text and imu_text.strip() else None
+        worker = state.manager.worker(record)
+        try:
+            # Shielded: a client that hangs up does not cancel a frame already accepted.
+            result = await asyncio.shield(worker.submit(timestamp_ns, left, right, imu))
+        except FrameRejected as error:
+            if error.kind in ("timestamp_order", "queue_full"):
+                metrics.errors.labels(error.kind).inc()
+            raise _frame_error(error) from error
+        return PoseOut.of(result.session_id, result.record, result.imu_samples)
+
+    @app.post(
+        "/v1/sessions/{session_id}/imu", response_model=ImuBatchOut, tags=["frames"],
+        responses=_ERRORS,
+    )
+    async def post_imu(
+        session_id: str, body: ImuBatchIn, owner: Owner, state: State
+    ) -> ImuBatchOut:
+        """Buffer IMU samples; each frame consumes those up to its timestamp."""
+        record = await _lookup_async(state, session_id, owner)
+        samples = parse_imu(body.model_dump(), settings)
+        worker = state.manager.worker(record)
+        try:
+            buffered = worker.add_imu(samples)
+        except FrameRejected as error:
+            metrics.errors.labels(error.kind).inc()
+            raise _frame_error(error) from error
+        return ImuBatchOut(accepted=len(samples), buffered=buffered)
+
+    # -- trajectory
+
+    @app.get(
+        "/v1/sessions/{session_id}/trajectory", tags=["sessions"], responses=_ERRORS,
+        response_model=TrajectoryOut,
+    )
+    def get_trajectory(
+        session_id: str,
+        owner: Owner,
+        state: State,
+        format: Annotated[Literal["tum", "kitti", "json"], Query()] = "json",
+    ) -> Response:
+        """All stored poses: TUM (``t x y z qx qy qz qw``), KITTI (3x4 rows) or JSON."""
+        _lookup(state, session_id, owner)
+        records = state.store.poses(session_id)
+        if format == "json":
+            body = TrajectoryOut(
+                session_id=session_id, poses=[PoseOut.of(session_id, r) for r in records]
+            )
+            return JSONResponse(body.model_dump(mode="json"))
+        from estimator.trajectory_io import write_kitti, write_tum
+
+        poses = np.array([r.pose for r in records], dtype=float).reshape(-1, 4, 4)
+        times = np.array([r.timestamp_ns for r in records], dtype=np.int64)
+        with tempfile.TemporaryDirectory(prefix="swarmvo-export-") as folder:
+            path = Path(folder) / f"trajectory.{format}"
+            if format == "tum":
+                write_tum(path, times, poses)
+            else:
+                write_kitti(path, poses)
+            text = path.read_text()
+        return PlainTextResponse(
+            text,
+            headers={
+                "content-disposition": f'attachment; filename="{session_id}.{format}.txt"'
+            },
+        )
+
+    # -- streaming
+
+    @app.websocket("/v1/sessions/{session_id}/stream")
+    async def stream(websocket: WebSocket, session_id: str) -> None:
+        await StreamConnection(websocket, session_id).run()
+
+    return app
+
+
+# ----------------------------------------------------------------------------- WebSocket
+
+
+class StreamConnection:
+    """One WebSocket client: JSON headers + binary images in, pose messages out, in order.
+
+    Memory is bounded twice: at most ``queue_size`` frames (with their images) wait per session,
+    and at most ``MAX_UNSENT_REPLIES`` answers wait for a client that does not read them; beyond
+    that this connection stops reading, so TCP flow control slows the producer.
+    """
+
+    def __init__(self, websocket: WebSocket, session_id: str) -> None:
+        self.websocket = websocket
+        self.session_id = session_id
+        self.state: ServiceState = websocket.app.state.swarmvo
+        self.settings = self.state.settings
+        self.outbox: asyncio.Queue[Any] = asyncio.Queue()
+        self.credit = asyncio.Semaphore(MAX_UNSENT_REPLIES)
+        self.header: dict[str, Any] | None = None
+        self.parts: list[bytes] = []
+        self.received = 0
+        self.sender: asyncio.Task[None] | None = None
+
+    async def _deny(self, status: int, detail: str) -> None:
+        self.state.metrics.errors.labels("auth" if status == 401 else "unknown_session").inc()
+        await self.websocket.send_denial_response(JSONResponse({"detail": detail}, status))
+
+    async def run(self) -> None:
+        websocket = self.websocket
+        try:
+            token = bearer_token(websocket.headers.get("authorization"))
+            token = token or websocket.query_params.get("token") or None
+            owner = owner_for(token, self.settings)
+        except AuthError as error:
+            await self._deny(401, str(error))
+            return
+        try:
+            record = await _lookup_async(self.state, self.session_id, owner)
+        except HTTPException as error:
+            await self._deny(error.status_code, str(error.detail))
+            return
+        await websocket.accept()
+        worker = self.state.manager.worker(record)
+        await websocket.send_json(
+            {
+                "type": "hello",
+                "session_id": record.id,
+                "next_index": worker.next_index,
+                "last_timestamp_ns": worker.last_submitted_ns,
+                "queue_size": self.settings.queue_size,
+                "queue_policy": self.settings.queue_policy,
+            }
+        )
+        sender = asyncio.create_task(self._send_loop())
+        self.sender = sender
+        graceful = False
+        try:
+            while True:
+                message = await websocket.receive()
+                if message["type"] == "websocket.disconnect":
+                    break
+                if message.get("text") is not None:
+                    if await self._on_text(message["text"], record):
+                        graceful = True
+                        break
+                elif message.get("bytes") is not None:
+                    await self._on_bytes(message["bytes"], record)
+        except (WebSocketDisconnect, RuntimeError):
+            pass
+        finally:
+            await self.outbox.put(None)
+            if graceful:
+                with contextlib.suppress(Exception):
+                    await asyncio.wait_for(sender, timeout=120)
+                with contextlib.suppress(Exception):
+                    await websocket.close(1000)
+            else:
+                # The client left: frames it sent are still processed and stored (the futures
+                # are shielded), only the answers have nobody to go to.
+                sender.cancel()
+                await asyncio.wait({sender})
+
+    async def _reply(self, payload: dict[str, Any]) -> None:
+        await self._acquire_credit()
+        self.outbox.put_nowait(payload)
+
+    async def _on_text(self, text: str, record: SessionRecord) -> bool:
+        try:
+            message = json.loads(text)
+        except json.JSONDecodeError as error:
+            await self._reply({"type": "error", "detail": f"message is not valid JSON: {error}"})
+            return False
+        if not isinstance(message, dict):
+            await self._reply({"type": "error", "detail": "messages must be JSON objects"})
+            return False
+        kind = message.get("type")
+        if kind == "frame":
+            await self._start_frame(message)
+        elif kind == "imu":
+            try:
+                samples = parse_imu({"samples": message.get("samples")}, self.settings)
+                self.state.manager.worker(record).add_imu(samples)
+            except HTTPException as error:
+                await self._reply({"type": "error", "detail": str(error.detail)})
+            except FrameRejected as error:
+                await self._reply({"type": "error", "detail": error.detail})
+        elif kind == "ping":
+            await self._reply({"type": "pong"})
+        elif kind == "close":
+            return True
+        else:
+            await self._reply(
+                {"type": "error", "detail": f"unknown message type {kind!r} (frame|imu|ping|close)"}
+            )
+        return False
+
+    async def _start_frame(self, message: dict[str, Any]) -> None:
+        if self.header is not None:
+            await self._reply(
+                {
+                    "type": "error",
+                    "detail": "a new frame header arrived before the images of the previous "
+                    "one; the previous frame was discarded",
+                }
+            )
+        self.header, self.parts, self.received = None, [], 0
+        timestamp = message.get("timestamp_ns")
+        sizes = (message.get("left_bytes"), message.get("right_bytes"))
+        problem = None
+        if not isinstance(timestamp, int) or isinstance(timestamp, bool):
+            problem = "timestamp_ns must be an integer"
+        elif not 0 <= timestamp < 2**63:
+            problem = "timestamp_ns is out of range"
+        elif not all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in sizes):
+            problem = "left_bytes and right_bytes must be positive integers"
+        elif sum(sizes) > self.settings.ws_max_message_bytes:  # type: ignore[arg-type]
+            problem = f"images exceed {self.settings.ws_max_message_bytes} bytes"
+        imu = None
+        if problem is None and message.get("imu") is not None:
+            try:
+                imu = parse_imu({"samples": message["imu"]}, self.settings)
+            except HTTPException as error:
+                problem = str(error.detail)
+        if problem is not None:
+            await self._reply(
+                {
+                    "type": "rejected",
+                    "timestamp_ns": timestamp,
+                    "status": 422,
+                    "detail": f"bad frame header: {problem}",
+                }
+            )
+            return
+        self.header = {"timestamp_ns": timestamp, "sizes": sizes, "imu": imu}
+
+    async def _on_bytes(self, data: bytes, record: SessionRecord) -> None:
+        if self.header is None:
+            await self._reply(
+                {"type": "error", "detail": "binary message without a preceding frame header"}
+            )
+            return
+        self.parts.append(data)
+        self.received += len(data)
+        left_size, right_size = self.header["sizes"]
+        expected = left_size + right_size
+        if self.received < expected:
+            return
+        header, blob = self.header, b"".join(self.parts)
+        self.header, self.parts, self.received = None, [], 0
+        if len(blob) != expected:
+            await self._reply(
+                {
+                    "type": "rejected",
+                    "timestamp_ns": header["timestamp_ns"],
+                    "status": 422,
+                    "detail": f"expected {expected} image bytes, received {len(blob)}",
+                }
+            )
+            return
+        await self._acquire_credit()
+        worker = self.state.manager.worker(record)
+        try:
+            future = worker.submit(
+                header["timestamp_ns"], blob[:left_size], blob[left_size:], header["imu"]
+            )
+        except FrameRejected as error:
+            self.state.metrics.errors.labels(error.kind).inc()
+            self.outbox.put_nowait({"type": "rejected", "timestamp_ns": header["timestamp_ns"],
+                                    "status": error.status_code, "detail": error.detail})
+            return
+        self.outbox.put_nowait((future, header["timestamp_ns"]))
+
+    async def _acquire_credit(self) -> None:
+        """Wait for room for one more unanswered frame, unless the sender has died."""
+        assert self.sender is not None
+        acquire = asyncio.ensure_future(self.credit.acquire())
+        await asyncio.wait({acquire, self.sender}, return_when=asyncio.FIRST_COMPLETED)
+        if not acquire.done():
+            acquire.cancel()
+            raise WebSocketDisconnect(1011)
+
+    async def _send_loop(self) -> None:
+        while True:
+            item = await self.outbox.get()
+            if item is None:
+                return
+            if isinstance(item, dict):
+                await self.websocket.send_json(item)
+                self.credit.release()
+                continue
+            future, timestamp = item
+            try:
+                result = await asyncio.shield(future)
+                payload = {"type": "pose", **PoseOut.of(
+                    result.session_id, result.record, result.imu_samples
+                ).model_dump(mode="json")}
+            except FrameDropped as error:
+                payload = {"type": "dropped", "timestamp_ns": timestamp, "detail": error.detail}
+            except FrameRejected as error:
+                payload = {"type": "rejected", "timestamp_ns": timestamp,
+                           "status": error.status_code, "detail": error.detail}
+            await self.websocket.send_json(payload)
+            self.credit.release()

@@ -1,0 +1,183 @@
+"""The service's one door into the estimator: validate calibrations/configs, build pipelines.
+
+The app receives a :class:`PipelineFactory`; production uses :class:`EstimatorFactory`
+(the real ``Odometry``), tests may inject their own. Everything here raises ``ValueError`` with a
+message fit for a 422 answer.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from estimator.types import FrameReport, ImuBatch, ImuNoise, StereoFrame
+
+
+class Pipeline(Protocol):
+    def process(self, frame: StereoFrame, imu: ImuBatch | None = None) -> FrameReport: ...
+
+
+@dataclass(frozen=True)
+class PreparedSession:
+    """A validated session description in the normalised form that gets stored."""
+
+    calibration: dict[str, Any]
+    config: dict[str, Any]
+    imu_noise: dict[str, Any] | None
+    image_size: tuple[int, int]  # (width, height)
+
+
+class PipelineFactory(Protocol):
+    def prepare(
+        self,
+        calibration: dict[str, Any],
+        config: dict[str, Any],
+        imu_noise: dict[str, Any] | None,
+    ) -> PreparedSession: ...
+
+    def create(
+        self, prepared: PreparedSession, initial_pose: np.ndarray | None, first_index: int
+    ) -> Pipeline: ...
+
+
+def reject_non_finite(value: Any, where: str) -> None:
+    """NaN/inf anywhere in a JSON document is an input error, not a number to compute with."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"{where} contains a non-finite number ({value})")
+    if isinstance(value, dict):
+        for key, item in value.items():
+            reject_non_finite(item, f"{where}.{key}")
+    elif isinstance(value, list | tuple):
+        for position, item in enumerate(value):
+            reject_non_finite(item, f"{where}[{position}]")
+
+
+def normalise_imu_noise(imu_noise: dict[str, Any] | None) -> dict[str, Any] | None:
+    if imu_noise is None:
+        return None
+    reject_non_finite(imu_noise, "imu_noise")
+    try:
+        noise = ImuNoise(**imu_noise)
+    except TypeError as error:
+        raise ValueError(f"invalid imu_noise: {error}") from error
+    values = asdict(noise)
+    for name, value in values.items():
+        if not isinstance(value, int | float) or isinstance(value, bool):
+            raise ValueError(f"imu_noise.{name} must be a number")
+        if not math.isfinite(value) or value < 0:
+            raise ValueError(f"imu_noise.{name} must be finite and >= 0, got {value}")
+    if values["rate_hz"] <= 0:
+        raise ValueError("imu_noise.rate_hz must be > 0")
+    return {name: float(value) for name, value in values.items()}
+
+
+class EstimatorFactory:
+    """Production factory: ``StereoRig`` + ``SwarmvoConfig`` + the real ``Odometry``."""
+
+    def prepare(
+        self,
+        calibration: dict[str, Any],
+        config: dict[str, Any],
+        imu_noise: dict[str, Any] | None,
+    ) -> PreparedSession:
+        from estimator.calibration import StereoRig
+        from estimator.config import SwarmvoConfig
+
+        reject_non_finite(calibration, "calibration")
+        reject_non_finite(config, "config")
+        try:
+            rig = StereoRig.from_dict(calibration)
+        except (TypeError, KeyError) as error:
+            raise ValueError(f"invalid calibration: {error}") from error
+        try:
+            swarm_config = SwarmvoConfig.model_validate(config)
+        except ValueError as error:  # pydantic.ValidationError is a ValueError
+            raise ValueError(f"invalid config: {_short_validation(error)}") from error
+        return PreparedSession(
+            calibration=rig.to_dict(),
+            config=swarm_config.model_dump(mode="json"),
+            imu_noise=normalise_imu_noise(imu_noise),
+            image_size=rig.size,
+        )
+
+    def create(
+        self, prepared: PreparedSession, initial_pose: np.ndarray | None, first_index: int
+    ) -> Pipeline:
+        from estimator.calibration import StereoRig
+        from estimator.config import SwarmvoConfig
+        from estimator.odometry import Odometry
+
+        noise = None if prepared.imu_noise is None else ImuNoise(**prepared.imu_noise)
+        return Odometry(
+            StereoRig.from_dict(prepared.calibration),
+            config=SwarmvoConfig.model_validate(prepared.config),
+            imu_noise=noise,
+            initial_pose=initial_pose,
+            first_index=first_index,
+        )
+
+
+def _short_validation(error: ValueError) -> str:
+    errors = getattr(error, "errors", None)
+    if callable(errors):
+        parts = []
+        for item in errors():
+            location = ".".join(str(part) for part in item.get("loc", ()))
+            parts.append(f"{location}: {item.get('msg', '')}" if location else item.get("msg", ""))
+        return "; ".join(parts)
+    return str(error)
+
+
+# ----------------------------------------------------------------------------- uploaded files
+
+
+def _with_files(files: dict[str, bytes], read: Any) -> Any:
+    """Run a file-based reader on uploaded bytes, hiding the temporary paths from messages."""
+    with tempfile.TemporaryDirectory(prefix="swarmvo-upload-") as folder:
+        paths = {}
+        for name, data in files.items():
+            path = Path(folder) / name
+            path.write_bytes(data)
+            paths[name] = path
+        try:
+            return read(paths)
+        except FileNotFoundError as error:
+            raise ValueError(str(error).replace(folder + "/", "")) from error
+        except ValueError as error:
+            raise ValueError(str(error).replace(folder + "/", "")) from error
+        except (TypeError, KeyError, UnicodeDecodeError) as error:
+            raise ValueError(f"malformed calibration file: {error!r}") from error
+
+
+def euroc_calibration(cam0_yaml: bytes, cam1_yaml: bytes) -> dict[str, Any]:
+    """Plain calibration from EuRoC ``cam0/sensor.yaml`` and ``cam1/sensor.yaml`` contents."""
+    from estimator.calibration import load_euroc_rig
+
+    rig = _with_files(
+        {"cam0.yaml": cam0_yaml, "cam1.yaml": cam1_yaml},
+        lambda p: load_euroc_rig(p["cam0.yaml"], p["cam1.yaml"]),
+    )
+    return rig.to_dict()
+
+
+def euroc_imu_noise(imu_yaml: bytes) -> dict[str, Any]:
+    """IMU noise from EuRoC ``imu0/sensor.yaml`` contents (read exactly as offline runs do)."""
+    from estimator.datasets import read_euroc_imu_noise
+
+    noise = _with_files({"imu0.yaml": imu_yaml}, lambda p: read_euroc_imu_noise(p["imu0.yaml"]))
+    return asdict(noise)
+
+
+def kitti_calibration(calib_txt: bytes, image_size: tuple[int, int]) -> dict[str, Any]:
+    """Plain calibration from a KITTI ``calib.txt`` and the image size (width, height)."""
+    from estimator.calibration import load_kitti_rig
+
+    rig = _with_files(
+        {"calib.txt": calib_txt}, lambda p: load_kitti_rig(p["calib.txt"], image_size)
+    )
+    return rig.to_dict()

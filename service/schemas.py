@@ -1,0 +1,150 @@
+"""Request and answer bodies of the HTTP API (they also document it in the OpenAPI schema)."""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.storage import PoseRecord, SessionRecord
+
+TimestampNs = Annotated[int, Field(ge=0, le=2**63 - 1, description="nanoseconds")]
+Vector3 = tuple[float, float, float]
+Matrix4 = list[list[float]]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class ImuSample(_Strict):
+    timestamp_ns: TimestampNs
+    gyro: Vector3 = Field(description="angular rate, rad/s, IMU/body frame")
+    accel: Vector3 = Field(description="specific force, m/s^2, IMU/body frame")
+
+
+class ImuBatchIn(_Strict):
+    samples: list[ImuSample]
+
+
+class ImuBatchOut(BaseModel):
+    accepted: int
+    buffered: int = Field(description="samples waiting for the next frames")
+
+
+class ImuNoiseIn(_Strict):
+    """Continuous-time IMU noise (EuRoC imu0/sensor.yaml terms)."""
+
+    gyro_noise_density: float = Field(1.6968e-4, ge=0)
+    gyro_random_walk: float = Field(1.9393e-5, ge=0)
+    accel_noise_density: float = Field(2.0e-3, ge=0)
+    accel_random_walk: float = Field(3.0e-3, ge=0)
+    rate_hz: float = Field(200.0, gt=0)
+
+
+class SessionCreate(_Strict):
+    """A session from the plain calibration form (what ``StereoRig.to_dict`` writes)."""
+
+    name: str = Field("", max_length=200)
+    calibration: dict[str, Any] = Field(
+        description="{'left': camera, 'right': camera}; camera = width, height, fx, fy, cx, cy, "
+        "distortion_model (radtan|equidistant|none), distortion, T_BS (4x4 camera->body)"
+    )
+    config: dict[str, Any] = Field(
+        default_factory=dict, description="SwarmvoConfig overrides, e.g. {'seed': 3}"
+    )
+    imu_noise: ImuNoiseIn | None = None
+
+
+class SessionOut(BaseModel):
+    id: str
+    name: str
+    created_at: dt.datetime
+    image_width: int
+    image_height: int
+    frame_count: int
+    last_timestamp_ns: int | None
+    resume_count: int = Field(description="times the estimator restarted from a stored pose")
+    calibration: dict[str, Any]
+    config: dict[str, Any]
+    imu_noise: dict[str, Any] | None
+
+    @classmethod
+    def of(cls, record: SessionRecord) -> SessionOut:
+        return cls(
+            id=record.id,
+            name=record.name,
+            created_at=record.created_at,
+            image_width=record.image_width,
+            image_height=record.image_height,
+            frame_count=record.frame_count,
+            last_timestamp_ns=record.last_timestamp_ns,
+            resume_count=record.resume_count,
+            calibration=record.calibration,
+            config=record.config,
+            imu_noise=record.imu_noise,
+        )
+
+
+class SessionList(BaseModel):
+    sessions: list[SessionOut]
+
+
+def _matrix(flat: list[float]) -> Matrix4:
+    return [flat[0:4], flat[4:8], flat[8:12], flat[12:16]]
+
+
+class PoseOut(BaseModel):
+    """One answered frame; poses are 4x4 left-camera-to-world, row-major."""
+
+    session_id: str
+    index: int
+    timestamp_ns: int
+    pose: Matrix4 = Field(description="fused pose (back end), left camera in world")
+    frontend_pose: Matrix4
+    relative_pose: Matrix4 = Field(description="front end T_prev_cur")
+    status: Literal["ok", "degraded", "lost"]
+    matches: int
+    inliers: int
+    support: int
+    timings_s: dict[str, float] = Field(
+        description="queue_wait, decode, odometry (and its stages), persist, total"
+    )
+    message: str
+    resumed: bool = Field(description="the estimator restarted from the last stored pose")
+    imu_samples: int = Field(0, description="IMU samples used for this frame")
+
+    @classmethod
+    def of(cls, session_id: str, record: PoseRecord, imu_samples: int = 0) -> PoseOut:
+        return cls(
+            session_id=session_id,
+            index=record.frame_index,
+            timestamp_ns=record.timestamp_ns,
+            pose=_matrix(record.pose),
+            frontend_pose=_matrix(record.frontend_pose),
+            relative_pose=_matrix(record.relative_pose),
+            status=record.status,  # type: ignore[arg-type]
+            matches=record.matches,
+            inliers=record.inliers,
+            support=record.support,
+            timings_s=record.timings,
+            message=record.message,
+            resumed=record.resumed,
+            imu_samples=imu_samples,
+        )
+
+
+class TrajectoryOut(BaseModel):
+    session_id: str
+    poses: list[PoseOut]
+
+
+class Health(BaseModel):
+    status: Literal["ok"]
+    sessions_active: int
+    database: str
+
+
+class ErrorOut(BaseModel):
+    detail: str

@@ -1,0 +1,75 @@
+"""Service settings: command-line flags override ``SWARMVO_*`` environment variables."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+def hash_key(key: str) -> str:
+    """Stored form of an API key: sessions are owned by this digest, never by the key itself."""
+    return hashlib.sha256(key.encode("utf-8")).hexdigest()
+
+
+class ServiceSettings(BaseSettings):
+    """Everything ``swarmvo serve`` can be told; defaults are safe for a single machine."""
+
+    model_config = SettingsConfigDict(env_prefix="SWARMVO_", extra="forbid")
+
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    data_dir: Path = Path("swarmvo-data")
+    # Empty: a SQLite file in data_dir. postgresql+psycopg://user:pw@host/db switches to PostgreSQL.
+    database_url: str = ""
+    # SQLite durability per commit. NORMAL (in WAL mode): a committed pose survives a crash of
+    # the server process; FULL also survives power loss at one fsync per pose.
+    sqlite_synchronous: Literal["NORMAL", "FULL"] = "NORMAL"
+    # Comma-separated API keys. Kept as one string so the environment form stays simple.
+    api_keys: str = ""
+    open: bool = False
+    # Threads running decode + odometry + persistence; frames of one session never overlap.
+    workers: int = Field(default_factory=lambda: max(1, os.cpu_count() or 1), ge=1, le=256)
+
+    # Limits (each produces a clear 4xx answer).
+    max_request_bytes: int = Field(16 * 1024 * 1024, ge=1024)
+    max_image_width: int = Field(4096, ge=1)
+    max_image_height: int = Field(4096, ge=1)
+    max_image_pixels: int = Field(4096 * 3072, ge=1)
+    max_imu_batch: int = Field(10_000, ge=1)
+    max_imu_buffer: int = Field(100_000, ge=1)
+    max_sessions_per_key: int = Field(100, ge=1)
+    # Live odometry pipelines kept in memory; the least recently used idle one is unloaded
+    # beyond this and resumes from its last stored pose when frames arrive again.
+    max_active_sessions: int = Field(64, ge=1)
+    # Frames waiting for CPU per session, and what happens when a producer outruns it.
+    queue_size: int = Field(8, ge=1, le=10_000)
+    queue_policy: Literal["reject", "drop_oldest"] = "reject"
+    ws_max_message_bytes: int = Field(16 * 1024 * 1024, ge=1024)
+
+    @field_validator("database_url")
+    @classmethod
+    def _strip(cls, value: str) -> str:
+        return value.strip()
+
+    @property
+    def key_hashes(self) -> frozenset[str]:
+        return frozenset(hash_key(k.strip()) for k in self.api_keys.split(",") if k.strip())
+
+    def resolved_database_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'swarmvo.sqlite3').resolve()}"
+
+    def check_startable(self) -> None:
+        """Refuse to run without protection unless open mode was asked for explicitly."""
+        if not self.key_hashes and not self.open:
+            raise ValueError(
+                "no API keys configured: set SWARMVO_API_KEYS=key1,key2 (clients send "
+                "'Authorization: Bearer KEY'), or pass --open / SWARMVO_OPEN=1 for an "
+                "unauthenticated local development server"
+            )

@@ -1,0 +1,314 @@
+"""Persistence: sessions and every pose the service answered, in SQLite or PostgreSQL.
+
+The schema is owned by the Alembic migrations in ``service/migrations`` (run at start-up); the
+ORM classes below mirror it. Poses are stored as JSON lists of 16 floats: Python's float repr
+round-trips float64 exactly, so a trajectory read back equals the one answered, bit for bit.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Boolean,
+    DateTime,
+    ForeignKey,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+    create_engine,
+    delete,
+    event,
+    func,
+    select,
+    update,
+)
+from sqlalchemy.engine import Engine
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
+
+MIGRATIONS_DIR = Path(__file__).resolve().parent / "migrations"
+
+
+class Base(DeclarativeBase):
+    pass
+
+
+class SessionRow(Base):
+    __tablename__ = "sessions"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    owner: Mapped[str] = mapped_column(String(64), index=True)
+    name: Mapped[str] = mapped_column(String(200), default="")
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True))
+    calibration: Mapped[dict[str, Any]] = mapped_column(JSON)
+    config: Mapped[dict[str, Any]] = mapped_column(JSON)
+    imu_noise: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    image_width: Mapped[int] = mapped_column(Integer)
+    image_height: Mapped[int] = mapped_column(Integer)
+    frame_count: Mapped[int] = mapped_column(Integer, default=0)
+    last_timestamp_ns: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    resume_count: Mapped[int] = mapped_column(Integer, default=0)
+
+
+class PoseRow(Base):
+    __tablename__ = "poses"
+    __table_args__ = (UniqueConstraint("session_id", "frame_index", name="uq_pose_frame"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    session_id: Mapped[str] = mapped_column(
+        String(32), ForeignKey("sessions.id", ondelete="CASCADE"), index=True
+    )
+    frame_index: Mapped[int] = mapped_column(Integer)
+    timestamp_ns: Mapped[int] = mapped_column(BigInteger)
+    pose: Mapped[list[float]] = mapped_column(JSON)
+    frontend_pose: Mapped[list[float]] = mapped_column(JSON)
+    relative_pose: Mapped[list[float]] = mapped_column(JSON)
+    status: Mapped[str] = mapped_column(String(16))
+    matches: Mapped[int] = mapped_column(Integer, default=0)
+    inliers: Mapped[int] = mapped_column(Integer, default=0)
+    support: Mapped[int] = mapped_column(Integer, default=0)
+    timings: Mapped[dict[str, float]] = mapped_column(JSON)
+    message: Mapped[str] = mapped_column(Text, default="")
+    resumed: Mapped[bool] = mapped_column(Boolean, default=False)
+
+
+@dataclass(frozen=True)
+class SessionRecord:
+    id: str
+    owner: str
+    name: str
+    created_at: dt.datetime
+    calibration: dict[str, Any]
+    config: dict[str, Any]
+    imu_noise: dict[str, Any] | None
+    image_width: int
+    image_height: int
+    frame_count: int
+    last_timestamp_ns: int | None
+    resume_count: int
+
+
+@dataclass(frozen=True)
+class PoseRecord:
+    frame_index: int
+    timestamp_ns: int
+    pose: list[float]
+    frontend_pose: list[float]
+    relative_pose: list[float]
+    status: str
+    matches: int = 0
+    inliers: int = 0
+    support: int = 0
+    timings: dict[str, float] = field(default_factory=dict)
+    message: str = ""
+    resumed: bool = False
+
+
+def _session_record(row: SessionRow) -> SessionRecord:
+    created = row.created_at
+    if created.tzinfo is None:  # SQLite drops the zone; everything is stored in UTC
+        created = created.replace(tzinfo=dt.UTC)
+    return SessionRecord(
+        id=row.id,
+        owner=row.owner,
+        name=row.name,
+        created_at=created,
+        calibration=row.calibration,
+        config=row.config,
+        imu_noise=row.imu_noise,
+        image_width=row.image_width,
+        image_height=row.image_height,
+        frame_count=row.frame_count,
+        last_timestamp_ns=row.last_timestamp_ns,
+        resume_count=row.resume_count,
+    )
+
+
+def _pose_record(row: PoseRow) -> PoseRecord:
+    return PoseRecord(
+        frame_index=row.frame_index,
+        timestamp_ns=row.timestamp_ns,
+        pose=row.pose,
+        frontend_pose=row.frontend_pose,
+        relative_pose=row.relative_pose,
+        status=row.status,
+        matches=row.matches,
+        inliers=row.inliers,
+        support=row.support,
+        timings=row.timings,
+        message=row.message,
+        resumed=row.resumed,
+    )
+
+
+def make_engine(url: str, sqlite_synchronous: str = "NORMAL") -> Engine:
+    """Engine for ``url``; SQLite gets WAL so readers never block the writer."""
+    if sqlite_synchronous not in ("NORMAL", "FULL"):
+        raise ValueError(f"sqlite_synchronous must be NORMAL or FULL, not {sqlite_synchronous!r}")
+    if url.startswith("sqlite"):
+        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
+
+        @event.listens_for(engine, "connect")
+        def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
+            cursor = dbapi_connection.cursor()
+            cursor.execute("PRAGMA journal_mode=WAL")
+            cursor.execute(f"PRAGMA synchronous={sqlite_synchronous}")
+            cursor.execute("PRAGMA foreign_keys=ON")
+            cursor.close()
+
+        return engine
+    return create_engine(url, pool_pre_ping=True)
+
+
+def run_migrations(engine: Engine) -> None:
+    """Bring the schema to the newest Alembic revision (idempotent; runs at every start)."""
+    from alembic import command
+    from alembic.config import Config
+
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+    with engine.begin() as connection:
+        config.attributes["connection"] = connection
+        command.upgrade(config, "head")
+
+
+class Store:
+    """Repository over the two tables; every method is one short transaction."""
+
+    def __init__(self, engine: Engine) -> None:
+        self.engine = engine
+        self._sessions = sessionmaker(engine, expire_on_commit=False)
+
+    @classmethod
+    def open(cls, url: str, sqlite_synchronous: str = "NORMAL") -> Store:
+        if url.startswith("sqlite:///"):
+            Path(url.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
+        engine = make_engine(url, sqlite_synchronous)
+        run_migrations(engine)
+        return cls(engine)
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+    def ping(self) -> None:
+        with self._sessions() as db:
+            db.execute(select(1))
+
+    # -- sessions
+
+    def create_session(
+        self,
+        owner: str,
+        name: str,
+        calibration: dict[str, Any],
+        config: dict[str, Any],
+        imu_noise: dict[str, Any] | None,
+        image_size: tuple[int, int],
+    ) -> SessionRecord:
+        row = SessionRow(
+            id=uuid.uuid4().hex,
+            owner=owner,
+            name=name,
+            created_at=dt.datetime.now(dt.UTC),
+            calibration=calibration,
+            config=config,
+            imu_noise=imu_noise,
+            image_width=image_size[0],
+            image_height=image_size[1],
+            frame_count=0,
+            last_timestamp_ns=None,
+            resume_count=0,
+        )
+        with self._sessions.begin() as db:
+            db.add(row)
+        return _session_record(row)
+
+    def count_sessions(self, owner: str) -> int:
+        with self._sessions() as db:
+            query = select(func.count()).select_from(SessionRow).where(SessionRow.owner == owner)
+            return int(db.scalar(query) or 0)
+
+    def get_session(self, session_id: str, owner: str | None = None) -> SessionRecord | None:
+        with self._sessions() as db:
+            row = db.get(SessionRow, session_id)
+            if row is None or (owner is not None and row.owner != owner):
+                return None
+            return _session_record(row)
+
+    def list_sessions(self, owner: str) -> list[SessionRecord]:
+        with self._sessions() as db:
+            rows = db.scalars(
+                select(SessionRow).where(SessionRow.owner == owner).order_by(SessionRow.created_at)
+            )
+            return [_session_record(row) for row in rows]
+
+    def delete_session(self, session_id: str, owner: str) -> bool:
+        with self._sessions.begin() as db:
+            row = db.get(SessionRow, session_id)
+            if row is None or row.owner != owner:
+                return False
+            db.execute(delete(PoseRow).where(PoseRow.session_id == session_id))
+            db.delete(row)
+        return True
+
+    def note_resumed(self, session_id: str) -> None:
+        with self._sessions.begin() as db:
+            db.execute(
+                update(SessionRow)
+                .where(SessionRow.id == session_id)
+                .values(resume_count=SessionRow.resume_count + 1)
+            )
+
+    # -- poses
+
+    def add_pose(self, session_id: str, pose: PoseRecord) -> None:
+        """Store one answered pose and advance the session counters in the same transaction."""
+        with self._sessions.begin() as db:
+            db.add(
+                PoseRow(
+                    session_id=session_id,
+                    frame_index=pose.frame_index,
+                    timestamp_ns=pose.timestamp_ns,
+                    pose=pose.pose,
+                    frontend_pose=pose.frontend_pose,
+                    relative_pose=pose.relative_pose,
+                    status=pose.status,
+                    matches=pose.matches,
+                    inliers=pose.inliers,
+                    support=pose.support,
+                    timings=pose.timings,
+                    message=pose.message,
+                    resumed=pose.resumed,
+                )
+            )
+            db.execute(
+                update(SessionRow)
+                .where(SessionRow.id == session_id)
+                .values(frame_count=pose.frame_index + 1, last_timestamp_ns=pose.timestamp_ns)
+            )
+
+    def last_pose(self, session_id: str) -> PoseRecord | None:
+        with self._sessions() as db:
+            row = db.scalars(
+                select(PoseRow)
+                .where(PoseRow.session_id == session_id)
+                .order_by(PoseRow.frame_index.desc())
+                .limit(1)
+            ).first()
+            return None if row is None else _pose_record(row)
+
+    def poses(self, session_id: str) -> list[PoseRecord]:
+        with self._sessions() as db:
+            rows = db.scalars(
+                select(PoseRow)
+                .where(PoseRow.session_id == session_id)
+                .order_by(PoseRow.frame_index)
+            )
+            return [_pose_record(row) for row in rows]

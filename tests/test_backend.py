@@ -1,0 +1,311 @@
+"""The fusion graph driven by simulated relative poses and a simulated IMU."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from estimator.backend import FusedEstimate, FusionBackend
+from estimator.backend.noise import relative_pose_sigmas
+from estimator.backend.scenario import (
+    FrontendMeasurement,
+    chain,
+    simulate_frontend,
+    smooth_trajectory,
+)
+from estimator.config import BackendConfig
+from estimator.geometry import invert_pose, kabsch, make_pose, rotation_angle_deg
+from estimator.types import FrameStatus, ImuBatch, ImuNoise
+
+# A camera mounted like EuRoC's cam0: rotated ~90 deg about z and offset by a few cm.
+BODY_FROM_CAMERA = make_pose(
+    Rotation.from_euler("xyz", [0.02, -0.01, 1.55]).as_matrix(), [-0.02, -0.06, 0.01]
+)
+PERFECT_IMU = ImuNoise(gyro_noise_density=0.0, gyro_random_walk=0.0, accel_noise_density=0.0)
+
+
+def _run(
+    scenario,
+    measurements: list[FrontendMeasurement],
+    config: BackendConfig,
+    imu: bool = True,
+    imu_noise: ImuNoise | None = None,
+    imu_time_shift_ns: int = 0,
+) -> list[FusedEstimate]:
+    backend = FusionBackend(config, BODY_FROM_CAMERA, (imu_noise or ImuNoise()) if imu else None)
+    stamps = scenario.timestamps_ns
+    shifted = ImuBatch(
+        scenario.imu.timestamps_ns + imu_time_shift_ns, scenario.imu.gyro, scenario.imu.accel
+    )
+    out = []
+    for k, measurement in enumerate(measurements):
+        start = stamps[k - 1] if k else stamps[0] - 10**9
+        batch = shifted.between(int(start) + imu_time_shift_ns, int(stamps[k]) + imu_time_shift_ns)
+        out.append(
+            backend.add_frame(
+                int(stamps[k]),
+                None if k == 0 else measurement.relative_pose,
+                measurement.residuals,
+                measurement.inlier_count,
+                batch if imu else None,
+            )
+        )
+    return out
+
+
+def _perfect_measurements(poses: np.ndarray) -> list[FrontendMeasurement]:
+    camera = poses @ BODY_FROM_CAMERA
+    relative = invert_pose(camera[:-1]) @ camera[1:]
+    residuals = np.full(150, 0.02)
+    return [FrontendMeasurement(np.eye(4), None, 0, "first")] + [
+        FrontendMeasurement(r, residuals, 150, "good") for r in relative
+    ]
+
+
+def _aligned_ate(estimate: np.ndarray, truth: np.ndarray) -> float:
+    rotation, translation = kabsch(estimate[:, :3, 3], truth[:, :3, 3])
+    moved = estimate[:, :3, 3] @ rotation.T + translation
+    return float(np.sqrt(np.mean(np.sum((moved - truth[:, :3, 3]) ** 2, axis=1))))
+
+
+def _relative_to_first(poses: np.ndarray) -> np.ndarray:
+    return invert_pose(poses[0]) @ poses
+
+
+def _poses(estimates: list[FusedEstimate]) -> np.ndarray:
+    return np.stack([e.pose for e in estimates])
+
+
+@pytest.mark.parametrize("smoother", ["fixed-lag", "isam2"])
+def test_perfect_inputs_are_recovered_exactly_without_imu(smoother):
+    scenario = smooth_trajectory(60, seed=1)
+    truth = scenario.body_poses @ BODY_FROM_CAMERA
+    out = _run(
+        scenario,
+        _perfect_measurements(scenario.body_poses),
+        BackendConfig(smoother=smoother),
+        imu=False,
+    )
+    assert all(e.status is FrameStatus.OK for e in out)
+    np.testing.assert_allclose(
+        _relative_to_first(_poses(out)), _relative_to_first(truth), atol=1e-6
+    )
+    # The camera pose is the body pose moved by the extrinsic.
+    np.testing.assert_allclose(out[-1].pose, out[-1].body_pose @ BODY_FROM_CAMERA, atol=1e-12)
+
+
+def test_perfect_inputs_are_recovered_with_a_perfect_imu():
+    scenario = smooth_trajectory(60, seed=1, noise=PERFECT_IMU, initial_bias=(0.0, 0.0, 0.0))
+    truth = _relative_to_first(scenario.body_poses @ BODY_FROM_CAMERA)
+    out = _run(scenario, _perfect_measurements(scenario.body_poses), BackendConfig())
+    estimate = _relative_to_first(_poses(out))
+    # Exact up to the gyro's trapezoidal integration (~0.004 deg per frame on this motion).
+    assert (
+        rotation_angle_deg(np.swapaxes(estimate[:, :3, :3], 1, 2) @ truth[:, :3, :3]).max() < 0.02
+    )
+    assert np.abs(estimate[:, :3, 3] - truth[:, :3, 3]).max() < 1e-3
+    assert np.abs(out[-1].gyro_bias).max() < 1e-3
+
+
+def test_world_is_gravity_aligned_from_the_first_accelerometer_batch():
+    scenario = smooth_trajectory(3, seed=1, noise=PERFECT_IMU, initial_bias=(0.0, 0.0, 0.0))
+    tilt = Rotation.from_euler("ZYX", [0.4, -0.15, 0.25]).as_matrix()  # yaw, pitch, roll
+    force = tilt.T @ np.array([0.0, 0.0, 9.81])
+    backend = FusionBackend(BackendConfig(), BODY_FROM_CAMERA, ImuNoise())
+    static = ImuBatch(
+        np.arange(-200, 1, 5, dtype=np.int64) * 1_000_000,
+        np.zeros((41, 3)),
+        np.tile(force, (41, 1)),
+    )
+    first = backend.add_frame(0, None, None, 0, static)
+    assert "gravity-aligned" in first.message
+    yaw, pitch, roll = Rotation.from_matrix(first.body_pose[:3, :3]).as_euler("ZYX")
+    assert (pitch, roll) == pytest.approx((-0.15, 0.25), abs=1e-6)
+    assert yaw == pytest.approx(0.0, abs=1e-9)
+    assert scenario is not None
+
+
+def test_one_grossly_wrong_relative_pose_does_not_tear_the_trajectory():
+    scenario = smooth_trajectory(80, seed=4)
+    measurements = simulate_frontend(scenario.body_poses, BODY_FROM_CAMERA, seed=5)
+    bad = measurements[40]
+    wrong = bad.relative_pose @ make_pose(
+        Rotation.from_rotvec([0.0, 0.3, 0.0]).as_matrix(), [0.5, -0.3, 0.2]
+    )
+    measurements[40] = FrontendMeasurement(wrong, bad.residuals, bad.inlier_count, "gross")
+    truth = scenario.body_poses @ BODY_FROM_CAMERA
+    # Only the robust kernel (no gate; the motion prior on every frame gives the translation
+    # something to disagree with) against plain least squares.
+    robust = _run(
+        scenario, measurements, BackendConfig(outlier_gate_chi2=None, motion_prior="always")
+    )
+    plain = _run(
+        scenario,
+        measurements,
+        BackendConfig(outlier_gate_chi2=None, motion_prior="always", robust_kernel="none"),
+    )
+    robust_ate = _aligned_ate(_poses(robust), truth)
+    plain_ate = _aligned_ate(_poses(plain), truth)
+    assert robust_ate < 0.05, robust_ate
+    assert plain_ate > 3 * robust_ate, (plain_ate, robust_ate)
+    # With the gate (default) the frame is rejected outright and reported as degraded.
+    gated = _run(scenario, measurements, BackendConfig())
+    assert gated[40].status is FrameStatus.DEGRADED
+    assert "rejected" in gated[40].message
+    assert _aligned_ate(_poses(gated), truth) < 0.05
+
+
+def test_frames_without_vision_advance_with_the_imu():
+    scenario = smooth_trajectory(60, seed=6)
+    measurements = simulate_frontend(scenario.body_poses, BODY_FROM_CAMERA, seed=7)
+    gap = range(30, 40)
+    for k in gap:
+        measurements[k] = FrontendMeasurement(None, None, 0, "failed")
+    out = _run(scenario, measurements, BackendConfig())
+    assert [out[k].status for k in gap] == [FrameStatus.DEGRADED] * len(gap)
+    truth = scenario.body_poses
+    # Rotation through the gap follows the gyro, translation keeps moving.
+    before, after = out[29].body_pose, out[39].body_pose
+    true_motion = invert_pose(truth[29]) @ truth[39]
+    motion = invert_pose(before) @ after
+    assert rotation_angle_deg(motion[:3, :3].T @ true_motion[:3, :3]) < 0.3
+    true_moved = np.linalg.norm(true_motion[:3, 3])
+    assert true_moved > 0.2  # the test motion is real
+    # Constant velocity over 0.5 s of accelerating motion: much closer than standing still.
+    assert np.linalg.norm(motion[:3, 3] - true_motion[:3, 3]) < 0.4 * true_moved
+
+
+@pytest.mark.parametrize("imu_configured", [False, True])
+def test_frames_without_vision_or_imu_are_lost_then_reconnect(imu_configured):
+    scenario = smooth_trajectory(40, seed=8)
+    measurements = simulate_frontend(scenario.body_poses, BODY_FROM_CAMERA, seed=9)
+    for k in range(15, 20):
+        measurements[k] = FrontendMeasurement(None, None, 0, "failed")
+    backend = FusionBackend(
+        BackendConfig(), BODY_FROM_CAMERA, ImuNoise() if imu_configured else None
+    )
+    out = [
+        backend.add_frame(
+            int(t), None if k == 0 else m.relative_pose, m.residuals, m.inlier_count, None
+        )  # no IMU batches at all
+        for k, (t, m) in enumerate(zip(scenario.timestamps_ns, measurements, strict=True))
+    ]
+    assert [o.status for o in out[15:20]] == [FrameStatus.LOST] * 5
+    assert all(o.status is FrameStatus.OK for o in out[20:])
+    poses = _poses(out)
+    assert np.all(np.isfinite(poses))
+    # After reconnecting, consecutive fused motions follow the front end again.
+    for k in range(21, 40):
+        fused = invert_pose(poses[k - 1]) @ poses[k]
+        measured = measurements[k].relative_pose
+        assert np.linalg.norm(fused[:3, 3] - measured[:3, 3]) < 0.02
+
+
+def test_imu_time_offset_is_applied():
+    scenario = smooth_trajectory(60, seed=10, noise=PERFECT_IMU, initial_bias=(0.0, 0.0, 0.0))
+    measurements = [
+        FrontendMeasurement(None, None, 0, "failed") if k else m
+        for k, m in enumerate(_perfect_measurements(scenario.body_poses))
+    ]
+    shift = 30_000_000  # the IMU clock runs 30 ms ahead of the camera clock
+    truth = _relative_to_first(scenario.body_poses)
+
+    def rotation_error(offset_s: float) -> float:
+        out = _run(
+            scenario,
+            measurements,
+            BackendConfig(imu_time_offset_s=offset_s),
+            imu_time_shift_ns=shift,
+        )
+        estimate = _relative_to_first(np.stack([o.body_pose for o in out]))
+        return float(rotation_angle_deg(estimate[-1, :3, :3].T @ truth[-1, :3, :3]))
+
+    assert rotation_error(0.03) < 0.05
+    assert rotation_error(0.0) > 5 * max(rotation_error(0.03), 0.01)
+
+
+def test_twenty_percent_broken_frames_fused_beats_front_end_by_30_percent():
+    scenario = smooth_trajectory(300, seed=11)
+    measurements = simulate_frontend(
+        scenario.body_poses, BODY_FROM_CAMERA, seed=12, broken_fraction=0.2
+    )
+    truth = scenario.body_poses @ BODY_FROM_CAMERA
+    out = _run(scenario, measurements, BackendConfig())
+    fused = _aligned_ate(_poses(out), truth)
+    relative = [m.relative_pose for m in measurements]
+    frontend = min(_aligned_ate(chain(relative, hold=h), truth) for h in (True, False))
+    assert not any(o.status is FrameStatus.LOST for o in out)
+    assert fused < 0.7 * frontend, (fused, frontend)
+
+
+def test_same_inputs_give_the_same_output():
+    scenario = smooth_trajectory(50, seed=13)
+    measurements = simulate_frontend(
+        scenario.body_poses, BODY_FROM_CAMERA, seed=14, broken_fraction=0.2
+    )
+    first = _poses(_run(scenario, measurements, BackendConfig()))
+    second = _poses(_run(scenario, measurements, BackendConfig()))
+    np.testing.assert_array_equal(first, second)
+
+
+def test_fewer_inliers_and_larger_residuals_mean_larger_sigmas():
+    config = BackendConfig()
+    residuals = np.full(200, 0.05)
+    many = relative_pose_sigmas(residuals, 200, config)
+    few = relative_pose_sigmas(residuals[:20], 20, config)
+    worse = relative_pose_sigmas(residuals * 3, 200, config)
+    assert few[0] > many[0] and few[1] > many[1]
+    assert worse[0] > many[0] and worse[1] > many[1]
+    tiny = relative_pose_sigmas(np.full(10_000, 1e-6), 10_000, config)
+    assert tiny == (config.min_rotation_sigma_rad, config.min_translation_sigma_m)
+    huge = relative_pose_sigmas(np.full(3, 50.0), 3, config)
+    assert huge == (config.max_rotation_sigma_rad, config.max_translation_sigma_m)
+    with pytest.raises(ValueError, match="NaN"):
+        relative_pose_sigmas(np.array([np.nan]), 1, config)
+
+
+def test_bad_inputs_raise_clear_errors():
+    backend = FusionBackend(BackendConfig(), np.eye(4), None)
+    backend.add_frame(100, None, None, 0, None)
+    with pytest.raises(ValueError, match="4x4"):
+        backend.add_frame(200, np.eye(3), None, 10, None)
+    with pytest.raises(ValueError, match="NaN"):
+        backend.add_frame(200, np.full((4, 4), np.nan), None, 10, None)
+    with pytest.raises(ValueError, match="increase"):
+        backend.add_frame(100, np.eye(4), None, 10, None)
+    with pytest.raises(ValueError, match="inlier_count"):
+        backend.add_frame(200, np.eye(4), None, -1, None)
+    with pytest.raises(ValueError, match="rotation"):
+        FusionBackend(BackendConfig(), np.diag([1.0, 1.0, -1.0, 1.0]), None)
+    override = BackendConfig(body_from_camera=list(BODY_FROM_CAMERA.ravel()))
+    assert np.allclose(FusionBackend(override, np.eye(4), None).body_from_camera, BODY_FROM_CAMERA)
+
+
+def test_a_numerical_failure_inside_gtsam_restarts_the_graph_instead_of_crashing():
+    scenario = smooth_trajectory(20, seed=15)
+    measurements = simulate_frontend(scenario.body_poses, BODY_FROM_CAMERA, seed=16)
+    backend = FusionBackend(BackendConfig(), BODY_FROM_CAMERA, None)
+    stamps = scenario.timestamps_ns
+
+    class Failing:
+        def update(self, *args, **kwargs):
+            raise RuntimeError("Indeterminant linear system detected (simulated)")
+
+    out = []
+    for k, m in enumerate(measurements):
+        if k == 10:
+            backend._smoother = Failing()
+        out.append(
+            backend.add_frame(
+                int(stamps[k]),
+                None if k == 0 else m.relative_pose,
+                m.residuals,
+                m.inlier_count,
+                None,
+            )
+        )
+    assert "restarted" in out[10].message
+    assert all(o.status is FrameStatus.OK for o in out[11:])
+    truth = scenario.body_poses @ BODY_FROM_CAMERA
+    assert _aligned_ate(_poses(out), truth) < 0.05

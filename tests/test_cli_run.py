@@ -1,0 +1,185 @@
+"""``swarmvo synth`` + ``swarmvo run`` end to end, on a rendered sequence and on real EuRoC."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimator.cli import main
+from estimator.datasets import open_sequence
+from estimator.geometry import invert_pose
+from estimator.trajectory_io import read_tum, write_kitti
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+REQUIRED_KEYS = (
+    "ate_rmse_m",
+    "rpe_trans_rmse_m",
+    "rpe_rot_rmse_deg",
+    "final_drift_pct",
+    "final_drift_m",
+    "eq20_rms",
+    "path_length_m",
+    "frames",
+    "frames_failed",
+    "median_stage_time_s",
+)
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("cli") / "seq"
+    code = main(["synth", str(root), "--frames", "24", "--length-m", "2.4", "--quiet"])
+    assert code == 0
+    return root
+
+
+@pytest.mark.slow
+def test_synth_then_run_writes_trajectory_metrics_and_plot(rendered, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["run", str(rendered), "--out", str(out), "--quiet"]) == 0
+    assert "ATE" in capsys.readouterr().out
+    timestamps, poses = read_tum(out / "trajectory.tum")
+    assert len(timestamps) == 24 and poses.shape == (24, 4, 4)
+    metrics = json.loads((out / "metrics.json").read_text())
+    for key in REQUIRED_KEYS:
+        assert key in metrics, key
+    assert metrics["frames"] == 24 and metrics["estimator"] == "pso-robust"
+    assert 2.0 < metrics["path_length_m"] < 2.6  # camera path of the 2.4 m body path
+    # Sane, not a target: the estimate follows the rendered motion far better than standing
+    # still would (which would give an ATE of about a third of the path length).
+    assert np.isfinite(metrics["ate_rmse_m"])
+    assert metrics["ate_rmse_m"] < 0.1 * metrics["path_length_m"]
+    assert metrics["frames_failed"] <= 4
+    assert set(metrics["fused"]) >= {"ate_rmse_m", "rpe_rot_rmse_deg"}
+    assert set(metrics["frontend"]) >= {"ate_rmse_m", "rpe_rot_rmse_deg"}
+    assert metrics["median_stage_time_s"]["total"] > 0
+    assert (out / "trajectory.png").read_bytes().startswith(PNG_MAGIC)
+
+
+@pytest.mark.slow
+def test_same_seed_gives_the_same_trajectory(rendered, tmp_path):
+    for name in ("a", "b"):
+        args = ["run", str(rendered), "--out", str(tmp_path / name), "--limit", "6", "--quiet"]
+        assert main([*args, "--estimator", "pso", "--seed", "3", "--no-backend"]) == 0
+    first = (tmp_path / "a" / "trajectory.tum").read_text()
+    assert first == (tmp_path / "b" / "trajectory.tum").read_text()
+    assert len(first.splitlines()) == 7  # header + 6 poses
+
+
+def test_run_without_ground_truth_still_writes_outputs(rendered, tmp_path):
+    copy = tmp_path / "nogt"
+    shutil.copytree(rendered, copy)
+    shutil.rmtree(copy / "mav0" / "state_groundtruth_estimate0")
+    out = tmp_path / "out"
+    args = ["run", str(copy), "--out", str(out), "--limit", "4", "--quiet", "--estimator", "svd"]
+    assert main(args) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == 4 and "ate_rmse_m" not in metrics
+    assert (out / "trajectory.png").read_bytes().startswith(PNG_MAGIC)
+
+
+@pytest.mark.euroc
+@pytest.mark.slow
+def test_run_on_euroc_micro_standstill(euroc_v101_micro, tmp_path):
+    out = tmp_path / "euroc"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the 4 unpaired cam1 rows
+        code = main(["run", str(euroc_v101_micro), "--out", str(out), "--limit", "20", "--quiet"])
+    assert code == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == 20 and metrics["format"] == "euroc" and metrics["imu"]
+    assert metrics["path_length_m"] < 0.02  # the drone stands still
+    assert metrics["final_drift_pct"] is None  # undefined for a 1 cm path
+    # Standing still: the estimate must not wander off (a wrong T_BS or time association
+    # would show up as centimetres of error here).
+    assert metrics["ate_rmse_m"] < 0.03
+    assert metrics["final_rot_drift_deg"] < 1.0
+    assert len(read_tum(out / "trajectory.tum")[0]) == 20
+
+
+def test_bad_input_gives_a_clean_error(tmp_path, capsys, rendered):
+    assert main(["run", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    assert "swarmvo run: error: dataset folder not found" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert main(["run", str(tmp_path / "empty")]) == 2
+    assert "cannot tell the dataset format" in capsys.readouterr().err
+    assert main(["run", str(rendered), "--format", "kitti"]) == 2
+    assert "no KITTI image folders" in capsys.readouterr().err
+    assert main(["run", str(rendered), "--limit", "1"]) == 2
+    assert "at least 2 frames" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        main(["run", str(rendered), "--format", "tum"])
+    assert exit_info.value.code == 2
+    assert "invalid choice" in capsys.readouterr().err
+
+
+def test_synth_bad_options_give_a_clean_error(tmp_path, capsys):
+    assert main(["synth", str(tmp_path / "s"), "--frames", "1"]) == 2
+    assert "swarmvo synth: error: frames must be >= 2" in capsys.readouterr().err
+    assert main(["synth", str(tmp_path / "s"), "--broken-fraction", "0.9"]) == 2
+    assert "broken_fraction" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_run_on_the_rendered_sequence_in_kitti_layout(rendered, tmp_path):
+    """The same frames as a KITTI odometry folder (calib.txt, times.txt, poses.txt)."""
+    sequence = open_sequence(rendered)
+    root = tmp_path / "sequences" / "00"
+    for folder in ("image_0", "image_1"):
+        (root / folder).mkdir(parents=True)
+    frames = sequence.frames[:12]
+    for i, record in enumerate(frames):
+        shutil.copy(record.left_path, root / "image_0" / f"{i:06d}.png")
+        shutil.copy(record.right_path, root / "image_1" / f"{i:06d}.png")
+    camera = sequence.rig.left
+    left = f"{camera.fx} 0 {camera.cx} 0 0 {camera.fy} {camera.cy} 0 0 0 1 0"
+    right = left.replace(" 0 0 ", f" {-camera.fx * sequence.rig.baseline} 0 ", 1)
+    (root / "calib.txt").write_text(f"P0: {left}\nP1: {right}\n")
+    timestamps = np.array([record.timestamp_ns for record in frames])
+    (root / "times.txt").write_text(
+        "".join(f"{(t - timestamps[0]) * 1e-9:.6e}\n" for t in timestamps)
+    )
+    cameras = sequence.ground_truth.interpolate(timestamps) @ camera.T_BS
+    write_kitti(root / "poses.txt", invert_pose(cameras[0]) @ cameras)
+    out = tmp_path / "out"
+    assert main(["run", str(root), "--out", str(out), "--quiet"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["format"] == "kitti" and metrics["imu"] is False and metrics["frames"] == 12
+    assert metrics["path_length_m"] > 0.5
+    assert metrics["ate_rmse_m"] < 0.1 * metrics["path_length_m"]
+
+
+def test_ground_truth_outside_the_frames_is_reported_not_fatal(rendered, tmp_path):
+    copy = tmp_path / "late_gt"
+    shutil.copytree(rendered, copy)
+    csv = copy / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+    header, *rows = csv.read_text().splitlines()
+    late = [f"{int(row.split(',', 1)[0]) + 10**12},{row.split(',', 1)[1]}" for row in rows]
+    csv.write_text("\n".join([header, *late]) + "\n")
+    out = tmp_path / "out"
+    args = ["run", str(copy), "--out", str(out), "--limit", "3", "--quiet", "--no-backend"]
+    assert main([*args, "--estimator", "svd"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert "ate_rmse_m" not in metrics
+    assert "only 0 of 3 frames fall inside" in metrics["evaluation_error"]
+    assert (out / "trajectory.tum").is_file() and (out / "trajectory.png").is_file()
+
+
+def test_config_file_is_applied_and_flags_override_it(rendered, tmp_path, capsys):
+    config = tmp_path / "config.yaml"
+    config.write_text("seed: 5\nregistration:\n  method: svd\nbackend:\n  enabled: false\n")
+    base = ["run", str(rendered), "--limit", "3", "--quiet", "--config", str(config)]
+    assert main([*base, "--out", str(tmp_path / "a")]) == 0
+    metrics = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    assert (metrics["estimator"], metrics["seed"], metrics["backend"]) == ("svd", 5, False)
+    assert main([*base, "--out", str(tmp_path / "b"), "--estimator", "msac", "--seed", "1"]) == 0
+    metrics = json.loads((tmp_path / "b" / "metrics.json").read_text())
+    assert (metrics["estimator"], metrics["seed"], metrics["backend"]) == ("msac", 1, False)
+    config.write_text('{"registration": {"method": "simplex"}}')
+    assert main(base) == 2
+    assert "invalid configuration" in capsys.readouterr().err

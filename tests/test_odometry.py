@@ -1,0 +1,292 @@
+"""The Odometry pipeline: real standstill, rendered motion with exact truth, and bad input."""
+
+from __future__ import annotations
+
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimator.calibration import StereoRig
+from estimator.config import SwarmvoConfig
+from estimator.datasets import open_sequence
+from estimator.evaluation import camera_ground_truth, eq20_errors, relative_to_first
+from estimator.geometry import (
+    invert_pose,
+    make_pose,
+    quat_to_matrix,
+    rotation_angle_deg,
+    rotation_vector_to_quat,
+)
+from estimator.odometry import Odometry, frame_seed, to_grey8
+from estimator.synthetic import CAMERA, T_BS_CAM0, build_world, loop_for_length
+from estimator.types import FrameStatus, StereoFrame
+
+FRAME_NS = 50_000_000  # 20 Hz
+
+
+def _config(**sections) -> SwarmvoConfig:
+    return SwarmvoConfig.model_validate(sections)
+
+
+# ----------------------------------------------------------------------------- rendered rig
+
+# A right camera that is slightly rotated and offset: rectification is not the identity, so the
+# conversion between the rectified and the original left camera frame is exercised.
+_RIGHT_ROTATION = quat_to_matrix(rotation_vector_to_quat(np.radians([0.6, -0.8, 0.5])))
+T_LEFT_RIGHT = make_pose(_RIGHT_ROTATION, [CAMERA["baseline"], 0.004, -0.003])
+
+
+def _rendered_rig() -> StereoRig:
+    camera = {
+        "width": CAMERA["width"], "height": CAMERA["height"], "fx": CAMERA["f"],
+        "fy": CAMERA["f"], "cx": CAMERA["cx"], "cy": CAMERA["cy"],
+        "distortion_model": "none", "distortion": [],
+    }  # fmt: skip
+    return StereoRig.from_dict(
+        {
+            "left": {**camera, "T_BS": T_BS_CAM0.tolist()},
+            "right": {**camera, "T_BS": (T_BS_CAM0 @ T_LEFT_RIGHT).tolist()},
+        }
+    )
+
+
+@cache
+def _rendered_flight(frames: int = 16, length_m: float = 1.5):
+    """Raw (unrectified) stereo frames along a loop flight and the true left-camera poses."""
+    duration = (frames - 1) * FRAME_NS * 1e-9
+    trajectory = loop_for_length(length_m, duration)
+    world = build_world(trajectory, np.random.default_rng(0), px_per_m=96.0)
+    times = np.arange(frames) * FRAME_NS * 1e-9
+    cameras = trajectory.state(times).poses() @ T_BS_CAM0
+    stereo_frames = []
+    for index, left_pose in enumerate(cameras):
+        left, _ = world.render(left_pose)
+        right, _ = world.render(left_pose @ T_LEFT_RIGHT)
+        stereo_frames.append(StereoFrame(1_000 + index * FRAME_NS, left, right))
+    return stereo_frames, cameras
+
+
+def _run(odometry: Odometry, frames) -> list:
+    return [odometry.process(frame) for frame in frames]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("tracking", ["keyframe", "frame"])
+def test_rendered_flight_is_tracked(tracking: str) -> None:
+    frames, truth = _rendered_flight()
+    # MSAC isolates the front end and the chaining from the swarm estimator (tested on its own).
+    config = _config(
+        backend={"enabled": False}, frontend={"tracking": tracking}, registration={"method": "msac"}
+    )
+    rig = _rendered_rig()
+    assert not rig.rectification.is_identity
+    reports = _run(Odometry(rig, config), frames)
+    assert all(report.status == FrameStatus.OK for report in reports)
+    estimate = np.array([report.pose for report in reports])
+    truth = relative_to_first(truth)
+    path = float(np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1).sum())
+    assert path > 1.0
+    error = invert_pose(truth) @ estimate
+    # Frame-to-frame motion is 0.1 m and several degrees; a wrong direction or a missing
+    # rectification conjugation shows up as errors of that size, not millimetres.
+    relative_rotation_error = [
+        rotation_angle_deg(
+            (invert_pose(invert_pose(truth[k - 1]) @ truth[k]) @ reports[k].relative_pose)[:3, :3]
+        )
+        for k in range(1, len(reports))
+    ]
+    assert np.median(relative_rotation_error) < 0.15
+    assert np.linalg.norm(error[-1, :3, 3]) < 0.03 * path
+    assert rotation_angle_deg(error[-1, :3, :3]) < 1.0
+
+
+@pytest.mark.slow
+def test_same_seed_same_trajectory() -> None:
+    frames, _ = _rendered_flight()
+    config = _config(backend={"enabled": False}, seed=7)
+    first = _run(Odometry(_rendered_rig(), config), frames[:6])
+    second = _run(Odometry(_rendered_rig(), config), frames[:6])
+    for a, b in zip(first, second, strict=True):
+        np.testing.assert_array_equal(a.pose, b.pose)
+        assert a.inliers == b.inliers
+
+
+def test_frame_seed_differs_per_frame_and_seed() -> None:
+    seeds = {frame_seed(seed, index) for seed in range(3) for index in range(50)}
+    assert len(seeds) == 150
+    assert frame_seed(3, 9) == frame_seed(3, 9)
+
+
+# ----------------------------------------------------------------------------- EuRoC standstill
+
+
+def _euroc_run(root: Path, config: SwarmvoConfig):
+    sequence = open_sequence(root)
+    odometry = Odometry(sequence.rig, config, imu_noise=sequence.imu_noise)
+    timestamps = sequence.timestamps_ns
+    reports = []
+    previous = int(timestamps[0]) - FRAME_NS
+    for frame in sequence:
+        imu = sequence.imu_between(previous, frame.timestamp_ns)
+        previous = frame.timestamp_ns
+        reports.append(odometry.process(frame, imu))
+    truth = camera_ground_truth(sequence.ground_truth, timestamps, sequence.rig.left.T_BS)
+    return reports, relative_to_first(truth)
+
+
+def _drift(poses: np.ndarray, truth: np.ndarray) -> tuple[float, float, float]:
+    """Final translation and rotation error (m, deg) and eq. 20 RMS over all frames."""
+    estimate = relative_to_first(poses)
+    final = invert_pose(truth[-1]) @ estimate[-1]
+    eq20 = float(np.sqrt(np.mean(eq20_errors(estimate, truth) ** 2)))
+    return float(np.linalg.norm(final[:3, 3])), float(rotation_angle_deg(final[:3, :3])), eq20
+
+
+@pytest.mark.slow
+@pytest.mark.euroc
+def test_euroc_standstill_stays_still(euroc_v101_micro: Path) -> None:
+    reports, truth = _euroc_run(euroc_v101_micro, SwarmvoConfig())
+    assert len(reports) == 95
+    assert all(report.status == FrameStatus.OK for report in reports)
+    assert np.median([report.inliers for report in reports[1:]]) > 150
+    for name in ("frontend_pose", "pose"):
+        poses = np.array([getattr(report, name) for report in reports])
+        translation, rotation, eq20 = _drift(poses, truth)
+        assert translation < 0.01, name
+        assert eq20 < 0.005, name
+        # The ground truth's own attitude disagrees with the images by ~0.25 deg at the last
+        # frame (refined PnP on the same matches: docs/frontend.md), so 0.2 deg against it is
+        # out of reach for a correct estimate; 0.35 deg still catches any creeping drift.
+        assert rotation < 0.35, name
+        # Standing still: the reported motion itself stays tiny.
+        final = relative_to_first(poses)[-1]
+        assert np.linalg.norm(final[:3, 3]) < 0.01, name
+
+
+# ----------------------------------------------------------------------------- input handling
+
+
+def _flat_rig() -> StereoRig:
+    camera = {
+        "width": 64, "height": 48, "fx": 50.0, "fy": 50.0, "cx": 32.0, "cy": 24.0,
+        "distortion_model": "none", "distortion": [],
+    }  # fmt: skip
+    return StereoRig.from_dict(
+        {
+            "left": {**camera, "T_BS": np.eye(4).tolist()},
+            "right": {**camera, "T_BS": make_pose(np.eye(3), [0.1, 0, 0]).tolist()},
+        }
+    )
+
+
+def _blank(timestamp: int, shape=(48, 64), dtype=np.uint8) -> StereoFrame:
+    return StereoFrame(timestamp, np.zeros(shape, dtype), np.zeros(shape, dtype))
+
+
+def test_wrong_image_size_is_rejected() -> None:
+    odometry = Odometry(_flat_rig(), _config(backend={"enabled": False}))
+    with pytest.raises(ValueError, match="expects 64x48"):
+        odometry.process(_blank(1, shape=(480, 640)))
+
+
+def test_timestamps_must_increase() -> None:
+    odometry = Odometry(_flat_rig(), _config(backend={"enabled": False}))
+    odometry.process(_blank(100))
+    with pytest.raises(ValueError, match="must increase"):
+        odometry.process(_blank(50))
+    with pytest.raises(ValueError, match="must increase"):
+        odometry.process(_blank(100))
+    odometry.process(_blank(150))  # a rejected frame leaves the session usable
+    assert odometry.frame_count == 2
+
+
+def test_unsupported_image_type_is_rejected() -> None:
+    odometry = Odometry(_flat_rig(), _config(backend={"enabled": False}))
+    with pytest.raises(ValueError, match="uint8 or uint16"):
+        odometry.process(_blank(1, dtype=np.float32))
+    with pytest.raises(ValueError, match="grey"):
+        odometry.process(_blank(2, shape=(48, 64, 2)))
+
+
+def test_grey_conversion() -> None:
+    colour = np.zeros((4, 5, 3), np.uint8)
+    colour[..., 1] = 200
+    grey = to_grey8(colour)
+    assert grey.shape == (4, 5) and grey.dtype == np.uint8
+    assert abs(int(grey[0, 0]) - round(0.587 * 200)) <= 1
+    deep = np.array([[0, 65535, 32896]], np.uint16)
+    np.testing.assert_array_equal(to_grey8(deep), [[0, 255, 128]])
+    assert to_grey8(np.zeros((4, 5, 1), np.uint8)).shape == (4, 5)
+
+
+def test_featureless_frames_are_lost_and_hold_the_pose() -> None:
+    odometry = Odometry(
+        _flat_rig(), _config(backend={"enabled": False}, frontend={"max_coast_frames": 0})
+    )
+    first = odometry.process(_blank(0))
+    assert first.status == FrameStatus.OK
+    second = odometry.process(_blank(FRAME_NS))
+    assert second.status == FrameStatus.LOST
+    assert "temporal matches" in second.message
+    np.testing.assert_array_equal(second.pose, first.pose)
+    np.testing.assert_array_equal(second.relative_pose, np.eye(4))
+
+
+def test_failed_frames_coast_then_hold() -> None:
+    odometry = Odometry(
+        _flat_rig(), _config(backend={"enabled": False}, frontend={"max_coast_frames": 2})
+    )
+    statuses = [odometry.process(_blank(k * FRAME_NS)).status for k in range(5)]
+    assert statuses == [
+        FrameStatus.OK,
+        FrameStatus.DEGRADED,
+        FrameStatus.DEGRADED,
+        FrameStatus.LOST,
+        FrameStatus.LOST,
+    ]
+
+
+@pytest.mark.slow
+def test_coasting_keeps_the_velocity() -> None:
+    """A black frame in a flight: the pose moves on at the last velocity, then tracking resumes."""
+    frames, truth = _rendered_flight()
+    config = _config(backend={"enabled": False}, registration={"method": "msac"})
+    odometry = Odometry(_rendered_rig(), config)
+    reports = [odometry.process(frame) for frame in frames[:6]]
+    black = frames[6]
+    black = StereoFrame(black.timestamp_ns, np.zeros_like(black.left), np.zeros_like(black.right))
+    reports.append(odometry.process(black))
+    reports += [odometry.process(frame) for frame in frames[7:10]]
+    assert reports[6].status == FrameStatus.DEGRADED
+    assert "constant velocity" in reports[6].message
+    np.testing.assert_allclose(reports[6].relative_pose, reports[5].relative_pose, atol=1e-12)
+    assert all(report.status == FrameStatus.OK for report in reports[7:])
+    truth = relative_to_first(truth)
+    # Frame 7 is measured against the coasted frame 6, so its error is the coasting error: the
+    # velocity change over one frame, a few millimetres here instead of the whole step.
+    step = np.linalg.norm(truth[6, :3, 3] - truth[5, :3, 3])
+    error = np.linalg.norm(reports[9].pose[:3, 3] - truth[9, :3, 3])
+    assert error < 0.2 * step
+
+
+@pytest.mark.parametrize("backend", [False, True])
+def test_resume_from_stored_pose(backend: bool) -> None:
+    stored = make_pose(quat_to_matrix(rotation_vector_to_quat([0.1, 0.2, -0.3])), [1, 2, 3])
+    odometry = Odometry(
+        _flat_rig(), _config(backend={"enabled": backend, "use_imu": False}), initial_pose=stored
+    )
+    report = odometry.process(_blank(5))
+    assert "resumed from stored pose" in report.message
+    np.testing.assert_allclose(report.pose, stored, atol=1e-9)
+    np.testing.assert_allclose(report.frontend_pose, stored, atol=1e-9)
+    later = odometry.process(_blank(5 + FRAME_NS))
+    assert np.allclose(later.frontend_pose, stored)  # nothing seen: held
+
+
+def test_bad_initial_pose() -> None:
+    with pytest.raises(ValueError, match="initial_pose"):
+        Odometry(_flat_rig(), initial_pose=np.eye(3))
+    with pytest.raises(ValueError, match="rigid"):
+        Odometry(_flat_rig(), initial_pose=np.diag([1.0, 1.0, 2.0, 1.0]))

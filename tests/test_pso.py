@@ -1,0 +1,95 @@
+"""The generic swarm: converges, ranks lexicographically, stops on stagnation, is seeded."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimator.pso import better, optimise
+
+
+def _sphere(centre: np.ndarray):
+    def objective(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros(len(positions), dtype=int), np.sum((positions - centre) ** 2, axis=1)
+
+    return objective
+
+
+def test_swarm_finds_the_minimum_of_a_bowl() -> None:
+    rng = np.random.default_rng(0)
+    centre = np.array([1.5, -2.0, 0.5])
+    start = rng.uniform(-5.0, 5.0, size=(20, 3))
+    result = optimise(_sphere(centre), start, rng=rng, max_iterations=300, stagnation=30)
+    np.testing.assert_allclose(result.position, centre, atol=1e-3)
+    assert result.fitness < 1e-6
+    assert 1 < result.iterations <= 301
+
+
+def test_support_outranks_fitness() -> None:
+    # Support peaks at x = 3 (a plateau of width 1) while the fitness alone prefers x = 0.
+    def objective(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x = positions[:, 0]
+        return (np.abs(x - 3.0) < 0.5).astype(int), x**2
+
+    rng = np.random.default_rng(1)
+    start = np.linspace(-4.0, 4.0, 16)[:, None]
+    result = optimise(objective, start, rng=rng, max_iterations=100, stagnation=20)
+    assert result.support == 1
+    # Among supported positions the lowest fitness is at the plateau's near edge, x -> 2.5.
+    assert 2.5 <= result.position[0] < 2.7
+
+
+def test_better_is_lexicographic() -> None:
+    support = np.array([5, 5, 4, 6])
+    fitness = np.array([1.0, 2.0, 0.0, 9.0])
+    assert better(support, fitness, np.full(4, 5), np.full(4, 1.5)).tolist() == [
+        True,
+        False,
+        False,
+        True,
+    ]
+
+
+def test_stops_after_the_stagnation_window() -> None:
+    def flat(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros(len(positions), dtype=int), np.ones(len(positions))
+
+    rng = np.random.default_rng(2)
+    result = optimise(flat, rng.normal(size=(8, 2)), rng=rng, max_iterations=100, stagnation=5)
+    assert result.iterations == 6  # the initial evaluation plus five without progress
+
+
+def test_same_seed_same_run() -> None:
+    centre = np.array([0.3, 0.2])
+    runs = []
+    for _ in range(2):
+        rng = np.random.default_rng(42)
+        start = rng.normal(size=(10, 2))
+        runs.append(optimise(_sphere(centre), start, rng=rng, max_iterations=20, stagnation=20))
+    assert np.array_equal(runs[0].position, runs[1].position)
+    assert runs[0].fitness == runs[1].fitness
+
+
+def test_non_finite_fitness_never_wins() -> None:
+    def objective(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        fitness = np.sum(positions**2, axis=1)
+        return np.zeros(len(positions), dtype=int), np.where(positions[:, 0] > 0, np.nan, fitness)
+
+    rng = np.random.default_rng(3)
+    result = optimise(objective, rng.normal(size=(12, 2)), rng=rng, max_iterations=50)
+    assert np.isfinite(result.fitness)
+    assert result.position[0] <= 0.0
+
+
+def test_bad_arguments_raise_clear_errors() -> None:
+    rng = np.random.default_rng(0)
+    with pytest.raises(ValueError, match="non-empty"):
+        optimise(_sphere(np.zeros(2)), np.zeros((0, 2)), rng=rng)
+    with pytest.raises(ValueError, match="stagnation"):
+        optimise(_sphere(np.zeros(2)), np.zeros((3, 2)), rng=rng, stagnation=0)
+
+    def wrong_shape(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros(1, dtype=int), np.zeros(1)
+
+    with pytest.raises(ValueError, match="one support and one fitness per particle"):
+        optimise(wrong_shape, np.zeros((3, 2)), rng=rng)

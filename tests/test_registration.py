@@ -1,0 +1,190 @@
+"""Properties every registration method must have, and robustness of the robust ones."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from estimator.geometry import quat_to_matrix, rotation_vector_to_quat
+from estimator.pso_support import rigidity_scores, rigidity_weights
+from estimator.registration import available_methods, register
+from estimator.simulation import rotation_error_deg, simulate_pair, translation_error
+
+METHODS = ["pso-robust", "pso", "msac", "svd"]
+ROBUST = ["pso-robust", "msac"]
+seeds = st.integers(0, 2**31 - 1)
+
+
+def _random_problem(
+    seed: int, count: int, noise: float = 0.0, outliers: float = 0.0, max_angle: float = np.pi
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A cloud in a 10 m box, any rotation up to ``max_angle``, wrong matches as outliers."""
+    rng = np.random.default_rng(seed)
+    source = rng.uniform(-5.0, 5.0, size=(count, 3)) + np.array([0.0, 0.0, 8.0])
+    axis = rng.normal(size=3)
+    rotvec = axis / np.linalg.norm(axis) * rng.uniform(0.0, max_angle)
+    rotation = quat_to_matrix(rotation_vector_to_quat(rotvec))
+    translation = rng.uniform(-2.0, 2.0, size=3)
+    target = source @ rotation.T + translation + rng.normal(0.0, noise, size=(count, 3))
+    inliers = np.ones(count, dtype=bool)
+    wrong = rng.choice(count, size=round(outliers * count), replace=False)
+    target[wrong] = target[(wrong + rng.integers(1, count, len(wrong))) % count]
+    inliers[wrong] = False
+    return source, target, rotation, translation, inliers
+
+
+def _assert_valid(result, count: int) -> None:
+    assert np.isfinite(result.rotation).all() and np.isfinite(result.quaternion).all()
+    assert np.isclose(np.linalg.norm(result.quaternion), 1.0, atol=1e-12)
+    assert np.isclose(np.linalg.det(result.rotation), 1.0, atol=1e-9)
+    np.testing.assert_allclose(result.rotation, quat_to_matrix(result.quaternion), atol=1e-9)
+    assert result.inliers.dtype == bool and result.inliers.shape == (count,)
+    assert result.support == int(result.inliers.sum())
+
+
+def test_all_methods_are_registered() -> None:
+    assert set(METHODS) <= set(available_methods())
+
+
+@pytest.mark.parametrize("method", METHODS)
+@given(seed=seeds, count=st.integers(6, 80))
+@settings(max_examples=12, deadline=None)
+def test_exact_recovery_without_noise_or_outliers(method: str, seed: int, count: int) -> None:
+    source, target, rotation, translation, _ = _random_problem(seed, count)
+    result = register(source, target, method=method, seed=seed)
+    _assert_valid(result, count)
+    assert result.success, result.message
+    assert rotation_error_deg(result.rotation, rotation) < 1e-6
+    assert translation_error(result.translation, translation) < 1e-8
+    assert result.inliers.all()
+
+
+@pytest.mark.parametrize("method", METHODS)
+@given(seed=seeds)
+@settings(max_examples=8, deadline=None)
+def test_same_seed_gives_bitwise_equal_results(method: str, seed: int) -> None:
+    source, target, *_ = _random_problem(seed, 60, noise=0.02, outliers=0.3, max_angle=0.5)
+    first = register(source, target, method=method, seed=seed)
+    second = register(source, target, method=method, seed=seed)
+    for field in ("rotation", "translation", "quaternion", "inliers"):
+        assert np.array_equal(getattr(first, field), getattr(second, field)), field
+    assert (first.success, first.support, first.cost) == (
+        second.success,
+        second.support,
+        second.cost,
+    )
+
+
+@pytest.mark.parametrize("method", METHODS)
+@given(seed=seeds)
+@settings(max_examples=8, deadline=None)
+def test_pair_order_does_not_matter(method: str, seed: int) -> None:
+    outliers = 0.0 if method == "svd" else 0.3
+    source, target, *_ = _random_problem(seed, 60, noise=0.01, outliers=outliers, max_angle=0.5)
+    order = np.random.default_rng(seed).permutation(60)
+    plain = register(source, target, method=method, seed=7)
+    permuted = register(source[order], target[order], method=method, seed=7)
+    assert plain.success == permuted.success
+    np.testing.assert_allclose(permuted.rotation, plain.rotation, atol=1e-9)
+    np.testing.assert_allclose(permuted.translation, plain.translation, atol=1e-9)
+    assert np.array_equal(permuted.inliers, plain.inliers[order])
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("count", [0, 1, 2, 3])
+def test_too_few_pairs_fail_gracefully(method: str, count: int) -> None:
+    source, target, *_ = _random_problem(1, max(count, 1))
+    result = register(source[:count], target[:count], method=method, seed=0)
+    _assert_valid(result, count)
+    if method == "svd" and count == 3:
+        assert result.success  # three non-collinear pairs determine a pose
+    else:
+        assert not result.success and result.message
+        np.testing.assert_array_equal(result.rotation, np.eye(3))
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_rows_are_rejected(method: str, bad: float) -> None:
+    source, target, *_ = _random_problem(2, 10)
+    target[4, 1] = bad
+    with pytest.raises(ValueError, match="NaN or inf"):
+        register(source, target, method=method)
+    with pytest.raises(ValueError, match="shape"):
+        register(source[:, :2], source[:, :2], method=method)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_unknown_options_are_rejected(method: str) -> None:
+    source, target, *_ = _random_problem(3, 20)
+    with pytest.raises(ValueError, match="unknown option"):
+        register(source, target, method=method, partciles=5)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("shape", ["line", "point", "line-target"])
+def test_degenerate_sets_never_give_nan_or_raise(method: str, shape: str) -> None:
+    steps = np.linspace(0.0, 4.0, 12)[:, None]
+    line = steps * np.array([1.0, 2.0, 0.5]) + np.array([0.0, 0.0, 5.0])
+    cloud = np.random.default_rng(4).normal(size=(12, 3))
+    source = {"line": line, "point": np.ones((12, 3)), "line-target": cloud}[shape]
+    target = line + np.array([0.3, -0.1, 0.2]) if shape != "point" else np.ones((12, 3)) * 2.0
+    result = register(source, target, method=method, seed=0)
+    _assert_valid(result, 12)
+    assert not result.success and result.message
+
+
+@pytest.mark.parametrize("method", ROBUST)
+@given(seed=seeds)
+@settings(max_examples=10, deadline=None)
+def test_robust_methods_recover_the_pose_at_half_outliers(method: str, seed: int) -> None:
+    source, target, rotation, translation, inliers = _random_problem(
+        seed, 120, noise=0.01, outliers=0.5, max_angle=0.6
+    )
+    result = register(source, target, method=method, seed=seed)
+    _assert_valid(result, 120)
+    assert result.success, result.message
+    assert rotation_error_deg(result.rotation, rotation) < 0.3
+    assert translation_error(result.translation, translation) < 0.03
+    # The inlier mask is the truth up to a handful of borderline pairs.
+    assert np.count_nonzero(result.inliers != inliers) <= 3
+
+
+@pytest.mark.parametrize("outlier_ratio", [0.9, 0.95])
+def test_pso_robust_at_extreme_outlier_ratios_on_the_simulation(outlier_ratio: float) -> None:
+    successes = 0
+    for trial in range(20):
+        pair = simulate_pair(noise_sigma=0.01, outlier_ratio=outlier_ratio, rng=500 + trial)
+        result = register(pair.source, pair.target, method="pso-robust", seed=trial)
+        successes += (
+            rotation_error_deg(result.rotation, pair.rotation) < 1.0
+            and translation_error(result.translation, pair.translation) < 0.05
+        )
+    assert successes >= 19
+
+
+def test_faithful_pso_recovers_the_simulated_pose_without_outliers() -> None:
+    for trial in range(5):
+        pair = simulate_pair(noise_sigma=0.01, outlier_ratio=0.0, rng=700 + trial)
+        result = register(pair.source, pair.target, method="pso", seed=trial)
+        assert result.success, result.message
+        assert rotation_error_deg(result.rotation, pair.rotation) < 0.5
+        assert translation_error(result.translation, pair.translation) < 0.03
+
+
+def test_rigidity_ranks_correct_pairs_first_at_90_percent_outliers() -> None:
+    pair = simulate_pair(noise_sigma=0.02, outlier_ratio=0.9, rng=9)
+    scores = rigidity_scores(rigidity_weights(pair.source, pair.target, 0.2))
+    top = np.argsort(-scores)[: pair.inlier_mask.sum() // 2]
+    assert pair.inlier_mask[top].all()
+
+
+def test_fixed_delta_option_is_used() -> None:
+    pair = simulate_pair(noise_sigma=0.02, outlier_ratio=0.2, rng=3)
+    tight = register(pair.source, pair.target, method="pso-robust", seed=0, delta=0.02)
+    loose = register(pair.source, pair.target, method="pso-robust", seed=0, delta=0.2)
+    assert tight.support < loose.support <= len(pair.source)
+    with pytest.raises(ValueError, match="delta must be positive"):
+        register(pair.source, pair.target, method="pso-robust", delta=-1.0)
