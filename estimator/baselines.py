@@ -30,6 +30,7 @@ __all__ = [
     "msac",
     "pose_result",
     "reject_unknown_options",
+    "relative_scales",
     "residual_norms",
     "svd",
 ]
@@ -125,6 +126,7 @@ def msac(
     max_iterations: int = 20000,
     batch_size: int = 64,
     refits: int = 3,
+    sigmas: np.ndarray | None = None,
     **unknown: object,
 ) -> RegistrationResult:
     """MSAC: minimise sum_j min(r_j^2, T^2) over random 3-point Kabsch hypotheses.
@@ -132,12 +134,15 @@ def msac(
     ``threshold`` T (metres) separates inliers; the number of hypotheses adapts to the best
     inlier ratio w found so far, k = log(1 - confidence) / log(1 - w^3), capped at
     ``max_iterations``. The winner is refitted on its inliers ``refits`` times.
+    ``sigmas`` (N,) per-pair residual std: residuals are divided by sigma_j / median(sigma)
+    (T then applies to a median pair), as ``pso-robust`` does; the refits stay unweighted.
     """
     reject_unknown_options("msac", unknown)
     check_positive(threshold=threshold, batch_size=batch_size, max_iterations=max_iterations)
     if not 0.0 < confidence < 1.0:
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")
     count = len(source)
+    scales = np.ones(count) if sigmas is None else relative_scales(sigmas, count)
     if count < 4:
         # Three pairs fit any hypothesis exactly: a fourth is needed to check it at all.
         return failed_result(count, f"msac needs at least 4 pairs, got {count}")
@@ -152,7 +157,7 @@ def msac(
         samples = _triplets(rng, count, batch)
         rotations, translations = kabsch_batched(source[samples], target[samples])
         predicted = source @ rotations.transpose(0, 2, 1) + translations[:, None, :]
-        squared = np.sum((target - predicted) ** 2, axis=2)  # (B, N)
+        squared = np.sum((target - predicted) ** 2, axis=2) / scales**2  # (B, N)
         costs = np.minimum(squared, squared_cap).sum(axis=1)
         drawn += batch
         winner = int(np.argmin(costs))
@@ -162,17 +167,17 @@ def msac(
             ratio = np.count_nonzero(squared[winner] < squared_cap) / count
             needed = _hypotheses_needed(ratio, confidence, max_iterations)
     rotation, translation = best_pose
-    inliers = residual_norms(rotation, translation, source, target) < threshold
+    inliers = residual_norms(rotation, translation, source, target) / scales < threshold
     for _ in range(refits):
         if np.count_nonzero(inliers) < 3 or is_degenerate(source[inliers]):
             break
         rotation, translation = kabsch(source[inliers], target[inliers])
-        residual = residual_norms(rotation, translation, source, target)
+        residual = residual_norms(rotation, translation, source, target) / scales
         refitted = residual < threshold
         if np.array_equal(refitted, inliers):
             break
         inliers = refitted
-    squared = residual_norms(rotation, translation, source, target) ** 2
+    squared = (residual_norms(rotation, translation, source, target) / scales) ** 2
     cost = float(np.minimum(squared, squared_cap).sum())
     if np.count_nonzero(inliers) < 3:
         return failed_result(count, "msac found fewer than 3 inliers", iterations=drawn)
@@ -199,6 +204,18 @@ def _hypotheses_needed(ratio: float, confidence: float, cap: int) -> int:
     if good >= 1.0:
         return 1
     return min(cap, math.ceil(math.log(1.0 - confidence) / math.log(1.0 - good)))
+
+
+def relative_scales(sigmas: object, count: int) -> np.ndarray:
+    """sigma_j / median(sigma) after checking that ``sigmas`` is N finite positive numbers."""
+    values = np.asarray(sigmas, dtype=float)
+    if values.shape != (count,):
+        raise ValueError(f"sigmas must have shape ({count},) (one per pair), got {values.shape}")
+    if not np.isfinite(values).all():
+        raise ValueError("sigmas must be finite")
+    if not (values > 0.0).all():
+        raise ValueError(f"sigmas must be positive, got min {values.min()}")
+    return values / np.median(values) if count else values
 
 
 def check_positive(**values: float) -> None:

@@ -52,6 +52,11 @@ class FrontendConfig(_Section):
     # Temporal matching (current frame <-> reference frame).
     temporal_ratio: float = Field(0.85, gt=0, le=1)
     search_radius_px: float = Field(40.0, ge=0)  # around the predicted position; 0 = anywhere
+    # "descriptor": ratio + mutual descriptor matching; "klt": Lucas-Kanade tracking.
+    temporal_matcher: Literal["descriptor", "klt"] = "descriptor"
+    klt_window: int = Field(10, ge=2, le=30)  # half size of the KLT window
+    klt_levels: int = Field(3, ge=0, le=6)  # KLT pyramid levels
+    klt_association_px: float = Field(2.0, gt=0)  # track -> nearest stereo point
     temporal_refine: bool = True  # sub-pixel current positions by Lucas-Kanade
     temporal_refine_window: int = Field(5, ge=1, le=15)  # half size of the LK window
     min_matches: int = Field(12, ge=3)  # fewer 3D-3D pairs: the frame is not estimated

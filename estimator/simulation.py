@@ -52,6 +52,8 @@ class SimulatedPair:
     rotation: np.ndarray  # true R (3x3) with target_inlier = R @ source + t
     translation: np.ndarray  # true t (3,)
     inlier_mask: np.ndarray  # (M,) bool, True for correct pairs
+    # (M,) per-pair residual std along the viewing rays (``depth_noise`` only), else None
+    noise_sigmas: np.ndarray | None = None
 
 
 def camera_matrix(focal: float, width: float, height: float) -> np.ndarray:
@@ -86,6 +88,7 @@ def simulate_pair(
     noise_sigma: float = 0.02,
     outlier_ratio: float = 0.0,
     rng: np.random.Generator | int | None = None,
+    depth_noise: bool = False,
     **scene: float,
 ) -> SimulatedPair:
     """One registration problem: ``n_points`` drawn, the mutually visible ones kept.
@@ -93,6 +96,11 @@ def simulate_pair(
     ``noise_sigma`` is the per-axis standard deviation (metres) added to the target points;
     ``round(outlier_ratio * M)`` of the M visible pairs (chosen at random) get the target of
     a different visible point. ``scene`` overrides keys of :data:`DEFAULT_SCENE`.
+
+    ``depth_noise=True`` models stereo triangulation instead, whose depth error grows as
+    Z^2 sigma_d / (f b): *both* point sets get noise along their own viewing ray with std
+    ``noise_sigma * Z^2`` (so ``noise_sigma`` is the std at 1 m), and ``noise_sigmas`` holds
+    each pair's residual std sqrt(sigma_source^2 + sigma_target^2).
     """
     unknown = set(scene) - set(DEFAULT_SCENE)
     if unknown:
@@ -119,7 +127,13 @@ def simulate_pair(
         moved, intrinsics, params["width"], params["height"]
     )
     source = points[keep]
-    target = moved[keep] + rng.normal(0.0, noise_sigma, size=(int(keep.sum()), 3))
+    noise_sigmas = None
+    if depth_noise:
+        source, source_sigma = _along_rays(source, noise_sigma, rng)
+        target, target_sigma = _along_rays(moved[keep], noise_sigma, rng)
+        noise_sigmas = np.hypot(source_sigma, target_sigma)
+    else:
+        target = moved[keep] + rng.normal(0.0, noise_sigma, size=(int(keep.sum()), 3))
 
     count = len(source)
     n_outliers = round(outlier_ratio * count) if count > 1 else 0
@@ -130,7 +144,21 @@ def simulate_pair(
         partner = (wrong + rng.integers(1, count, size=n_outliers)) % count
         target[wrong] = target[partner].copy()
         inlier_mask[wrong] = False
-    return SimulatedPair(source, target, rotation, translation, inlier_mask)
+    return SimulatedPair(source, target, rotation, translation, inlier_mask, noise_sigmas)
+
+
+def _along_rays(
+    points: np.ndarray, sigma_at_1m: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Stereo-like noise: each point slides along its viewing ray by N(0, (sigma Z^2)^2).
+
+    Triangulation error is dominated by the disparity error, which moves the point along
+    the ray through the camera centre; the lateral (pixel) error is negligible beside it.
+    """
+    depth = points[:, 2]
+    sigma = sigma_at_1m * depth**2
+    rays = points / np.linalg.norm(points, axis=1, keepdims=True)
+    return points + rays * rng.normal(0.0, 1.0, len(points))[:, None] * sigma[:, None], sigma
 
 
 def rotation_error_deg(rotation_estimate: np.ndarray, rotation_true: np.ndarray) -> float:

@@ -24,6 +24,8 @@ __all__ = ["Correspondences", "match_temporal", "project", "refine_pixels"]
 
 # A refined position further than this from the descriptor match is a different corner.
 _MAX_REFINE_SHIFT_PX = 1.5
+# A KLT track must come back to where it started within this (forward-backward check).
+_KLT_ROUND_TRIP_PX = 0.5
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,8 @@ def match_temporal(
     window is centred on the reference pixel (small-motion assumption). With ``images``
     (reference, current rectified left images) and ``config.temporal_refine`` the current
     pixels are refined to sub-pixel precision (see :func:`refine_pixels`).
+    ``config.temporal_matcher = "klt"`` tracks the reference pixels instead of comparing
+    descriptors (see :func:`track_klt`; needs ``images``).
     """
     rect = rectification
     if predicted_current_from_reference is None:
@@ -84,6 +88,10 @@ def match_temporal(
     else:
         moved = transform_points(predicted_current_from_reference, reference.points)
         expected = project(moved, rect.fx, rect.cx, rect.cy)
+    if config.temporal_matcher == "klt":
+        if images is None:
+            raise ValueError("the KLT temporal matcher needs the reference and current images")
+        return track_klt(reference, current, expected, images, config, rect)
     ia, ib = _candidate_pairs(expected, current.pixels, config.search_radius_px)
     distance = descriptor_distances(
         reference.descriptors, current.descriptors, ia, ib, reference.binary
@@ -109,6 +117,63 @@ def match_temporal(
         current_index=current_index,
         reference_points=reference.points[reference_index],
         current_points=current_points,
+    )
+
+
+def track_klt(
+    reference: StereoPoints,
+    current: StereoPoints,
+    expected: np.ndarray,
+    images: tuple[np.ndarray, np.ndarray],
+    config: FrontendConfig,
+    rectification: Rectification,
+) -> Correspondences:
+    """Correspondences by pyramidal Lucas-Kanade tracking instead of descriptors.
+
+    Reference pixels are tracked into the current image (started at their predicted positions)
+    and back again; a track is kept when it returns within 0.5 px. A tracked pixel takes the
+    disparity of the nearest current stereo point within ``klt_association_px`` (each current
+    point serves one track, the closest), and is triangulated at its tracked position.
+    """
+    size = 2 * config.klt_window + 1
+    lk = {
+        "winSize": (size, size),
+        "maxLevel": config.klt_levels,
+        "criteria": (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+    }
+    usable = np.flatnonzero(np.isfinite(expected).all(axis=1))
+    empty = np.zeros(0, dtype=np.intp)
+    if len(usable) == 0 or len(current) == 0:
+        return Correspondences(empty, empty, np.zeros((0, 3)), np.zeros((0, 3)))
+    start = reference.pixels[usable].astype(np.float32)
+    guess = expected[usable].astype(np.float32)
+    tracked, forward, _ = cv2.calcOpticalFlowPyrLK(
+        images[0], images[1], start, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk
+    )
+    back, backward, _ = cv2.calcOpticalFlowPyrLK(
+        images[1], images[0], tracked, start.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk
+    )
+    good = (
+        (forward.ravel() == 1)
+        & (backward.ravel() == 1)
+        & (np.linalg.norm(back - start, axis=1) < _KLT_ROUND_TRIP_PX)
+    )
+    distance, nearest = cKDTree(current.pixels).query(
+        tracked.astype(float), distance_upper_bound=config.klt_association_px
+    )
+    good &= np.isfinite(distance)
+    # One track per current point: the closest one wins.
+    order = np.flatnonzero(good)[np.argsort(distance[good], kind="stable")]
+    _, first = np.unique(nearest[order], return_index=True)
+    keep = np.sort(order[first])
+    reference_index = usable[keep]
+    current_index = nearest[keep].astype(np.intp)
+    pixels = tracked[keep].astype(float)
+    return Correspondences(
+        reference_index=reference_index,
+        current_index=current_index,
+        reference_points=reference.points[reference_index],
+        current_points=triangulate(pixels, current.disparity[current_index], rectification),
     )
 
 

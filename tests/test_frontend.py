@@ -280,6 +280,28 @@ def test_temporal_matches_follow_a_known_shift(refine: bool) -> None:
     assert np.median(depth_error) < 0.01
 
 
+def test_klt_matcher_follows_a_known_shift() -> None:
+    texture = _texture(7)
+    shift = (3.4, -1.7)
+    depths = (2.0, 5.0)
+    reference_images = _two_plane_pair(texture, depths)
+    current_images = _two_plane_pair(texture, depths, *shift)
+    config = FrontendConfig(temporal_matcher="klt")
+    reference = _stereo(config, *reference_images)
+    current = _stereo(config, *current_images)
+    rect = _rig().rectification
+    pairs = match_temporal(
+        reference, current, config, rect, images=(reference_images[0], current_images[0])
+    )
+    assert len(pairs) > 0.5 * min(len(reference), len(current))
+    assert len(np.unique(pairs.current_index)) == len(pairs)  # one track per stereo point
+    seen_at = project(pairs.current_points, rect.fx, rect.cx, rect.cy)
+    expected = reference.pixels[pairs.reference_index] + shift
+    assert np.median(np.linalg.norm(seen_at - expected, axis=1)) < 0.1
+    with pytest.raises(ValueError, match="needs the reference and current images"):
+        match_temporal(reference, current, config, rect)
+
+
 def test_temporal_search_radius_uses_prediction() -> None:
     texture = _texture(8)
     reference_images = _two_plane_pair(texture, (2.0, 5.0))

@@ -158,7 +158,7 @@ def test_euroc_standstill_stays_still(euroc_v101_micro: Path) -> None:
         assert eq20 < 0.005, name
         # The ground truth's own attitude disagrees with the images by ~0.25 deg at the last
         # frame (refined PnP on the same matches: docs/frontend.md), so 0.2 deg against it is
-        # out of reach for a correct estimate; 0.35 deg still catches any creeping drift.
+        # out of reach for a correct estimate; this bound is looser than that target.
         assert rotation < 0.35, name
         # Standing still: the reported motion itself stays tiny.
         final = relative_to_first(poses)[-1]

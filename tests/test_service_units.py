@@ -596,3 +596,15 @@ def test_imu_sent_with_a_refused_frame_is_kept(client: TestClient, factory: Fake
     assert refused.status_code == 422
     assert send(client, sid, 100).json()["imu_samples"] == 2
     assert factory.created[0].imu_seen[0].timestamps_ns.tolist() == [50, 90]
+
+
+def test_idle_pipelines_are_unloaded_beyond_the_cap_and_resume(tmp_path: Path) -> None:
+    factory = FakeFactory()
+    with TestClient(create_app(settings_for(tmp_path, max_active_sessions=1), factory)) as c:
+        first, second = new_session(c), new_session(c)
+        assert send(c, first, 1).json()["resumed"] is False
+        assert send(c, second, 1).json()["resumed"] is False  # unloads the idle first one
+        assert c.get("/healthz").json()["sessions_active"] == 1
+        again = send(c, first, 2).json()
+        assert again["resumed"] is True and again["index"] == 1
+        assert len(factory.created) == 3
