@@ -23,12 +23,20 @@ lint: $(STAMP)
 test: lint
 	$(BIN)/python -m pytest
 
+# The quick registration table, then the service: start it, stream a rendered sequence
+# over WebSocket with the Python client, print the trajectory error, stop it.
 demo: $(STAMP)
 	$(BIN)/swarmvo bench registration --quick --out demo-output/registration
+	$(BIN)/python benchmarks/demo_service.py --frames 60 --out demo-output/service
 
+# Every benchmark (tables on stdout, JSON/PNG under benchmarks/results), one core each.
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench registration --out benchmarks/results/registration
+	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench frontend --out benchmarks/results/frontend
+	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench odometry --out benchmarks/results/odometry
+	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench backend --out benchmarks/results/backend
+	$(BIN)/python benchmarks/load_test.py
 
 clean:
 	rm -rf $(VENV) demo-output .pytest_cache .ruff_cache

@@ -64,7 +64,6 @@ from estimator.geometry import (
     kabsch,
     matrix_to_quat,
     quat_quadratic_forms,
-    quat_to_matrix,
     quat_to_rotation_vector,
     rotation_vector_to_quat,
 )
@@ -243,17 +242,27 @@ class PsoSupportEstimator:
         fit: Fit,
         scales: np.ndarray | None,
         adapt: bool = True,
+        residual: np.ndarray | None = None,
+        floor: float | None = None,
     ) -> tuple[np.ndarray, float, Pose | None]:
         """Fit the supporters, recount under the full pose, repeat until the set is stable.
 
         Returns the supporters, the threshold and their pose, or None when the set did not
-        settle (or is too small) within ``refits`` rounds.
+        settle (or is too small) within ``refits`` rounds. With a ``floor`` the fits weigh
+        each pair by 1 / max(u, floor)^2 of its normalised residual u at the previous pose
+        (``residual`` to start): the ladder's stand-in for unknown per-pair noise.
         """
         adapt = adapt and self.delta is None
         for _ in range(self.refits):
             if np.count_nonzero(supporters) < MIN_SUPPORT:
                 break
-            pose = fit(source, target, supporters)
+            if floor is None or residual is None:
+                pose = fit(source, target, supporters)
+            else:
+                weights = 1.0 / np.maximum(residual[supporters], floor) ** 2
+                if scales is not None:
+                    weights = weights / scales[supporters] ** 2
+                pose = weighted_horn(source[supporters], target[supporters], weights)
             residual = _normalised(residual_norms(pose[1], pose[2], source, target), scales)
             if adapt:
                 delta = self._delta_from_residuals(residual[supporters])
@@ -282,6 +291,7 @@ class PsoSupportEstimator:
         step refits with the doubled threshold held fixed (re-estimating it from the RMS
         of mixed scales would shrink it again).
         """
+        base = delta
         while True:
             wider = min(2.0 * delta, self.delta_max)
             if pose is None:  # the loop did not settle: judge the pose of its last set
@@ -294,7 +304,7 @@ class PsoSupportEstimator:
             if gained < max(MIN_SUPPORT, LADDER_GAIN * support):
                 return supporters, delta, pose
             supporters, delta, pose = self._refine(
-                source, target, residual < wider, wider, fit, scales, adapt=False
+                source, target, residual < wider, wider, fit, scales, False, residual, base
             )
 
     def _delta_from_core(self, core_weights: np.ndarray) -> float:
@@ -403,8 +413,21 @@ def weighted_horn(
     _, vectors = np.linalg.eigh(horn_matrix)
     quaternion = vectors[:, -1] / np.linalg.norm(vectors[:, -1])
     quaternion = -quaternion if quaternion[0] < 0.0 else quaternion
-    rotation = quat_to_matrix(quaternion)
+    rotation = _unit_quat_to_matrix(quaternion)
     return quaternion, rotation, target_mean - rotation @ source_mean
+
+
+def _unit_quat_to_matrix(quaternion: np.ndarray) -> np.ndarray:
+    """Rotation of one unit quaternion; scalar arithmetic, ~20x cheaper than the batched
+    ``geometry.quat_to_matrix`` for a single quaternion in the refit loop."""
+    w, x, y, z = (float(value) for value in quaternion)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _arun(
@@ -546,11 +569,12 @@ def _scaled_rigidity_kernel(
     tx, ty, tz = target[0], target[1], target[2]
     for i in range(count):
         row = weights[i]
+        own = half_squares[i]
         for j in range(count):
             source_sq = (sx[j] - sx[i]) ** 2 + (sy[j] - sy[i]) ** 2 + (sz[j] - sz[i]) ** 2
             target_sq = (tx[j] - tx[i]) ** 2 + (ty[j] - ty[i]) ** 2 + (tz[j] - tz[i]) ** 2
             error = np.sqrt(source_sq) - np.sqrt(target_sq)
-            row[j] = max(one - error * error * scale / (half_squares[i] + half_squares[j]), zero)
+            row[j] = max(one - error * error * scale / (own + half_squares[j]), zero)
         row[i] = zero
     return weights
 

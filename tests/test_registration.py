@@ -7,8 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.geometry import quat_to_matrix, rotation_vector_to_quat
-from estimator.pso_support import rigidity_scores, rigidity_weights
+from estimator.baselines import residual_norms
+from estimator.geometry import horn, quat_to_matrix, rotation_vector_to_quat
+from estimator.pso_support import rigidity_scores, rigidity_weights, weighted_horn
 from estimator.registration import available_methods, register
 from estimator.simulation import rotation_error_deg, simulate_pair, translation_error
 
@@ -188,3 +189,116 @@ def test_fixed_delta_option_is_used() -> None:
     assert tight.support < loose.support <= len(pair.source)
     with pytest.raises(ValueError, match="delta must be positive"):
         register(pair.source, pair.target, method="pso-robust", delta=-1.0)
+
+
+def _stereo_like(trial: int, outliers: float = 0.3):
+    """Stereo-like pair: depth 1-10 m, error along the rays growing as depth^2.
+
+    0.5 mm at 1 m, ~4 cm at 9 m (sqrt 2 more per pair: both sets are triangulated), like
+    the rendered sequence on which a fixed-from-the-core threshold kept 3-70 % of the
+    inliers (the refit loop never admitted the far, noisy pairs).
+    """
+    return simulate_pair(400, 0.0005, outliers, rng=3000 + trial, depth_noise=True, min_depth_m=1.0)
+
+
+@pytest.mark.parametrize("with_sigmas", [False, True])
+@pytest.mark.parametrize("method", ["pso-robust", "msac"])
+def test_heteroscedastic_stereo_noise_keeps_the_far_inliers(method: str, with_sigmas: bool) -> None:
+    for trial in range(10):
+        pair = _stereo_like(trial)
+        options = {"sigmas": pair.noise_sigmas} if with_sigmas else {}
+        result = register(pair.source, pair.target, method=method, seed=trial, **options)
+        assert result.success, result.message
+        found = result.inliers & pair.inlier_mask
+        recall = np.count_nonzero(found) / np.count_nonzero(pair.inlier_mask)
+        precision = np.count_nonzero(found) / result.support
+        assert recall > 0.9, (trial, recall)
+        assert precision > 0.97, (trial, precision)
+        assert rotation_error_deg(result.rotation, pair.rotation) < 0.5
+        assert translation_error(result.translation, pair.translation) < 0.05
+
+
+def test_sigmas_make_pso_robust_weigh_the_precise_pairs() -> None:
+    """Weighted by 1 / sigma^2 the refit is the maximum-likelihood one: a better translation.
+
+    (Without sigmas the ladder's residual weights already recover most of the rotation
+    accuracy; the translation, fixed by the far and noisy pairs' centroid, gains most.)
+    """
+    plain, weighted = [], []
+    for trial in range(10):
+        pair = _stereo_like(trial)
+        for errors, options in ((plain, {}), (weighted, {"sigmas": pair.noise_sigmas})):
+            result = register(pair.source, pair.target, seed=trial, **options)
+            errors.append(translation_error(result.translation, pair.translation))
+    assert np.median(weighted) < 0.5 * np.median(plain)
+
+
+def test_only_the_ratios_of_sigmas_matter() -> None:
+    pair = _stereo_like(0)
+    unit = register(pair.source, pair.target, seed=1, sigmas=pair.noise_sigmas)
+    scaled = register(pair.source, pair.target, seed=1, sigmas=pair.noise_sigmas * 37.0)
+    np.testing.assert_array_equal(unit.inliers, scaled.inliers)
+    np.testing.assert_allclose(unit.rotation, scaled.rotation, atol=1e-9)
+    np.testing.assert_allclose(unit.translation, scaled.translation, atol=1e-9)
+
+
+@pytest.mark.parametrize("method", ["pso-robust", "pso", "msac"])
+@pytest.mark.parametrize(
+    ("sigmas", "message"),
+    [
+        (np.full(19, 0.01), "shape"),
+        (np.full((20, 1), 0.01), "shape"),
+        (np.r_[np.full(19, 0.01), np.nan], "finite"),
+        (np.r_[np.full(19, 0.01), np.inf], "finite"),
+        (np.r_[np.full(19, 0.01), 0.0], "positive"),
+        (np.r_[np.full(19, 0.01), -0.01], "positive"),
+    ],
+)
+def test_bad_sigmas_are_rejected(method: str, sigmas: np.ndarray, message: str) -> None:
+    source, target, *_ = _random_problem(3, 20)
+    with pytest.raises(ValueError, match=f"sigmas must .*{message}"):
+        register(source, target, method=method, sigmas=sigmas)
+
+
+def test_threshold_ladder_leaves_homoscedastic_problems_alone() -> None:
+    """On equal noise the adaptive threshold already holds every inlier: no ladder step.
+
+    A step would at least double delta, so the threshold stays below 6 sigma (the adaptive
+    rule gives ~4 sigma) and the supporters are the true inliers up to borderline pairs.
+    """
+    for trial in range(10):
+        pair = simulate_pair(noise_sigma=0.02, outlier_ratio=0.5, rng=800 + trial)
+        result = register(pair.source, pair.target, seed=trial)
+        assert np.count_nonzero(result.inliers != pair.inlier_mask) <= 2
+        # cost = sum min(r^2, delta^2) and the non-supporters are those with r >= delta, so
+        # each of them pays exactly delta^2: the final threshold can be read back.
+        residual = residual_norms(result.rotation, result.translation, pair.source, pair.target)
+        inside = float(np.sum(residual[result.inliers] ** 2))
+        delta = np.sqrt((result.cost - inside) / np.count_nonzero(~result.inliers))
+        assert 3.0 * 0.02 < delta < 6.0 * 0.02
+
+
+def test_weighted_horn_matches_horn_and_ignores_zero_weight_pairs() -> None:
+    source, target, *_ = _random_problem(5, 30, noise=0.01)
+    np.testing.assert_allclose(
+        weighted_horn(source, target, np.full(30, 3.0))[1], horn(source, target)[1], atol=1e-12
+    )
+    target[0] += 5.0  # a gross error that a tiny weight must neutralise
+    weights = np.ones(30)
+    weights[0] = 1e-12
+    quaternion, fitted, shift = weighted_horn(source, target, weights)
+    expected = horn(source[1:], target[1:])
+    np.testing.assert_allclose(fitted, expected[1], atol=1e-9)
+    np.testing.assert_allclose(shift, expected[2], atol=1e-9)
+    np.testing.assert_allclose(quat_to_matrix(quaternion), fitted, atol=1e-12)
+
+
+def test_rigidity_tolerance_scales_with_the_pairs_noise() -> None:
+    source, target, *_ = _random_problem(6, 40, noise=0.05)
+    plain = rigidity_weights(source, target, 0.2)
+    np.testing.assert_allclose(rigidity_weights(source, target, 0.2, np.ones(40)), plain, atol=1e-6)
+    scales = np.ones(40)
+    scales[0] = 3.0  # pair 0 is noisy: its tolerance grows by sqrt((9 + 1) / 2)
+    loose = rigidity_weights(source, target, 0.2, scales)
+    np.testing.assert_allclose(loose[1:, 1:], plain[1:, 1:], atol=1e-6)
+    np.testing.assert_allclose(1.0 - loose[0, 1:], (1.0 - plain[0, 1:]) / 5.0, atol=1e-5)

@@ -99,3 +99,22 @@ def test_error_helpers() -> None:
     assert np.isclose(rotation_error_deg(rotation, np.eye(3)), 2.0)
     assert np.isclose(rotation_error_deg(np.eye(3), rotation), 2.0)
     assert np.isclose(translation_error([1.0, 2.0, 2.0], [0.0, 0.0, 0.0]), 3.0)
+
+
+def test_depth_noise_grows_with_depth_squared_along_the_rays() -> None:
+    sigma_at_1m = 0.001
+    pair = simulate_pair(2000, sigma_at_1m, 0.0, rng=21, depth_noise=True, min_depth_m=1.0)
+    clean_target = pair.source @ pair.rotation.T + pair.translation
+    residual = np.linalg.norm(pair.target - clean_target, axis=1)
+    assert pair.noise_sigmas is not None and pair.noise_sigmas.shape == (len(pair.source),)
+    # Both points slide along their rays with std sigma Z^2: E r^2 = sum of both sigma^2
+    # (target noise alone would give a mean of ~0.5 here).
+    normalised = residual / pair.noise_sigmas
+    assert 0.9 < np.mean(normalised**2) < 1.1
+    far = pair.source[:, 2] > 7.0
+    near = pair.source[:, 2] < 2.0
+    assert np.median(residual[far]) > 10.0 * np.median(residual[near])
+
+
+def test_depth_noise_is_off_by_default() -> None:
+    assert simulate_pair(rng=4).noise_sigmas is None
