@@ -21,6 +21,9 @@ class RegistrationConfig(_Section):
     method: Literal["pso-robust", "pso", "msac", "svd"] = "pso-robust"
     # Extra keyword options passed to the estimator (e.g. {"particles": 48}).
     options: dict[str, float | int | str | bool] = Field(default_factory=dict)
+    # Hand the per-pair stereo noise (depth uncertainty of both points) to estimators that
+    # weigh it (``sigmas`` of pso-robust): far points are noisier than near ones.
+    use_point_sigmas: bool = True
 
 
 class FrontendConfig(_Section):

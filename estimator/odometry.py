@@ -38,6 +38,19 @@ from estimator.types import FrameReport, FrameStatus, ImuBatch, ImuNoise, Stereo
 __all__ = ["Odometry", "frame_seed", "to_grey8"]
 
 
+# Estimators that accept per-pair noise (``sigmas``); msac measured no better with it.
+_METHODS_WITH_SIGMAS = frozenset({"pso-robust"})
+
+
+def _pair_sigmas(
+    reference: StereoPoints, current: StereoPoints, pairs: Correspondences
+) -> np.ndarray:
+    """Per-pair noise std: the depth uncertainties of both stereo points combined."""
+    return np.hypot(
+        reference.depth_sigma[pairs.reference_index], current.depth_sigma[pairs.current_index]
+    )
+
+
 def frame_seed(seed: int, index: int) -> int:
     """Estimator seed of frame ``index``: reproducible in any process, distinct per frame."""
     return int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
@@ -229,23 +242,26 @@ class Odometry:
                 images=(reference.image, image),
             )
         with _stage(timings, "estimate"):
-            estimate = self._estimate(pairs)
+            estimate = self._estimate(pairs, _pair_sigmas(reference.points, points, pairs))
         estimate.pairs, estimate.reference = pairs, reference
         return estimate
 
-    def _estimate(self, correspondences: Correspondences) -> _Estimate:
+    def _estimate(self, correspondences: Correspondences, sigmas: np.ndarray) -> _Estimate:
         """Rigid registration: reference points ~ R current points + t (T_ref_cur)."""
         frontend = self.config.frontend
         needed = frontend.min_matches
         if len(correspondences) < needed:
             return _Estimate(None, None, f"{len(correspondences)} temporal matches (< {needed})")
         registration = self.config.registration
+        options: dict[str, object] = dict(registration.options)
+        if registration.use_point_sigmas and registration.method in _METHODS_WITH_SIGMAS:
+            options["sigmas"] = sigmas
         result = register(
             correspondences.current_points,
             correspondences.reference_points,
             method=registration.method,
             seed=frame_seed(self.config.seed, self._index),
-            **registration.options,
+            **options,
         )
         inliers = int(result.inliers.sum())
         if not result.success:

@@ -73,12 +73,16 @@ def _run(odometry: Odometry, frames) -> list:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("tracking", ["keyframe", "frame"])
-def test_rendered_flight_is_tracked(tracking: str) -> None:
+@pytest.mark.parametrize(
+    ("tracking", "method"),
+    [("keyframe", "msac"), ("frame", "msac"), ("keyframe", "pso-robust"), ("frame", "pso-robust")],
+)
+def test_rendered_flight_is_tracked(tracking: str, method: str) -> None:
     frames, truth = _rendered_flight()
-    # MSAC isolates the front end and the chaining from the swarm estimator (tested on its own).
+    # MSAC isolates the front end and the chaining from the swarm estimator; pso-robust (with
+    # the per-pair stereo noise handed to it) must track the same flight as well.
     config = _config(
-        backend={"enabled": False}, frontend={"tracking": tracking}, registration={"method": "msac"}
+        backend={"enabled": False}, frontend={"tracking": tracking}, registration={"method": method}
     )
     rig = _rendered_rig()
     assert not rig.rectification.is_identity
