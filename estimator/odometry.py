@@ -81,6 +81,7 @@ class _Reference:
     points: StereoPoints
     image: np.ndarray  # rectified left image
     pose: np.ndarray  # left camera in world (original camera frame)
+    fused_pose: np.ndarray | None = None  # left camera in the back end's world, when fused
 
 
 @dataclass
@@ -124,6 +125,7 @@ class Odometry:
         self._reference_from_previous = np.eye(4)  # rectified; for predicting the search
         self._motion = np.eye(4)  # last frame-to-frame motion (rectified), constant velocity
         self._failures = 0  # consecutive frames without a vision estimate
+        self._fused_pose: np.ndarray | None = None  # last frame, left camera, back-end world
 
     def _make_backend(self, imu_noise: ImuNoise | None):
         try:
@@ -321,6 +323,8 @@ class Odometry:
         if estimate.result is not None and not failed:
             inliers = int(estimate.result.inliers.sum())
             residuals = self._inlier_residuals(estimate)
+        if not failed and not first:
+            relative_pose = self._backend_relative_pose(estimate, relative_pose)
         fused = self._backend.add_frame(
             int(frame.timestamp_ns),
             relative_pose=None if failed and not first else relative_pose,
@@ -328,12 +332,41 @@ class Odometry:
             inlier_count=inliers,
             imu=imu,
         )
+        self._fused_pose = fused.pose
         if first:
             self._world_from_backend = self._pose @ invert_pose(fused.pose)
             if self._initial_pose is None:
                 self._world_from_backend = np.eye(4)
         text = "; ".join(part for part in (message, fused.message) if part)
         return self._world_from_backend @ fused.pose, fused.status, text
+
+    def _backend_relative_pose(self, estimate: _Estimate, relative_pose: np.ndarray) -> np.ndarray:
+        """T_prev_cur for the back end, through the reference's fused pose after a failure.
+
+        Measured against an older reference after frames without vision, the front-end
+        ``inv(pose_prev) @ pose_ref @ T_ref_cur`` carries the front end's coasted guess for the
+        previous frame into the back end; ``inv(fused_prev) @ fused_ref @ T_ref_cur`` hands it
+        what was measured (the reference's pose as the back end has it) instead.
+        """
+        reference = estimate.reference
+        if (
+            reference is None
+            or reference.fused_pose is None
+            or self._fused_pose is None
+            or estimate.reference_from_current is None
+            or reference.index == self._index - 1  # the previous frame: the same pose
+            or self._failures == 0  # the previous frame was measured: its pose is no guess
+        ):
+            return relative_pose
+        reference_from_current = (
+            self._camera_from_rect @ estimate.reference_from_current @ self._rect_from_camera
+        )
+        relative = invert_pose(self._fused_pose) @ reference.fused_pose @ reference_from_current
+        # The back end's camera poses carry the calibration's body-camera rotation, orthonormal
+        # only to its printed digits (~1e-5); the product is projected back onto SO(3).
+        u, _, vt = np.linalg.svd(relative[:3, :3])
+        relative[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        return relative
 
     def _inlier_residuals(self, estimate: _Estimate) -> np.ndarray:
         """||p - (R q + t)|| of the registration inliers (metres), for the back-end covariance."""
@@ -354,7 +387,7 @@ class Odometry:
         """
         frontend = self.config.frontend
         self._pose = pose
-        current = _Reference(self._index, points, image, pose)
+        current = _Reference(self._index, points, image, pose, self._fused_pose)
         reference_from_current = estimate.reference_from_current
         first = self._reference is None
         failed = reference_from_current is None and not first

@@ -203,6 +203,53 @@ def test_frames_without_vision_or_imu_are_lost_then_reconnect(imu_configured):
         assert np.linalg.norm(fused[:3, 3] - measured[:3, 3]) < 0.02
 
 
+@pytest.mark.parametrize("imu", [True, False])
+@pytest.mark.parametrize("vision_across_gap", [True, False])
+def test_a_frame_gap_longer_than_the_smoother_lag_is_bridged(imu, vision_across_gap):
+    # Frames 11..39 never arrive: 1.5 s between two frames, longer than the 1 s lag, so the
+    # previous frame's variables fall out of the window in the update that needs them.
+    scenario = smooth_trajectory(60, seed=21)
+    kept = [*range(11), *range(40, 60)]
+    stamps = scenario.timestamps_ns[kept]
+    assert (stamps[11] - stamps[10]) * 1e-9 > BackendConfig().smoother_lag_s
+    camera = scenario.body_poses[kept] @ BODY_FROM_CAMERA
+    relative = invert_pose(camera[:-1]) @ camera[1:]
+    backend = FusionBackend(BackendConfig(), BODY_FROM_CAMERA, ImuNoise() if imu else None)
+    out = []
+    for j, stamp in enumerate(stamps):
+        start = stamps[j - 1] if j else stamp - 10**8
+        measured = None if j == 0 or (j == 11 and not vision_across_gap) else relative[j - 1]
+        out.append(
+            backend.add_frame(
+                int(stamp),
+                measured,
+                np.full(150, 0.02) if measured is not None else None,
+                150 if measured is not None else 0,
+                scenario.imu.between(int(start), int(stamp)) if imu else None,
+            )
+        )
+    poses = _poses(out)
+    assert np.all(np.isfinite(poses))
+    truth = _relative_to_first(camera)
+    error = np.linalg.norm(_relative_to_first(poses)[:, :3, 3] - truth[:, :3, 3], axis=1)
+    assert error[:11].max() < 1e-3
+    if vision_across_gap:
+        # The long-baseline measurement passes the gate (its spread grows with the interval)
+        # and the trajectory goes on where it truly is.
+        assert all(o.status is FrameStatus.OK for o in out)
+        assert error.max() < 2e-3
+    else:
+        assert out[11].status is (FrameStatus.DEGRADED if imu else FrameStatus.LOST)
+        assert all(o.status is FrameStatus.OK for o in out[12:])
+        if imu:  # the gyro carries the rotation over the gap
+            across = invert_pose(poses[10]) @ poses[11]
+            assert rotation_angle_deg(across[:3, :3].T @ relative[10][:3, :3]) < 0.5
+        # After the gap, consecutive fused motions follow the measurements again.
+        for j in range(13, len(kept)):
+            fused = invert_pose(poses[j - 1]) @ poses[j]
+            assert np.linalg.norm(fused[:3, 3] - relative[j - 1][:3, 3]) < 0.02
+
+
 def test_imu_time_offset_is_applied():
     scenario = smooth_trajectory(60, seed=10, noise=PERFECT_IMU, initial_bias=(0.0, 0.0, 0.0))
     measurements = [

@@ -102,6 +102,29 @@ def test_run_on_euroc_micro_standstill(euroc_v101_micro, tmp_path):
     assert len(read_tum(out / "trajectory.tum")[0]) == 20
 
 
+@pytest.mark.parametrize("imu", [True, False])
+def test_a_run_levels_its_world_with_gravity_from_the_imu_before_the_first_frame(rendered, imu):
+    from estimator.commands.run import build_config, run_sequence
+
+    sequence = open_sequence(rendered)
+    assert sequence.imu is not None
+    assert sequence.imu.timestamps_ns[0] < sequence.frames[0].timestamp_ns  # a lead-in to use
+    result = run_sequence(sequence, build_config(imu=imu), limit=2, use_imu=imu)
+    first = result.reports[0]
+    body = first.pose @ invert_pose(sequence.rig.left.T_BS)
+    truth = sequence.ground_truth.interpolate(sequence.timestamps_ns[:1])[0]
+    # World "up" seen from the body: estimated vs true (the rendered world is z-up).
+    up, true_up = body[:3, :3].T @ [0.0, 0.0, 1.0], truth[:3, :3].T @ [0.0, 0.0, 1.0]
+    tilt_deg = np.degrees(np.arccos(np.clip(up @ true_up, -1.0, 1.0)))
+    if imu:
+        assert "gravity-aligned from 20 accelerometer samples" in first.message
+        # Not exact: the body accelerates at the first frame, which tilts the mean force.
+        assert tilt_deg < 10.0
+    else:
+        assert "gravity-aligned" not in first.message
+        assert tilt_deg > 45.0  # the camera's own axes: the alignment above is not for free
+
+
 def test_bad_input_gives_a_clean_error(tmp_path, capsys, rendered):
     assert main(["run", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
     assert "swarmvo run: error: dataset folder not found" in capsys.readouterr().err

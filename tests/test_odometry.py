@@ -275,6 +275,35 @@ def test_coasting_keeps_the_velocity() -> None:
     assert error < 0.2 * step
 
 
+def _rigid(rotvec: list[float], translation: list[float]) -> np.ndarray:
+    return make_pose(quat_to_matrix(rotation_vector_to_quat(np.array(rotvec))), translation)
+
+
+def test_after_a_failure_the_back_end_gets_the_motion_through_the_reference_fused_pose() -> None:
+    from estimator.odometry import _Estimate, _Reference
+
+    odometry = Odometry(_rendered_rig(), _config(backend={"enabled": True, "use_imu": False}))
+    fused_reference = _rigid([0.1, -0.2, 0.3], [1.0, 2.0, 0.5])
+    fused_previous = _rigid([0.15, -0.1, 0.35], [1.4, 2.1, 0.4])
+    reference_from_current = _rigid([0.02, 0.05, -0.01], [0.3, -0.05, 0.1])  # left camera
+    frontend_relative = _rigid([0.01, 0.0, 0.02], [0.9, 0.0, 0.0])  # from a coasted guess
+    rectified = odometry._rect_from_camera @ reference_from_current @ odometry._camera_from_rect
+    reference = _Reference(3, None, None, np.eye(4), fused_pose=fused_reference)  # type: ignore[arg-type]
+    estimate = _Estimate(rectified, None, "", reference=reference)
+    odometry._index, odometry._fused_pose = 6, fused_previous
+
+    odometry._failures = 2  # frames 4 and 5 had no vision: pose_5 was a guess
+    handed = odometry._backend_relative_pose(estimate, frontend_relative)
+    np.testing.assert_allclose(
+        fused_previous @ handed, fused_reference @ reference_from_current, atol=1e-12
+    )
+    # The previous frame was measured, or is the reference itself: the front-end motion as is.
+    odometry._failures = 0
+    assert odometry._backend_relative_pose(estimate, frontend_relative) is frontend_relative
+    odometry._failures, reference.index = 2, 5
+    assert odometry._backend_relative_pose(estimate, frontend_relative) is frontend_relative
+
+
 @pytest.mark.parametrize("backend", [False, True])
 def test_resume_from_stored_pose(backend: bool) -> None:
     stored = make_pose(quat_to_matrix(rotation_vector_to_quat([0.1, 0.2, -0.3])), [1, 2, 3])

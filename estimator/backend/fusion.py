@@ -43,10 +43,14 @@ __all__ = ["FusedEstimate", "FusionBackend"]
 # The first pose defines the world: pinned with a tight prior.
 _ORIGIN_SIGMA = 1e-6
 # Rotation spread added to the gyro prediction in the outlier gate: covers an unconverged gyro
-# bias (0.1 rad/s over 50 ms) and small camera-IMU misalignment.
+# bias (0.1 rad/s over the frame interval, at least 50 ms) and small camera-IMU misalignment.
 _GATE_GYRO_FLOOR_RAD = 0.005
+_GATE_GYRO_BIAS_RATE = 0.1  # rad/s
 # Rotation sigma of the motion prior when the gyro provides the rotation (effectively free).
 _FREE_ROTATION_SIGMA = 10.0
+# Frame gaps at least this fraction of the smoother lag restamp the previous frame's keys (a
+# margin below 1 so that float rounding of the stamps cannot marginalise them).
+_KEEP_ALIVE_FRACTION = 0.9
 
 
 def _pose_key(index: int) -> int:
@@ -175,14 +179,26 @@ class FusionBackend:
             return gtsam.ISAM2(params)
         return gtsam.IncrementalFixedLagSmoother(self.config.smoother_lag_s, params)
 
-    def _update(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: list[int]):
+    def _update(
+        self,
+        factors: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        keys: list[int],
+        keep: tuple[int, ...] = (),
+    ):
+        """Add factors and values; ``keys`` (and ``keep``) are stamped with the current time.
+
+        ``keep`` lists existing keys the new factors touch: restamping them stops the fixed-lag
+        smoother from marginalising them in this very update (a frame gap longer than the lag),
+        so their estimates can still be read afterwards.
+        """
         if isinstance(self._smoother, gtsam.ISAM2):
             self._smoother.update(factors, values)
             for _ in range(self.config.extra_iterations):
                 self._smoother.update()
             return
         stamp = (self._last_ns - self._start_ns) * 1e-9
-        self._smoother.update(factors, values, dict.fromkeys(keys, stamp))
+        self._smoother.update(factors, values, dict.fromkeys([*keys, *keep], stamp))
         for _ in range(self.config.extra_iterations):
             self._smoother.update()
 
@@ -281,21 +297,25 @@ class FusionBackend:
         predicted: np.ndarray,
         sigmas: tuple[float, float],
         preintegration: GyroPreintegration | None,
+        dt: float,
     ) -> float:
         """Squared Mahalanobis distance of a relative pose from the prediction.
 
         The prediction's spread: the gyro covariance plus a floor for the bias uncertainty
         (else the constant-velocity sigma) for rotation, the constant-velocity sigma for
-        translation; the motion-prior parts widen with every frame without accepted vision,
-        so the gate reopens after a gap.
+        translation; the motion-prior parts widen with every frame without accepted vision
+        and with the length of the interval against the previous one (a long gap between
+        frames extrapolates just as far), so the gate reopens after a gap.
         """
         if self._previous_motion is None and preintegration is None:
             return 0.0  # nothing to compare with yet
         rotation_sigma, translation_sigma = sigmas
-        widen = (1.0 + self._misses) ** 2
+        stretch = max(1.0, dt / self._previous_dt) if self._previous_dt > 0 else 1.0
+        widen = ((1.0 + self._misses) * stretch) ** 2
         rotation_error = gtsam.Rot3.Logmap(gtsam.Rot3(predicted[:3, :3].T @ measured[:3, :3]))
         if preintegration is not None:
-            rotation_cov = preintegration.covariance + np.eye(3) * _GATE_GYRO_FLOOR_RAD**2
+            floor = max(_GATE_GYRO_FLOOR_RAD, _GATE_GYRO_BIAS_RATE * dt)
+            rotation_cov = preintegration.covariance + np.eye(3) * floor**2
         else:
             rotation_cov = np.eye(3) * self.config.cv_rotation_sigma_rad**2 * widen
         rotation_cov = rotation_cov + np.eye(3) * rotation_sigma**2
@@ -353,7 +373,7 @@ class FusionBackend:
         accepted = False
         if relative_pose is not None and sigmas is not None:
             body_motion = self.body_from_camera @ relative_pose @ self.camera_from_body
-            distance = self._gate_distance(body_motion, prediction, sigmas, preintegration)
+            distance = self._gate_distance(body_motion, prediction, sigmas, preintegration, dt)
             gate = self.config.outlier_gate_chi2
             if gate is None or distance <= gate:
                 accepted = True
@@ -390,10 +410,15 @@ class FusionBackend:
             )
         values.insert(_pose_key(current), gtsam.Pose3(self._body_pose @ guess))
 
+        # The previous frame's keys would be marginalised by this update when the gap exceeds
+        # the lag (its estimate is needed just below); within the lag they keep their stamps.
+        keep: tuple[int, ...] = ()
+        if dt >= _KEEP_ALIVE_FRACTION * self.config.smoother_lag_s:
+            keep = (_pose_key(previous),) + ((_bias_key(previous),) if self.use_imu else ())
         self._last_ns = timestamp_ns
         self._index = current
         try:
-            self._update(factors, values, keys)
+            self._update(factors, values, keys, keep)
             previous_pose = self._pose_estimate(previous)
         except RuntimeError as error:  # numerical failure inside GTSAM: restart the graph
             previous_pose = self._body_pose

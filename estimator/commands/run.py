@@ -27,6 +27,9 @@ from estimator.evaluation import TrajectoryEvaluation, evaluate_trajectory
 from estimator.types import FrameReport, FrameStatus
 
 ESTIMATORS = ("pso-robust", "pso", "msac", "svd")
+# IMU samples fed with the first frame: those of this window before it, from which the back end
+# gravity-aligns its world (the API replay client sends the same window).
+FIRST_FRAME_IMU_WINDOW_NS = 100_000_000
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -115,7 +118,11 @@ def run_sequence(
     use_imu: bool = True,
     progress: bool = False,
 ) -> RunResult:
-    """Feed every frame (and the IMU samples since the previous frame) through ``Odometry``."""
+    """Feed every frame (and the IMU samples since the previous frame) through ``Odometry``.
+
+    The first frame gets the samples of ``FIRST_FRAME_IMU_WINDOW_NS`` before it, so that the
+    back end can level its world with gravity.
+    """
     from estimator.odometry import Odometry  # the pipeline loads only when a run starts
 
     if limit is not None and limit < 2:
@@ -131,8 +138,13 @@ def run_sequence(
     for index in tqdm(range(count), desc=sequence.name, unit="frame", disable=not progress):
         frame = sequence.load(index)
         imu = None
-        if imu_available and previous_ns is not None:
-            imu = sequence.imu_between(previous_ns, frame.timestamp_ns)
+        if imu_available:
+            start_ns = (
+                previous_ns
+                if previous_ns is not None
+                else frame.timestamp_ns - FIRST_FRAME_IMU_WINDOW_NS
+            )
+            imu = sequence.imu_between(start_ns, frame.timestamp_ns)
         reports.append(odometry.process(frame, imu))
         previous_ns = frame.timestamp_ns
     return RunResult(sequence, config, reports, time.perf_counter() - start)

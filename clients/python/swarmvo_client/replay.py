@@ -1,8 +1,9 @@
 """Replay a EuRoC or KITTI folder against a server (HTTP or WebSocket) with a progress bar.
 
-The IMU samples sent with frame k are those with t_{k-1} < t <= t_k (none with the first
-frame), which is what an offline ``swarmvo run`` feeds the odometry, so a replay with the same
-seed reproduces the offline trajectory.
+The IMU samples sent with frame k are those with t_{k-1} < t <= t_k (with the first frame,
+those of the 100 ms before it, for the server's gravity alignment), which is what an offline
+``swarmvo run`` feeds the odometry, so a replay with the same seed reproduces the offline
+trajectory.
 """
 
 from __future__ import annotations
@@ -56,11 +57,17 @@ def create_session_for(
     return client.create_session_kitti(files["calib"], width, height, config=config, name=name)
 
 
+# Samples sent with the first frame: this window before it (as ``swarmvo run`` does).
+FIRST_FRAME_IMU_WINDOW_NS = 100_000_000
+
+
 def frame_imu(sequence: LocalSequence, index: int) -> ImuData | None:
-    if sequence.imu is None or index == 0:
+    """The IMU samples to send with frame ``index`` (see the module doc)."""
+    if sequence.imu is None:
         return None
-    return sequence.imu.between(sequence.frames[index - 1].timestamp_ns,
-                                sequence.frames[index].timestamp_ns)
+    end = sequence.frames[index].timestamp_ns
+    start = sequence.frames[index - 1].timestamp_ns if index else end - FIRST_FRAME_IMU_WINDOW_NS
+    return sequence.imu.between(start, end)
 
 
 def _frame_indices(sequence: LocalSequence, start: int, limit: int | None) -> range:
