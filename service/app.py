@@ -314,71 +314,53 @@ def _frame_error(error: FrameRejected) -> HTTPException:
     return HTTPException(error.status_code, error.detail)
 
 
-_MULTIPART_FRAME = {
-    "requestBody": {
-        "required": True,
-        "content": {
-            "multipart/form-data": {
-                "schema": {
-                    "type": "object",
-                    "required": ["left", "right", "timestamp_ns"],
-                    "properties": {
-                        "left": {"type": "string", "format": "binary"},
-                        "right": {"type": "string", "format": "binary"},
-                        "timestamp_ns": {"type": "integer", "minimum": 0},
-                        "imu": {
-                            "type": "string",
-                            "description": 'JSON {"samples": [{"timestamp_ns", "gyro", '
-                            '"accel"}]}: IMU samples since the previous frame',
-                        },
-                    },
-                }
-            }
-        },
+def _multipart_body(required: list[str], properties: dict[str, Any]) -> dict[str, Any]:
+    """OpenAPI request body of a multipart route (FastAPI cannot infer it from raw parsing)."""
+    schema = {"type": "object", "required": required, "properties": properties}
+    return {
+        "requestBody": {
+            "required": True,
+            "content": {"multipart/form-data": {"schema": schema}},
+        }
     }
-}
 
-_MULTIPART_EUROC = {
-    "requestBody": {
-        "required": True,
-        "content": {
-            "multipart/form-data": {
-                "schema": {
-                    "type": "object",
-                    "required": ["cam0", "cam1"],
-                    "properties": {
-                        "cam0": {"type": "string", "format": "binary"},
-                        "cam1": {"type": "string", "format": "binary"},
-                        "imu0": {"type": "string", "format": "binary"},
-                        "name": {"type": "string"},
-                        "config": {"type": "string", "description": "JSON SwarmvoConfig"},
-                    },
-                }
-            }
-        },
-    }
-}
 
-_MULTIPART_KITTI = {
-    "requestBody": {
-        "required": True,
-        "content": {
-            "multipart/form-data": {
-                "schema": {
-                    "type": "object",
-                    "required": ["calib", "width", "height"],
-                    "properties": {
-                        "calib": {"type": "string", "format": "binary"},
-                        "width": {"type": "integer", "minimum": 1},
-                        "height": {"type": "integer", "minimum": 1},
-                        "name": {"type": "string"},
-                        "config": {"type": "string", "description": "JSON SwarmvoConfig"},
-                    },
-                }
-            }
+_BINARY = {"type": "string", "format": "binary"}
+_CONFIG_FIELD = {"type": "string", "description": "JSON SwarmvoConfig"}
+
+_MULTIPART_FRAME = _multipart_body(
+    ["left", "right", "timestamp_ns"],
+    {
+        "left": _BINARY,
+        "right": _BINARY,
+        "timestamp_ns": {"type": "integer", "minimum": 0},
+        "imu": {
+            "type": "string",
+            "description": 'JSON {"samples": [{"timestamp_ns", "gyro", '
+            '"accel"}]}: IMU samples since the previous frame',
         },
-    }
-}
+    },
+)
+_MULTIPART_EUROC = _multipart_body(
+    ["cam0", "cam1"],
+    {
+        "cam0": _BINARY,
+        "cam1": _BINARY,
+        "imu0": _BINARY,
+        "name": {"type": "string"},
+        "config": _CONFIG_FIELD,
+    },
+)
+_MULTIPART_KITTI = _multipart_body(
+    ["calib", "width", "height"],
+    {
+        "calib": _BINARY,
+        "width": {"type": "integer", "minimum": 1},
+        "height": {"type": "integer", "minimum": 1},
+        "name": {"type": "string"},
+        "config": _CONFIG_FIELD,
+    },
+)
 
 _ERRORS: dict[int | str, dict[str, Any]] = {
     code: {"model": ErrorOut} for code in (400, 401, 404, 409, 413, 415, 422, 429)
