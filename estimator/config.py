@@ -102,6 +102,11 @@ class BackendConfig(_Section):
     min_rotation_sigma_rad: float = Field(0.0005, gt=0)
     max_rotation_sigma_rad: float = Field(0.2, gt=0)
     fallback_residual_m: float = Field(0.05, gt=0)  # when no residuals are given
+    # Full covariance of the fit when the front end hands over the inlier points: a scale on it
+    # and floors added to its diagonal (the max sigmas above act as a weak prior).
+    fit_covariance_scale: float = Field(1.0, gt=0)
+    fit_min_rotation_sigma_rad: float = Field(1e-4, ge=0)
+    fit_min_translation_sigma_m: float = Field(5e-4, ge=0)
     # Constant-velocity prior between consecutive frames (per frame interval): on every frame
     # ("always": lets the robust kernel see a wrong relative pose) or only without vision.
     motion_prior: Literal["always", "gaps"] = "gaps"

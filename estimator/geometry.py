@@ -30,6 +30,7 @@ __all__ = [
     "rotation_angle_deg",
     "rotation_vector_to_quat",
     "transform_points",
+    "wahba",
 ]
 
 
@@ -184,12 +185,27 @@ def kabsch(
     total = weights.sum()
     source_mean = weights @ source / total
     target_mean = weights @ target / total
-    covariance = (source - source_mean).T @ ((target - target_mean) * weights[:, None])
-    u, _, vt = np.linalg.svd(covariance)
-    sign = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-    rotation = vt.T @ np.diag([1.0, 1.0, sign]) @ u.T
+    rotation = wahba(source - source_mean, target - target_mean, weights)
     translation = target_mean - rotation @ source_mean
     return rotation, translation
+
+
+def wahba(
+    source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None
+) -> np.ndarray:
+    """Least-squares rotation target ~ R source with no translation (Wahba's problem).
+
+    The rotation part of :func:`kabsch`; on its own it fits directions (unit bearing vectors,
+    gravity vectors), where centring would throw away the common direction.
+    """
+    source = np.asarray(source, dtype=float)
+    target = np.asarray(target, dtype=float)
+    if weights is None:
+        weights = np.ones(len(source))
+    covariance = source.T @ (target * np.asarray(weights, dtype=float)[:, None])
+    u, _, vt = np.linalg.svd(covariance)
+    sign = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    return vt.T @ np.diag([1.0, 1.0, sign]) @ u.T
 
 
 def kabsch_batched(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -78,10 +78,10 @@ class _Reference:
     """The frame the current one is matched against, with its front-end pose."""
 
     index: int
+    timestamp_ns: int
     points: StereoPoints
     image: np.ndarray  # rectified left image
     pose: np.ndarray  # left camera in world (original camera frame)
-    fused_pose: np.ndarray | None = None  # left camera in the back end's world, when fused
 
 
 @dataclass
@@ -125,7 +125,6 @@ class Odometry:
         self._reference_from_previous = np.eye(4)  # rectified; for predicting the search
         self._motion = np.eye(4)  # last frame-to-frame motion (rectified), constant velocity
         self._failures = 0  # consecutive frames without a vision estimate
-        self._fused_pose: np.ndarray | None = None  # last frame, left camera, back-end world
 
     def _make_backend(self, imu_noise: ImuNoise | None):
         try:
@@ -170,7 +169,7 @@ class Odometry:
                 pose, status, message = self._fuse(
                     frame, imu, frontend_pose, relative_pose, estimate, status, message
                 )
-            self._update_reference(points, left, frontend_pose, estimate)
+            self._update_reference(points, left, frontend_pose, estimate, frame.timestamp_ns)
         result, pairs = estimate.result, estimate.pairs
         return FrameReport(
             index=self._index,
@@ -298,9 +297,7 @@ class Odometry:
                 message = f"{estimate.message}; pose predicted at constant velocity"
                 return self._pose @ motion, FrameStatus.DEGRADED, message
             return self._pose, FrameStatus.LOST, f"{estimate.message}; pose held"
-        reference_from_current = (
-            self._camera_from_rect @ estimate.reference_from_current @ self._rect_from_camera
-        )
+        reference_from_current = self._reference_from_current(estimate)
         return estimate.reference.pose @ reference_from_current, FrameStatus.OK, estimate.message
 
     def _fuse(
@@ -320,19 +317,29 @@ class Odometry:
         first = self._reference is None
         residuals = None
         inliers = 0
-        if estimate.result is not None and not failed:
+        measured: np.ndarray | None = None
+        reference_ns = None
+        points = None
+        if first:
+            measured = relative_pose
+        elif not failed:
+            assert estimate.result is not None and estimate.reference is not None
             inliers = int(estimate.result.inliers.sum())
             residuals = self._inlier_residuals(estimate)
-        if not failed and not first:
-            relative_pose = self._backend_relative_pose(estimate, relative_pose)
+            # The measurement itself, T_ref_cur against the frame it was made from: the back
+            # end ties the two frames directly instead of through the poses in between.
+            measured = self._reference_from_current(estimate)
+            reference_ns = estimate.reference.timestamp_ns
+            points = self._inlier_points(estimate)
         fused = self._backend.add_frame(
             int(frame.timestamp_ns),
-            relative_pose=None if failed and not first else relative_pose,
+            relative_pose=measured,
             inlier_residuals=residuals,
             inlier_count=inliers,
             imu=imu,
+            reference_ns=reference_ns,
+            inlier_points=points,
         )
-        self._fused_pose = fused.pose
         if first:
             self._world_from_backend = self._pose @ invert_pose(fused.pose)
             if self._initial_pose is None:
@@ -340,33 +347,17 @@ class Odometry:
         text = "; ".join(part for part in (message, fused.message) if part)
         return self._world_from_backend @ fused.pose, fused.status, text
 
-    def _backend_relative_pose(self, estimate: _Estimate, relative_pose: np.ndarray) -> np.ndarray:
-        """T_prev_cur for the back end, through the reference's fused pose after a failure.
+    def _reference_from_current(self, estimate: _Estimate) -> np.ndarray:
+        """T_ref_cur of the original left camera (the estimate is in rectified frames)."""
+        assert estimate.reference_from_current is not None
+        return self._camera_from_rect @ estimate.reference_from_current @ self._rect_from_camera
 
-        Measured against an older reference after frames without vision, the front-end
-        ``inv(pose_prev) @ pose_ref @ T_ref_cur`` carries the front end's coasted guess for the
-        previous frame into the back end; ``inv(fused_prev) @ fused_ref @ T_ref_cur`` hands it
-        what was measured (the reference's pose as the back end has it) instead.
-        """
-        reference = estimate.reference
-        if (
-            reference is None
-            or reference.fused_pose is None
-            or self._fused_pose is None
-            or estimate.reference_from_current is None
-            or reference.index == self._index - 1  # the previous frame: the same pose
-            or self._failures == 0  # the previous frame was measured: its pose is no guess
-        ):
-            return relative_pose
-        reference_from_current = (
-            self._camera_from_rect @ estimate.reference_from_current @ self._rect_from_camera
-        )
-        relative = invert_pose(self._fused_pose) @ reference.fused_pose @ reference_from_current
-        # The back end's camera poses carry the calibration's body-camera rotation, orthonormal
-        # only to its printed digits (~1e-5); the product is projected back onto SO(3).
-        u, _, vt = np.linalg.svd(relative[:3, :3])
-        relative[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-        return relative
+    def _inlier_points(self, estimate: _Estimate) -> np.ndarray:
+        """The registration inliers of the current frame in its (original) left camera frame:
+        their spread and lever arm give the back end the full covariance of the fit."""
+        pairs, result = estimate.pairs, estimate.result
+        assert pairs is not None and result is not None
+        return transform_points(self._camera_from_rect, pairs.current_points[result.inliers])
 
     def _inlier_residuals(self, estimate: _Estimate) -> np.ndarray:
         """||p - (R q + t)|| of the registration inliers (metres), for the back-end covariance."""
@@ -378,7 +369,12 @@ class Odometry:
         return np.linalg.norm(pairs.reference_points[mask] - moved, axis=1)
 
     def _update_reference(
-        self, points: StereoPoints, image: np.ndarray, pose: np.ndarray, estimate: _Estimate
+        self,
+        points: StereoPoints,
+        image: np.ndarray,
+        pose: np.ndarray,
+        estimate: _Estimate,
+        timestamp_ns: int,
     ) -> None:
         """Keep the keyframe while it still tracks well; otherwise this frame becomes it.
 
@@ -387,7 +383,7 @@ class Odometry:
         """
         frontend = self.config.frontend
         self._pose = pose
-        current = _Reference(self._index, points, image, pose, self._fused_pose)
+        current = _Reference(self._index, int(timestamp_ns), points, image, pose)
         reference_from_current = estimate.reference_from_current
         first = self._reference is None
         failed = reference_from_current is None and not first

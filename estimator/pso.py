@@ -19,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 __all__ = ["SwarmResult", "better", "optimise"]
@@ -65,38 +66,52 @@ def optimise(
     component (keeps the swarm from exploding when ``inertia`` is large). The defaults are
     the constriction-equivalent constants (alpha 0.72, c 1.49) under which the swarm
     converges (Clerc & Kennedy 2002).
+
+    The bookkeeping between objective calls is compiled: a swarm of a dozen particles costs
+    microseconds per update, which numpy's per-call overhead would multiply several times.
     """
-    positions = np.array(initial, dtype=float)
+    positions = np.array(initial, dtype=float, order="C")
     if positions.ndim != 2 or len(positions) == 0:
         raise ValueError(f"initial must be a non-empty (P, D) array, got shape {positions.shape}")
     if max_iterations < 0 or stagnation < 1:
         raise ValueError("max_iterations must be >= 0 and stagnation >= 1")
-    velocity = np.zeros_like(positions) if initial_velocity is None else np.array(initial_velocity)
+    velocity = np.zeros_like(positions)
+    if initial_velocity is not None:
+        velocity[:] = initial_velocity
+    clamp = max_speed is not None
+    speed = np.empty(positions.shape[1])
+    speed[:] = np.inf if max_speed is None else max_speed
     support, fitness = _score(objective, positions)
-    best_positions, best_support, best_fitness = positions.copy(), support, fitness
+    # A non-finite fitness never wins a comparison: it counts as +inf.
+    best_positions, best_support = positions.copy(), support.copy()
+    best_fitness = np.where(np.isfinite(fitness), fitness, np.inf)
     leader = _leader(best_support, best_fitness)
     evaluations, quiet = 1, 0
     for _ in range(max_iterations):
         if quiet >= stagnation:
             break
-        phi1, phi2 = rng.random((2, *positions.shape))
-        velocity = (
-            inertia * velocity
-            + acceleration * phi1 * (best_positions - positions)
-            + acceleration * phi2 * (best_positions[leader] - positions)
+        _move(
+            positions,
+            velocity,
+            best_positions,
+            leader,
+            rng.random((2, *positions.shape)),
+            float(inertia),
+            float(acceleration),
+            clamp,
+            speed,
         )
-        if max_speed is not None:
-            velocity = np.clip(velocity, -max_speed, max_speed)
-        positions = positions + velocity
         support, fitness = _score(objective, positions)
         evaluations += 1
-        improved = better(support, fitness, best_support, best_fitness)
-        best_positions[improved] = positions[improved]
-        best_support = np.where(improved, support, best_support)
-        best_fitness = np.where(improved, fitness, best_fitness)
-        new_leader = _leader(best_support, best_fitness)
-        gained = best_support[new_leader] > best_support[leader] or (
-            best_fitness[new_leader] < best_fitness[leader] - tolerance * abs(best_fitness[leader])
+        new_leader, gained = _remember(
+            support,
+            fitness,
+            positions,
+            best_positions,
+            best_support,
+            best_fitness,
+            leader,
+            float(tolerance),
         )
         quiet = 0 if gained else quiet + 1
         leader = new_leader
@@ -109,15 +124,82 @@ def optimise(
 
 
 def _score(objective: Objective, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    support, fitness = objective(positions)
+    # The objective gets a copy: it may keep or modify what it is given.
+    support, fitness = objective(positions.copy())
     support = np.asarray(support)
     fitness = np.asarray(fitness, dtype=float)
     if support.shape != (len(positions),) or fitness.shape != (len(positions),):
         raise ValueError("the objective must return one support and one fitness per particle")
-    # A non-finite fitness never wins a comparison.
-    return support, np.where(np.isfinite(fitness), fitness, np.inf)
+    return support.astype(np.int64, copy=False), fitness
 
 
 def _leader(support: np.ndarray, fitness: np.ndarray) -> int:
     """Index of the best particle: most support, then lowest fitness (first on ties)."""
-    return int(np.lexsort((fitness, -support))[0])
+    return int(_leader_index(support, fitness))
+
+
+@numba.njit(cache=True, nogil=True)
+def _leader_index(support: np.ndarray, fitness: np.ndarray) -> int:
+    leader = 0
+    for index in range(1, len(support)):
+        if support[index] > support[leader] or (
+            support[index] == support[leader] and fitness[index] < fitness[leader]
+        ):
+            leader = index
+    return leader
+
+
+@numba.njit(cache=True, nogil=True)
+def _move(
+    positions: np.ndarray,
+    velocity: np.ndarray,
+    best_positions: np.ndarray,
+    leader: int,
+    phi: np.ndarray,
+    inertia: float,
+    acceleration: float,
+    clamp: bool,
+    speed: np.ndarray,
+) -> None:
+    # In place: v <- alpha v + c phi1 (pbest - x) + c phi2 (gbest - x), clamped; x <- x + v.
+    for particle in range(positions.shape[0]):
+        for axis in range(positions.shape[1]):
+            here = positions[particle, axis]
+            step = (
+                inertia * velocity[particle, axis]
+                + acceleration * phi[0, particle, axis] * (best_positions[particle, axis] - here)
+                + acceleration * phi[1, particle, axis] * (best_positions[leader, axis] - here)
+            )
+            if clamp:
+                step = min(max(step, -speed[axis]), speed[axis])
+            velocity[particle, axis] = step
+            positions[particle, axis] = here + step
+
+
+@numba.njit(cache=True, nogil=True)
+def _remember(
+    support: np.ndarray,
+    fitness: np.ndarray,
+    positions: np.ndarray,
+    best_positions: np.ndarray,
+    best_support: np.ndarray,
+    best_fitness: np.ndarray,
+    leader: int,
+    tolerance: float,
+) -> tuple[int, bool]:
+    # Personal bests in place (``better``, a non-finite fitness as +inf), then the new
+    # leader and whether it gained.
+    for particle in range(len(support)):
+        value = fitness[particle] if np.isfinite(fitness[particle]) else np.inf
+        if support[particle] > best_support[particle] or (
+            support[particle] == best_support[particle] and value < best_fitness[particle]
+        ):
+            best_support[particle] = support[particle]
+            best_fitness[particle] = value
+            for axis in range(positions.shape[1]):
+                best_positions[particle, axis] = positions[particle, axis]
+    new_leader = _leader_index(best_support, best_fitness)
+    gained = best_support[new_leader] > best_support[leader] or (
+        best_fitness[new_leader] < best_fitness[leader] - tolerance * abs(best_fitness[leader])
+    )
+    return new_leader, gained

@@ -61,8 +61,8 @@ def _validated(points: np.ndarray, name: str) -> np.ndarray:
     array = np.asarray(points, dtype=float)
     if array.ndim != 2 or array.shape[1] != 3:
         raise ValueError(f"{name} must be an (N, 3) array of points, got shape {array.shape}")
-    bad = ~np.isfinite(array).all(axis=1)
-    if bad.any():
+    if not np.isfinite(array).all():  # one pass in the common case, rows only on failure
+        bad = ~np.isfinite(array).all(axis=1)
         rows = np.flatnonzero(bad)[:5].tolist()
         raise ValueError(f"{name} has {int(bad.sum())} row(s) with NaN or inf (first: {rows})")
     return array

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import json
 
+import gtsam
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from estimator.backend import FusedEstimate, FusionBackend
-from estimator.backend.noise import relative_pose_sigmas
+from estimator.backend.noise import fit_covariance, relative_pose_sigmas
 from estimator.backend.scenario import (
     FrontendMeasurement,
     chain,
@@ -381,3 +382,154 @@ def test_bench_backend_simulated_part_writes_its_tables(tmp_path, capsys):
     assert "fixed-lag, IMU" in cases["broken_0.20"]
     assert "ATE m" in capsys.readouterr().out
     assert main(["bench", "backend", "--frames", "3", "--out", str(tmp_path)]) == 2
+
+
+# ----------------------------------------------------------------------------- fit covariance
+
+
+def _points_in_view(rng: np.random.Generator, count: int) -> np.ndarray:
+    """Points 3-7 m in front of a camera (z forward), like a stereo front end's inliers."""
+    return np.column_stack(
+        [rng.uniform(-2, 2, count), rng.uniform(-1.5, 1.5, count), rng.uniform(3, 7, count)]
+    )
+
+
+def _fit(rng: np.random.Generator, true: np.ndarray, count: int = 80, noise: float = 0.01):
+    """A noisy rigid fit p ~ T q: (estimated T, residual norms, current-frame points)."""
+    points = _points_in_view(rng, count)
+    target = points @ true[:3, :3].T + true[:3, 3] + rng.normal(0.0, noise, (count, 3))
+    rotation, translation = kabsch(points, target)
+    residuals = np.linalg.norm(target - (points @ rotation.T + translation), axis=1)
+    return make_pose(rotation, translation), residuals, points
+
+
+def test_fit_covariance_matches_monte_carlo_fits():
+    rng = np.random.default_rng(3)
+    true = make_pose(Rotation.from_rotvec([0.02, -0.05, 0.01]).as_matrix(), [0.05, 0.01, 0.1])
+    config = BackendConfig(fit_min_rotation_sigma_rad=0.0, fit_min_translation_sigma_m=0.0)
+    points = _points_in_view(rng, 120)
+    clean = points @ true[:3, :3].T + true[:3, 3]
+    errors, covariances = [], []
+    for _ in range(400):
+        target = clean + rng.normal(0.0, 0.01, clean.shape)
+        rotation, translation = kabsch(points, target)
+        error = invert_pose(true) @ make_pose(rotation, translation)
+        errors.append(gtsam.Pose3.Logmap(gtsam.Pose3(error)))
+        residuals = np.linalg.norm(target - (points @ rotation.T + translation), axis=1)
+        covariances.append(fit_covariance(points, residuals, config))
+    empirical, model = np.cov(np.array(errors).T), np.mean(covariances, axis=0)
+    sigma_e, sigma_m = np.sqrt(np.diag(empirical)), np.sqrt(np.diag(model))
+    np.testing.assert_allclose(sigma_e, sigma_m, rtol=0.12)
+    # Pitch/yaw errors come with the lever-arm translation error: ~95 % correlated.
+    correlation_e = empirical / np.outer(sigma_e, sigma_e)
+    correlation_m = model / np.outer(sigma_m, sigma_m)
+    assert abs(correlation_m[0, 4]) > 0.9 and abs(correlation_m[1, 3]) > 0.9
+    np.testing.assert_allclose(correlation_e, correlation_m, atol=0.1)
+
+
+def test_full_fit_covariance_lets_the_gyro_correct_the_translation_too():
+    # Correlated fit errors (rotation with its lever-arm translation) and a gyro with a known
+    # bias: the gyro fixes the rotation, and only the full covariance also moves the
+    # translation back; with sigmas alone the translation keeps its share of the error.
+    scenario = smooth_trajectory(150, seed=1, initial_bias=(0.0, 0.0, 0.0))
+    camera = scenario.body_poses @ BODY_FROM_CAMERA
+    rng = np.random.default_rng(101)
+    fits = [_fit(rng, invert_pose(camera[k - 1]) @ camera[k]) for k in range(1, len(camera))]
+    config = BackendConfig(gyro_bias_prior_sigma=1e-4)
+    ate = {}
+    for with_points in (True, False):
+        backend = FusionBackend(config, BODY_FROM_CAMERA, ImuNoise())
+        stamps, poses = scenario.timestamps_ns, []
+        for k, stamp in enumerate(stamps):
+            start = stamps[k - 1] if k else stamp - 10**8
+            batch = scenario.imu.between(int(start), int(stamp))
+            if k == 0:
+                poses.append(backend.add_frame(int(stamp), None, None, 0, batch).pose)
+                continue
+            pose, residuals, points = fits[k - 1]
+            out = backend.add_frame(
+                int(stamp),
+                pose,
+                residuals,
+                len(residuals),
+                batch,
+                inlier_points=points if with_points else None,
+            )
+            poses.append(out.pose)
+        ate[with_points] = _aligned_ate(np.stack(poses), camera)
+    frontend = _aligned_ate(chain([np.eye(4)] + [fit[0] for fit in fits], hold=True), camera)
+    assert ate[True] < 0.5 * frontend, (ate, frontend)
+    assert ate[True] < 0.6 * ate[False], (ate, frontend)
+
+
+# ----------------------------------------------------------------------------- keyframes
+
+
+def _keyframe_run(poses, stamps, span: int, config: BackendConfig, reference_age: int = 0):
+    """Perfect keyframe measurements: frame k against the last multiple of ``span`` before it."""
+    camera = poses @ BODY_FROM_CAMERA
+    backend = FusionBackend(config, BODY_FROM_CAMERA, None)
+    out = [backend.add_frame(int(stamps[0]), None, None, 0, None)]
+    for k in range(1, len(stamps)):
+        reference = max((k - 1) // span * span - reference_age, 0)
+        out.append(
+            backend.add_frame(
+                int(stamps[k]),
+                invert_pose(camera[reference]) @ camera[k],
+                np.full(150, 0.02),
+                150,
+                None,
+                reference_ns=int(stamps[reference]),
+            )
+        )
+    return out
+
+
+@pytest.mark.parametrize("span", [2, 3])
+def test_keyframe_measurements_are_tied_to_their_reference(span):
+    # Inverse and product of the same poses fed back as initial values: orthonormal only to
+    # rounding, a deviation that compounded from frame to frame until the graph diverged.
+    scenario = smooth_trajectory(120, seed=23)
+    out = _keyframe_run(scenario.body_poses, scenario.timestamps_ns, span, BackendConfig())
+    truth = _relative_to_first(scenario.body_poses @ BODY_FROM_CAMERA)
+    error = _relative_to_first(_poses(out))[:, :3, 3] - truth[:, :3, 3]
+    assert np.abs(error).max() < 1e-6
+    assert all(o.status is FrameStatus.OK for o in out)
+
+
+def test_a_reference_older_than_the_lag_is_reached_through_its_last_estimate():
+    # The reference (30 frames = 1.5 s back) has left the window: the measurement is chained
+    # through the previous frame with the reference's remembered pose, and stays exact.
+    scenario = smooth_trajectory(80, seed=24)
+    stamps = scenario.timestamps_ns
+    camera = scenario.body_poses @ BODY_FROM_CAMERA
+    backend = FusionBackend(BackendConfig(), BODY_FROM_CAMERA, None)
+    out = [backend.add_frame(int(stamps[0]), None, None, 0, None)]
+    for k in range(1, len(stamps)):
+        reference = 10 if 10 < k < 45 else k - 1  # frames 11..44 are measured against 10
+        out.append(
+            backend.add_frame(
+                int(stamps[k]),
+                invert_pose(camera[reference]) @ camera[k],
+                np.full(150, 0.02),
+                150,
+                None,
+                reference_ns=int(stamps[reference]),
+            )
+        )
+    error = _relative_to_first(_poses(out))[:, :3, 3] - _relative_to_first(camera)[:, :3, 3]
+    assert np.abs(error).max() < 1e-6
+    assert all(o.status is FrameStatus.OK for o in out)
+
+
+def test_an_unknown_reference_is_not_used():
+    scenario = smooth_trajectory(10, seed=25)
+    stamps = scenario.timestamps_ns
+    backend = FusionBackend(BackendConfig(), BODY_FROM_CAMERA, None)
+    for k in range(4):
+        backend.add_frame(int(stamps[k]), np.eye(4), np.full(50, 0.02), 50, None)
+    out = backend.add_frame(
+        int(stamps[4]), np.eye(4), np.full(50, 0.02), 50, None, reference_ns=int(stamps[4]) - 7
+    )
+    assert out.status is FrameStatus.LOST
+    assert "unknown" in out.message

@@ -93,3 +93,71 @@ def test_bad_arguments_raise_clear_errors() -> None:
 
     with pytest.raises(ValueError, match="one support and one fitness per particle"):
         optimise(wrong_shape, np.zeros((3, 2)), rng=rng)
+
+
+def _reference_swarm(objective, start, rng, iterations, inertia, acceleration, max_speed):
+    """Eqs. 4-5 written out plainly in numpy, with the same random draws, for a fixed length."""
+    positions = np.array(start, dtype=float)
+    velocity = np.zeros_like(positions)
+    support, fitness = objective(positions)
+    best, best_support, best_fitness = positions.copy(), support.copy(), fitness.copy()
+    leader = int(np.lexsort((best_fitness, -best_support))[0])
+    for _ in range(iterations):
+        phi1, phi2 = rng.random((2, *positions.shape))
+        velocity = (
+            inertia * velocity
+            + acceleration * phi1 * (best - positions)
+            + acceleration * phi2 * (best[leader] - positions)
+        )
+        velocity = np.clip(velocity, -max_speed, max_speed)
+        positions = positions + velocity
+        support, fitness = objective(positions)
+        improved = better(support, fitness, best_support, best_fitness)
+        best[improved] = positions[improved]
+        best_support = np.where(improved, support, best_support)
+        best_fitness = np.where(improved, fitness, best_fitness)
+        leader = int(np.lexsort((best_fitness, -best_support))[0])
+    return best[leader], best_support[leader], best_fitness[leader]
+
+
+def test_compiled_updates_follow_the_velocity_equations() -> None:
+    """Same draws, same arithmetic: the run equals a plain numpy swarm step for step."""
+    centre = np.array([0.4, -0.3, 0.8])
+
+    def objective(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        distance = np.sum((positions - centre) ** 2, axis=1)
+        return (distance < 0.5).astype(int), distance  # support plateau plus a bowl
+
+    start = np.random.default_rng(5).normal(size=(9, 3))
+    speed = np.array([0.3, 0.2, 0.5])  # per-axis clamp
+    result = optimise(
+        objective,
+        start,
+        rng=np.random.default_rng(6),
+        max_iterations=25,
+        stagnation=25,
+        inertia=0.7,
+        acceleration=1.4,
+        max_speed=speed,
+    )
+    position, support, fitness = _reference_swarm(
+        objective, start, np.random.default_rng(6), 25, 0.7, 1.4, speed
+    )
+    assert result.iterations == 26
+    np.testing.assert_array_equal(result.position, position)
+    assert (result.support, result.fitness) == (support, fitness)
+
+
+def test_objective_may_keep_or_modify_its_input() -> None:
+    seen: list[np.ndarray] = []
+
+    def hoarding(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        seen.append(positions)
+        fitness = np.sum(positions**2, axis=1)
+        positions[:] = 1e9  # must not leak into the swarm
+        return np.zeros(len(fitness), dtype=int), fitness
+
+    rng = np.random.default_rng(8)
+    result = optimise(hoarding, rng.normal(size=(6, 2)), rng=rng, max_iterations=10)
+    assert np.abs(result.position).max() < 10.0
+    assert len({id(array) for array in seen}) == len(seen) == result.iterations

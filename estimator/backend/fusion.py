@@ -3,7 +3,8 @@
 One Pose3 per frame (body in world) and, with an IMU, one gyro bias per frame. Per frame k:
 
 * the front-end relative pose (left camera, moved into the body frame) as a robust
-  ``BetweenFactorPose3`` with a covariance from the registration inliers (``noise.py``),
+  ``BetweenFactorPose3`` from the frame it was measured against (a keyframe) to X_k, with the
+  full 6x6 covariance of the rigid fit when the inlier points are given (``noise.py``),
   unless it fails the outlier gate against the prediction (gyro rotation, constant-velocity
   translation);
 * the gyro preintegrated over the frame interval (shifted by the camera-IMU time offset) as a
@@ -20,6 +21,7 @@ IMU (or without accelerometer data with the first frame) the world is the first 
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import gtsam
@@ -33,7 +35,13 @@ from estimator.backend.imu import (
     preintegrate_gyro,
     rotation_params,
 )
-from estimator.backend.noise import pose_noise, relative_pose_sigmas, robust
+from estimator.backend.noise import (
+    fit_covariance,
+    pose_noise,
+    relative_pose_sigmas,
+    robust,
+    sigma_covariance,
+)
 from estimator.config import BackendConfig
 from estimator.geometry import invert_pose, make_pose
 from estimator.types import FrameStatus, ImuBatch, ImuNoise
@@ -75,6 +83,19 @@ class FusedEstimate:
     body_motion: np.ndarray | None = None
 
 
+def _rigid(pose: np.ndarray) -> np.ndarray:
+    """``pose`` with its rotation block projected onto SO(3).
+
+    Products such as inv(X_prev) X_ref T (the gate) or a calibration's T_BS are orthonormal
+    only to rounding (or to the printed digits); fed back as initial values, that deviation
+    compounds from frame to frame, so everything entering the graph is projected.
+    """
+    u, _, vt = np.linalg.svd(pose[:3, :3])
+    rigid = pose.copy()
+    rigid[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    return rigid
+
+
 def _check_pose(name: str, pose: np.ndarray) -> np.ndarray:
     pose = np.asarray(pose, dtype=float)
     if pose.shape != (4, 4):
@@ -101,8 +122,9 @@ class FusionBackend:
         self.config = config
         if config.body_from_camera is not None:
             body_from_camera = np.asarray(config.body_from_camera, dtype=float).reshape(4, 4)
-        self.body_from_camera = _check_pose("body_from_camera", body_from_camera)
+        self.body_from_camera = _rigid(_check_pose("body_from_camera", body_from_camera))
         self.camera_from_body = invert_pose(self.body_from_camera)
+        self._adjoint = np.asarray(gtsam.Pose3(self.body_from_camera).AdjointMap())
         self.use_imu = bool(config.use_imu and imu_noise is not None)
         self._imu_params = None
         self._bias_sigma_density = 0.0
@@ -126,6 +148,10 @@ class FusionBackend:
         self._previous_dt = 0.0
         self._bias = np.zeros(3)
         self._misses = 0  # consecutive frames without an accepted relative pose
+        # Frames that may still be referenced by a keyframe measurement: stamp -> (index, latest
+        # body pose estimate), the pose for references that have left the smoother's window.
+        self._frames: OrderedDict[int, tuple[int, np.ndarray]] = OrderedDict()
+        self._oldest_reference = 0
 
     # ------------------------------------------------------------------ public
 
@@ -140,24 +166,40 @@ class FusionBackend:
         inlier_residuals: np.ndarray | None,
         inlier_count: int,
         imu: ImuBatch | None,
+        reference_ns: int | None = None,
+        inlier_points: np.ndarray | None = None,
     ) -> FusedEstimate:
-        """Add frame ``timestamp_ns``; ``relative_pose`` is the front-end T_prev_cur (camera)."""
+        """Add frame ``timestamp_ns``; ``relative_pose`` is the front-end T_ref_cur (camera).
+
+        ``reference_ns`` is the timestamp of the frame the relative pose was measured against
+        (a keyframe); None means the previous frame. A keyframe measurement ties the two frames
+        directly, so its error is not chained through the frames in between.
+        ``inlier_points`` (N, 3), the registration inliers in the current left camera frame,
+        give the relative pose its full covariance (rotation and translation errors of a fit
+        are strongly correlated); without them it gets the diagonal one from the residuals.
+        """
         timestamp_ns = int(timestamp_ns)
         if self._index >= 0 and timestamp_ns <= self._last_ns:
             raise ValueError(
                 f"frame timestamps must increase: {timestamp_ns} after {self._last_ns}"
             )
-        sigmas = None
-        if relative_pose is not None:
-            relative_pose = _check_pose("relative_pose", relative_pose)
-            sigmas = relative_pose_sigmas(inlier_residuals, inlier_count, self.config)
         if inlier_count < 0:
             raise ValueError(f"inlier_count must be >= 0, got {inlier_count}")
+        covariance = None
+        if relative_pose is not None:
+            relative_pose = _check_pose("relative_pose", relative_pose)
+            if inlier_points is not None and len(inlier_points) > 0:
+                covariance = fit_covariance(inlier_points, inlier_residuals, self.config)
+            else:
+                sigmas = relative_pose_sigmas(inlier_residuals, inlier_count, self.config)
+                covariance = sigma_covariance(sigmas)
+            # Into the body frame: T_BS T Exp(xi) T_SB = (T_BS T T_SB) Exp(Ad(T_BS) xi).
+            covariance = self._adjoint @ covariance @ self._adjoint.T
         if imu is not None and self.use_imu:
             self._buffer.extend(imu)
         if self._index < 0:
             return self._start(timestamp_ns)
-        return self._advance(timestamp_ns, relative_pose, sigmas)
+        return self._advance(timestamp_ns, relative_pose, covariance, reference_ns)
 
     # ------------------------------------------------------------------ graph building
 
@@ -295,48 +337,72 @@ class FusionBackend:
         self,
         measured: np.ndarray,
         predicted: np.ndarray,
-        sigmas: tuple[float, float],
+        covariance: np.ndarray,
         preintegration: GyroPreintegration | None,
         dt: float,
     ) -> float:
         """Squared Mahalanobis distance of a relative pose from the prediction.
 
-        The prediction's spread: the gyro covariance plus a floor for the bias uncertainty
-        (else the constant-velocity sigma) for rotation, the constant-velocity sigma for
+        The error is Log(predicted^-1 measured) with the measurement's 6x6 covariance plus the
+        prediction's spread: the gyro covariance plus a floor for the bias uncertainty (else
+        the constant-velocity sigma) for rotation, the constant-velocity sigma for
         translation; the motion-prior parts widen with every frame without accepted vision
         and with the length of the interval against the previous one (a long gap between
         frames extrapolates just as far), so the gate reopens after a gap.
         """
         if self._previous_motion is None and preintegration is None:
             return 0.0  # nothing to compare with yet
-        rotation_sigma, translation_sigma = sigmas
         stretch = max(1.0, dt / self._previous_dt) if self._previous_dt > 0 else 1.0
         widen = ((1.0 + self._misses) * stretch) ** 2
-        rotation_error = gtsam.Rot3.Logmap(gtsam.Rot3(predicted[:3, :3].T @ measured[:3, :3]))
+        error = gtsam.Pose3.Logmap(gtsam.Pose3(invert_pose(predicted) @ measured))
+        spread = covariance.copy()
         if preintegration is not None:
             floor = max(_GATE_GYRO_FLOOR_RAD, _GATE_GYRO_BIAS_RATE * dt)
-            rotation_cov = preintegration.covariance + np.eye(3) * floor**2
+            spread[:3, :3] += preintegration.covariance + np.eye(3) * floor**2
         else:
-            rotation_cov = np.eye(3) * self.config.cv_rotation_sigma_rad**2 * widen
-        rotation_cov = rotation_cov + np.eye(3) * rotation_sigma**2
-        distance = float(rotation_error @ np.linalg.solve(rotation_cov, rotation_error))
-        if self._previous_motion is not None:
-            translation_var = self.config.cv_translation_sigma_m**2 * widen + translation_sigma**2
-            translation_error = measured[:3, 3] - predicted[:3, 3]
-            distance += float(translation_error @ translation_error) / translation_var
-        return distance
+            spread[:3, :3] += np.eye(3) * self.config.cv_rotation_sigma_rad**2 * widen
+        if self._previous_motion is None:  # no translation to compare with yet
+            return float(error[:3] @ np.linalg.solve(spread[:3, :3], error[:3]))
+        spread[3:, 3:] += np.eye(3) * self.config.cv_translation_sigma_m**2 * widen
+        return float(error @ np.linalg.solve(spread, error))
+
+    def _in_window(self, index: int, index_ns: int | None, timestamp_ns: int) -> bool:
+        """Whether frame ``index`` has a variable that survives the update at ``timestamp_ns``.
+
+        A reference that would be marginalised is not kept alive by restamping it: with its
+        neighbours already gone, GTSAM's fixed-lag smoother fails to marginalise it later
+        ("remove variables ... that are not unused"); such a measurement is chained through
+        the previous frame instead.
+        """
+        if isinstance(self._smoother, gtsam.ISAM2):
+            return bool(self._smoother.valueExists(_pose_key(index)))
+        if index_ns is None:
+            return False
+        age = (timestamp_ns - int(index_ns)) * 1e-9
+        return age < _KEEP_ALIVE_FRACTION * self.config.smoother_lag_s and bool(
+            self._smoother.getISAM2().valueExists(_pose_key(index))
+        )
+
+    def _reference_index(self, reference_ns: int | None) -> int | None:
+        """Frame index of ``reference_ns`` (None: the previous frame; unknown: None + note)."""
+        if reference_ns is None:
+            return self._index
+        frame = self._frames.get(int(reference_ns))
+        return None if frame is None else frame[0]
 
     def _advance(
         self,
         timestamp_ns: int,
         relative_pose: np.ndarray | None,
-        sigmas: tuple[float, float] | None,
+        covariance: np.ndarray | None,
+        reference_ns: int | None = None,
     ) -> FusedEstimate:
         previous, current = self._index, self._index + 1
         dt = (timestamp_ns - self._last_ns) * 1e-9
         factors = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         keys = [_pose_key(current)]
+        keep: list[int] = []
         notes: list[str] = []
 
         preintegration = None
@@ -371,22 +437,43 @@ class FusionBackend:
             prediction[:3, :3] = preintegration.delta_rotation
         guess = prediction
         accepted = False
-        if relative_pose is not None and sigmas is not None:
-            body_motion = self.body_from_camera @ relative_pose @ self.camera_from_body
-            distance = self._gate_distance(body_motion, prediction, sigmas, preintegration, dt)
+        reference = None
+        if relative_pose is not None and covariance is not None:
+            reference = self._reference_index(reference_ns)
+            if reference is None:
+                notes.append(
+                    f"relative pose not used (reference frame {reference_ns} is unknown or "
+                    "older than the latest reference)"
+                )
+        if reference is not None:
+            assert relative_pose is not None and covariance is not None
+            body_measured = _rigid(self.body_from_camera @ relative_pose @ self.camera_from_body)
+            # The measurement seen as a motion from the previous frame, through the current
+            # estimates: for the gate and the initial guess (and as the factor itself when the
+            # reference has already left the window).
+            body_motion = body_measured
+            live = reference == previous or self._in_window(reference, reference_ns, timestamp_ns)
+            if reference != previous:
+                reference_pose = (
+                    self._pose_estimate(reference) if live else self._frames[int(reference_ns)][1]
+                )
+                body_motion = _rigid(invert_pose(self._body_pose) @ reference_pose @ body_measured)
+            distance = self._gate_distance(body_motion, prediction, covariance, preintegration, dt)
             gate = self.config.outlier_gate_chi2
             if gate is None or distance <= gate:
                 accepted = True
                 guess = body_motion
-                base = pose_noise(*sigmas)
+                base = gtsam.noiseModel.Gaussian.Covariance(covariance)
+                source, measured = (reference, body_measured) if live else (previous, body_motion)
                 factors.add(
                     gtsam.BetweenFactorPose3(
-                        _pose_key(previous),
+                        _pose_key(source),
                         _pose_key(current),
-                        gtsam.Pose3(body_motion),
+                        gtsam.Pose3(measured),
                         robust(base, self.config.robust_kernel, self.config.robust_parameter),
                     )
                 )
+                self._oldest_reference = max(self._oldest_reference, reference)
             else:
                 notes.append(
                     f"relative pose rejected (squared Mahalanobis distance {distance:.0f} "
@@ -408,17 +495,16 @@ class FusionBackend:
                     pose_noise(rotation_sigma, self.config.cv_translation_sigma_m),
                 )
             )
-        values.insert(_pose_key(current), gtsam.Pose3(self._body_pose @ guess))
+        values.insert(_pose_key(current), gtsam.Pose3(_rigid(self._body_pose @ guess)))
 
         # The previous frame's keys would be marginalised by this update when the gap exceeds
         # the lag (its estimate is needed just below); within the lag they keep their stamps.
-        keep: tuple[int, ...] = ()
         if dt >= _KEEP_ALIVE_FRACTION * self.config.smoother_lag_s:
-            keep = (_pose_key(previous),) + ((_bias_key(previous),) if self.use_imu else ())
+            keep += [_pose_key(previous)] + ([_bias_key(previous)] if self.use_imu else [])
         self._last_ns = timestamp_ns
         self._index = current
         try:
-            self._update(factors, values, keys, keep)
+            self._update(factors, values, keys, tuple(keep))
             previous_pose = self._pose_estimate(previous)
         except RuntimeError as error:  # numerical failure inside GTSAM: restart the graph
             previous_pose = self._body_pose
@@ -444,6 +530,7 @@ class FusionBackend:
         self, status: FrameStatus, message: str, motion: np.ndarray | None = None
     ) -> FusedEstimate:
         self._body_pose = self._pose_estimate(self._index)
+        self._remember(self._last_ns, self._index, self._body_pose)
         bias = None
         if self.use_imu:
             self._bias = self._bias_estimate(self._index)
@@ -456,3 +543,10 @@ class FusionBackend:
             gyro_bias=bias,
             body_motion=motion,
         )
+
+    def _remember(self, timestamp_ns: int, index: int, body_pose: np.ndarray) -> None:
+        """Keep the pose of frames that may still be referenced: none older than the latest
+        reference, since a front end's references only move forward."""
+        self._frames[timestamp_ns] = (index, body_pose)
+        while self._frames and next(iter(self._frames.values()))[0] < self._oldest_reference:
+            self._frames.popitem(last=False)

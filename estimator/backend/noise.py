@@ -1,11 +1,17 @@
 """Noise models of the graph: relative-pose covariance from the registration inliers.
 
-A rigid fit from n 3D-3D pairs with residual RMS r determines its translation to about
-r / sqrt(n) and its rotation to about r / (sqrt(n) * spread), spread being the RMS distance of
-the points from their centroid (the lever arm of the rotation). The front end reports residual
-norms and counts but not the spread, so that one comes from the configuration. Both sigmas are
-clamped so a lucky fit cannot claim centimetre-free certainty and a poor one still carries
-some information.
+With the inlier points the covariance is the full 6x6 one of the rigid fit (``fit_covariance``):
+the points sit metres in front of the camera, so a rotation error of the fit comes with a
+translation error of the camera of the same lever arm - in the rendered sequences the two are
+99 % correlated. A diagonal covariance drops that coupling: when the gyro then corrects the
+rotation, the translation keeps its now uncompensated share of the error.
+
+Without the points (``relative_pose_sigmas``): a rigid fit from n 3D-3D pairs with residual
+RMS r determines its translation to about r / sqrt(n) and its rotation to about
+r / (sqrt(n) * spread), spread being the RMS distance of the points from their centroid (the
+lever arm of the rotation), which then comes from the configuration. Both sigmas are clamped
+so a lucky fit cannot claim centimetre-free certainty and a poor one still carries some
+information.
 """
 
 from __future__ import annotations
@@ -15,7 +21,7 @@ import numpy as np
 
 from estimator.config import BackendConfig
 
-__all__ = ["pose_noise", "relative_pose_sigmas", "robust"]
+__all__ = ["fit_covariance", "pose_noise", "relative_pose_sigmas", "robust", "sigma_covariance"]
 
 
 def relative_pose_sigmas(
@@ -24,14 +30,7 @@ def relative_pose_sigmas(
     """(rotation sigma rad, translation sigma m) per axis of one front-end relative pose."""
     if inlier_count < 0:
         raise ValueError(f"inlier_count must be >= 0, got {inlier_count}")
-    if residuals is not None and len(residuals) > 0:
-        residuals = np.asarray(residuals, dtype=float).ravel()
-        if not np.all(np.isfinite(residuals)):
-            raise ValueError("inlier residuals contain NaN or inf")
-        # Norms of 3D residuals: per-axis RMS is the norm RMS / sqrt(3).
-        rms = float(np.sqrt(np.mean(residuals**2) / 3.0))
-    else:
-        rms = config.fallback_residual_m / np.sqrt(3.0)
+    rms = np.sqrt(_residual_variance(residuals, config))
     root_n = np.sqrt(max(inlier_count, 1))
     translation = config.translation_sigma_scale * rms / root_n
     rotation = config.rotation_sigma_scale * rms / (root_n * config.point_spread_m)
@@ -39,6 +38,56 @@ def relative_pose_sigmas(
         float(np.clip(rotation, config.min_rotation_sigma_rad, config.max_rotation_sigma_rad)),
         float(np.clip(translation, config.min_translation_sigma_m, config.max_translation_sigma_m)),
     )
+
+
+def _residual_variance(residuals: np.ndarray | None, config: BackendConfig) -> float:
+    """Per-axis variance of the fit residuals (norms of 3D residuals: RMS^2 / 3)."""
+    if residuals is None or len(residuals) == 0:
+        return config.fallback_residual_m**2 / 3.0
+    residuals = np.asarray(residuals, dtype=float).ravel()
+    if not np.all(np.isfinite(residuals)):
+        raise ValueError("inlier residuals contain NaN or inf")
+    return float(np.mean(residuals**2) / 3.0)
+
+
+def fit_covariance(
+    points: np.ndarray, residuals: np.ndarray | None, config: BackendConfig
+) -> np.ndarray:
+    """6x6 covariance of a rigid fit p ~ R q + t from its inlier points q (current frame).
+
+    GTSAM's Pose3 tangent ([rotation, translation], perturbation on the right, i.e. in the
+    current frame): a point moves by R (-[q]x d_rot + d_trans), so with isotropic residual
+    variance s^2 the information is sum_i [-[q_i]x, I]^T [-[q_i]x, I] / s^2. The configured
+    maximum sigmas enter as a weak prior (degenerate point sets stay invertible) and the
+    minimum sigmas as a floor, so a fit from few, perfect points cannot claim absurd certainty.
+    """
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if not np.all(np.isfinite(points)):
+        raise ValueError("inlier points contain NaN or inf")
+    variance = _residual_variance(residuals, config)
+    variance = max(variance, 1e-12)
+    total = points.sum(axis=0)
+    cross = np.array(
+        [[0.0, -total[2], total[1]], [total[2], 0.0, -total[0]], [-total[1], total[0], 0.0]]
+    )
+    information = np.zeros((6, 6))
+    information[:3, :3] = np.sum(points**2) * np.eye(3) - points.T @ points
+    information[:3, 3:] = cross
+    information[3:, :3] = -cross
+    information[3:, 3:] = len(points) * np.eye(3)
+    information /= variance
+    information += np.diag(
+        [config.max_rotation_sigma_rad**-2] * 3 + [config.max_translation_sigma_m**-2] * 3
+    )
+    floor = [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
+    covariance = config.fit_covariance_scale**2 * np.linalg.inv(information) + np.diag(floor)
+    return 0.5 * (covariance + covariance.T)
+
+
+def sigma_covariance(sigmas: tuple[float, float]) -> np.ndarray:
+    """The diagonal 6x6 covariance of (rotation sigma, translation sigma)."""
+    rotation, translation = sigmas
+    return np.diag([rotation**2] * 3 + [translation**2] * 3)
 
 
 def pose_noise(rotation_sigma: float, translation_sigma: float) -> gtsam.noiseModel.Diagonal:

@@ -88,6 +88,37 @@ def _drift(sequence, reports) -> dict[str, float] | None:
     result["ground_truth_path_m"] = float(
         np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1).sum()
     )
+    result.update(_against_images(sequence, reports, covered, truth))
+    return result
+
+
+def _against_images(sequence, reports, covered: np.ndarray, truth: np.ndarray) -> dict:
+    """Final attitude change measured from the raw left images alone (estimator.image_reference).
+
+    A referee independent of stereo, the estimator and the ground truth's sensors: where the
+    ground truth and the images disagree, this says which one the estimate follows.
+    """
+    from estimator.geometry import invert_pose, rotation_angle_deg
+    from estimator.image_reference import image_rotations
+
+    first, last = np.flatnonzero(covered)[[0, -1]]
+    try:
+        (images,) = image_rotations(
+            sequence.load(first).left, [sequence.load(last).left], sequence.rig.left
+        )
+    except ValueError:  # the views no longer overlap: no image-only referee
+        return {}
+    result = {
+        "images_final_rotation_deg": float(rotation_angle_deg(images.rotation)),
+        "ground_truth_vs_images_final_rotation_deg": float(
+            rotation_angle_deg(images.rotation.T @ truth[-1, :3, :3])
+        ),
+    }
+    for name in ("frontend_pose", "pose"):
+        pose = invert_pose(getattr(reports[first], name)) @ getattr(reports[last], name)
+        result[f"{name}_vs_images_final_rotation_deg"] = float(
+            rotation_angle_deg(images.rotation.T @ pose[:3, :3])
+        )
     return result
 
 
@@ -220,5 +251,13 @@ def _markdown(result: dict) -> str:
             f"{drift['pose_final_rotation_error_deg']:.3f} deg, eq. 20 RMS "
             f"{drift['frontend_pose_eq20_rms']:.4f} / {drift['pose_eq20_rms']:.4f} "
             f"(ground-truth path {drift['ground_truth_path_m'] * 100:.1f} cm)"
+        )
+    if drift and "images_final_rotation_deg" in drift:
+        lines.append(
+            "final rotation measured from the raw left images alone "
+            f"{drift['images_final_rotation_deg']:.3f} deg; against it: front end "
+            f"{drift['frontend_pose_vs_images_final_rotation_deg']:.3f} / fused "
+            f"{drift['pose_vs_images_final_rotation_deg']:.3f} deg, ground truth "
+            f"{drift['ground_truth_vs_images_final_rotation_deg']:.3f} deg"
         )
     return "\n".join(lines)
