@@ -4,11 +4,13 @@ Each robot owns a session and sends 752x480 PNG pairs (EuRoC V1_01 micro, looped
 kept increasing) plus the IMU samples between frames, at ``--rate`` Hz like a camera would: it
 never waits for answers. For each K the run reports sustained answered frames/s, latency
 percentiles (send -> pose received), frames dropped/rejected by the server's queue policy or
-never answered, and the server's resident memory. Loopback only (127.0.0.1), every level is
-bounded in duration and in the time allowed to drain.
+never answered, and the resident memory of the server and its worker processes. Loopback only
+(127.0.0.1), every level is bounded in duration and in the time allowed to drain.
 
     python benchmarks/load_test.py                      # K = 1, 2, 4, 8; 15 s each
     python benchmarks/load_test.py --robots 4 --duration 30
+    python benchmarks/load_test.py --executor thread    # the in-process thread pool instead
+    python benchmarks/load_test.py --encoding raw8      # raw 8-bit pixels, no PNG decode
 """
 
 from __future__ import annotations
@@ -66,6 +68,8 @@ class LevelResult:
     latency_p95_ms: float | None
     latency_p99_ms: float | None
     server_rss_mb_peak: float | None
+    # CPU time of the server process itself and of its worker processes, per answered frame.
+    server_cpu_ms_per_frame: dict[str, float]
     stage_median_ms: dict[str, float]
     reject_reasons: dict[str, int]
 
@@ -73,9 +77,12 @@ class LevelResult:
 class Frames:
     """Encoded frames of the dataset in memory, looped with ever-increasing timestamps."""
 
-    def __init__(self, dataset: Path) -> None:
+    def __init__(self, dataset: Path, raw: bool = False) -> None:
         self.sequence = open_local_sequence(dataset)
         self.pairs = [(f.left.read_bytes(), f.right.read_bytes()) for f in self.sequence.frames]
+        self.raw = raw
+        if raw:  # decoded once here: a robot sending raw8 holds the pixels already
+            self.pairs = [(_grey_pixels(left), _grey_pixels(right)) for left, right in self.pairs]
         self.times = np.array([f.timestamp_ns for f in self.sequence.frames], dtype=np.int64)
         step = int(np.median(np.diff(self.times)))
         self.span = int(self.times[-1] - self.times[0]) + step
@@ -98,6 +105,15 @@ class Frames:
         return timestamp, left, right, imu
 
 
+def _grey_pixels(encoded: bytes) -> bytes:
+    import cv2
+
+    image = cv2.imdecode(np.frombuffer(encoded, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None or image.dtype != np.uint8 or image.ndim != 2:
+        raise SystemExit("--encoding raw8 needs 8-bit grey images")
+    return image.tobytes()
+
+
 async def robot(url: str, session_id: str, frames: Frames, rate: float, duration: float,
                 drain: float, stats: RobotStats, start_at: float) -> None:
     sent_at: dict[int, float] = {}
@@ -116,7 +132,11 @@ async def robot(url: str, session_id: str, frames: Frames, rate: float, duration
                 timestamp, left, right, imu = frames.get(k)
                 sent_at[timestamp] = time.perf_counter()
                 stats.first_send = stats.first_send or sent_at[timestamp]
-                await connection.send_frame(timestamp, left, right, imu)
+                if frames.raw:
+                    width, height = frames.sequence.image_size
+                    await connection.send_raw_frame(timestamp, left, right, width, height, imu)
+                else:
+                    await connection.send_frame(timestamp, left, right, imu)
                 stats.sent += 1
                 k += 1
             done_sending.set()
@@ -139,7 +159,8 @@ async def robot(url: str, session_id: str, frames: Frames, rate: float, duration
                     stats.answered += 1
                     stats.latencies_s.append(now - sent_at[event.timestamp_ns])
                     stats.last_answer = now
-                    for stage in ("queue_wait", "decode", "odometry", "persist", "total"):
+                    for stage in ("queue_wait", "decode", "odometry", "transfer", "persist",
+                                  "total"):
                         if stage in event.timings_s:
                             stats.stage_s.setdefault(stage, []).append(event.timings_s[stage])
                 elif isinstance(event, DroppedFrame):
@@ -153,14 +174,47 @@ async def robot(url: str, session_id: str, frames: Frames, rate: float, duration
         await connection.close()
 
 
+def _tree(pid: int) -> list[int]:
+    """``pid`` and all its descendants (the server's worker processes)."""
+    found, pending = [], [pid]
+    while pending:
+        current = pending.pop()
+        found.append(current)
+        try:
+            for task in Path(f"/proc/{current}/task").iterdir():
+                pending += [int(c) for c in (task / "children").read_text().split()]
+        except (OSError, ValueError):
+            continue
+    return found
+
+
 def _rss_mb(pid: int) -> float | None:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
-        return None
-    return None
+    """Resident memory of the server and its worker processes."""
+    total, found = 0.0, False
+    for current in _tree(pid):
+        try:
+            for line in Path(f"/proc/{current}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total += int(line.split()[1]) / 1024
+                    found = True
+        except (OSError, ValueError):
+            continue
+    return total if found else None
+
+
+def _cpu_s(pid: int | None) -> dict[int, float]:
+    """User + system CPU seconds of each process of the server's tree, by pid."""
+    if pid is None:
+        return {}
+    ticks = os.sysconf("SC_CLK_TCK")
+    times = {}
+    for current in _tree(pid):
+        try:
+            fields = Path(f"/proc/{current}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        times[current] = (int(fields[11]) + int(fields[12])) / ticks
+    return times
 
 
 async def run_level(url: str, frames: Frames, robots: int, rate: float, duration: float,
@@ -184,11 +238,13 @@ async def run_level(url: str, frames: Frames, robots: int, rate: float, duration
             await asyncio.sleep(0.25)
 
     sampler = asyncio.create_task(sample_memory())
+    cpu_before = _cpu_s(server_pid)
     start_at = time.perf_counter() + 0.5
     await asyncio.gather(*(robot(url, s.id, frames, rate, duration, drain, st, start_at)
                            for s, st in zip(sessions, stats, strict=True)))
     stop.set()
     await sampler
+    cpu_after = _cpu_s(server_pid)
     with Client(url, API_KEY) as client:
         for session in sessions:
             client.delete_session(session.id)
@@ -209,6 +265,12 @@ async def run_level(url: str, frames: Frames, robots: int, rate: float, duration
         for reason, count in s.reject_reasons.items():
             reasons[reason] = reasons.get(reason, 0) + count
 
+    cpu: dict[str, float] = {}
+    if cpu_after and answered:
+        used = {p: t - cpu_before.get(p, 0.0) for p, t in cpu_after.items()}
+        cpu["server_process"] = used.pop(server_pid, 0.0) * 1000 / answered
+        cpu["worker_processes"] = sum(used.values()) * 1000 / answered
+
     def pct(q: float) -> float | None:
         return float(np.percentile(latencies, q) * 1000) if len(latencies) else None
 
@@ -218,6 +280,7 @@ async def run_level(url: str, frames: Frames, robots: int, rate: float, duration
         sustained_fps=answered / window if window > 0 else 0.0, offered_fps=robots * rate,
         latency_p50_ms=pct(50), latency_p95_ms=pct(95), latency_p99_ms=pct(99),
         server_rss_mb_peak=max(peak_rss) if peak_rss else None,
+        server_cpu_ms_per_frame=cpu,
         stage_median_ms={k: float(np.median(v) * 1000) for k, v in sorted(stages.items())},
         reject_reasons=reasons,
     )
@@ -229,11 +292,11 @@ def _free_port() -> int:
         return int(sock.getsockname()[1])
 
 
-def start_server(workers: int | None, queue_size: int, policy: str,
+def start_server(workers: int | None, queue_size: int, policy: str, executor: str,
                  data_dir: Path) -> tuple[subprocess.Popen, str]:
     port = _free_port()
     env = {**os.environ, "SWARMVO_API_KEYS": API_KEY, "SWARMVO_QUEUE_SIZE": str(queue_size),
-           "SWARMVO_QUEUE_POLICY": policy}
+           "SWARMVO_QUEUE_POLICY": policy, "SWARMVO_EXECUTOR": executor}
     command = [sys.executable, "-m", "estimator.cli", "serve", "--host", "127.0.0.1",
                "--port", str(port), "--data-dir", str(data_dir), "--log-level", "warning"]
     if workers:
@@ -273,6 +336,9 @@ def print_table(results: list[LevelResult]) -> None:
     for r in results:
         stages = ", ".join(f"{k} {v:.1f}" for k, v in r.stage_median_ms.items())
         print(f"  K={r.robots}: {stages}")
+        if r.server_cpu_ms_per_frame:
+            print("        server CPU per answered frame (ms): " + ", ".join(
+                f"{k} {v:.1f}" for k, v in r.server_cpu_ms_per_frame.items()))
         if r.reject_reasons:
             print(f"        rejected: {r.reject_reasons}")
 
@@ -286,11 +352,17 @@ def main(argv: list[str] | None = None) -> int:
                         help="seconds allowed after sending stops for the last answers")
     parser.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
     parser.add_argument("--url", help="use a running server (needs API key load-test-key)")
-    parser.add_argument("--workers", type=int, help="server worker threads (default: cores)")
+    parser.add_argument("--workers", type=int,
+                        help="server worker processes/threads (default: cores)")
+    parser.add_argument("--executor", choices=("process", "thread"), default="process",
+                        help="where the server runs the odometry (SWARMVO_EXECUTOR)")
+    parser.add_argument("--encoding", choices=("png", "raw8"), default="png",
+                        help="frame payload: the dataset's PNG files or raw 8-bit pixels")
     parser.add_argument("--queue-size", type=int, default=8)
     parser.add_argument("--policy", choices=("reject", "drop_oldest"), default="reject")
     parser.add_argument("--config", default="{}", help="estimator config overrides (JSON)")
-    parser.add_argument("--out", type=Path, default=PROJECT_ROOT / "benchmarks/results/load")
+    parser.add_argument("--out", type=Path, default=PROJECT_ROOT / "benchmarks/results/load",
+                        help="folder for the JSON report")
     args = parser.parse_args(argv)
     levels = [int(k) for k in args.robots.split(",")]
     if any(k < 1 or k > 64 for k in levels) or not 0 < args.rate <= 100:
@@ -298,10 +370,11 @@ def main(argv: list[str] | None = None) -> int:
     if not 1 <= args.duration <= 600:
         parser.error("duration must be 1..600 s")
     config = json.loads(args.config)
-    frames = Frames(args.dataset)
+    frames = Frames(args.dataset, raw=args.encoding == "raw8")
     width, height = frames.sequence.image_size
     print(f"{len(frames.pairs)} stereo pairs of {width}x{height} from {args.dataset}, "
-          f"{np.mean([len(a) + len(b) for a, b in frames.pairs]) / 1024:.0f} KiB per pair")
+          f"{np.mean([len(a) + len(b) for a, b in frames.pairs]) / 1024:.0f} KiB per pair "
+          f"({args.encoding}); server executor: {args.executor}")
 
     process = None
     with tempfile.TemporaryDirectory(prefix="swarmvo-load-") as folder:
@@ -310,7 +383,8 @@ def main(argv: list[str] | None = None) -> int:
             if not url.startswith(("http://127.0.0.1", "http://localhost")):
                 parser.error("the load test only targets 127.0.0.1/localhost")
         else:
-            process, url = start_server(args.workers, args.queue_size, args.policy, Path(folder))
+            process, url = start_server(args.workers, args.queue_size, args.policy,
+                                        args.executor, Path(folder))
             pid = process.pid
         results = []
         load_before = os.getloadavg()
@@ -338,6 +412,8 @@ def main(argv: list[str] | None = None) -> int:
         "settings": {"rate_hz": args.rate, "duration_s": args.duration,
                      "queue_size": args.queue_size, "policy": args.policy,
                      "workers": args.workers or os.cpu_count(), "config": config,
+                     "executor": None if args.url else args.executor,
+                     "encoding": args.encoding,
                      "dataset": str(args.dataset), "image_size": [width, height]},
         "levels": [asdict(r) for r in results],
     }

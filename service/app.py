@@ -386,7 +386,16 @@ def create_app(
         database = store or await run_in_threadpool(
             Store.open, settings.resolved_database_url(), settings.sqlite_synchronous
         )
-        manager = SessionManager(settings, database, pipeline_factory, metrics)
+        mode = settings.executor
+        if mode == "auto":
+            mode = "thread" if factory is not None else "process"
+        manager = SessionManager(settings, database, pipeline_factory, metrics, mode)
+        try:
+            await manager.start()
+        except BaseException:
+            if own_store:
+                database.close()
+            raise
         app.state.swarmvo = ServiceState(settings, database, manager, metrics, pipeline_factory)
         try:
             yield
@@ -428,7 +437,9 @@ def create_app(
             await run_in_threadpool(state.store.ping)
         except Exception as error:
             raise HTTPException(503, f"database unavailable: {error}") from error
-        return Health(status="ok", sessions_active=len(state.manager.workers), database="ok")
+        runner = state.manager.runner
+        return Health(status="ok", sessions_active=len(state.manager.workers), database="ok",
+                      executor=runner.mode, workers=settings.workers)
 
     @app.get("/metrics", response_class=PlainTextResponse, tags=["operations"])
     async def prometheus_metrics() -> Response:
@@ -619,6 +630,7 @@ class StreamConnection:
         self.parts: list[bytes] = []
         self.received = 0
         self.sender: asyncio.Task[None] | None = None
+        self.image_size = (0, 0)  # the session's (width, height), known once accepted
 
     async def _deny(self, status: int, detail: str) -> None:
         self.state.metrics.errors.labels("auth" if status == 401 else "unknown_session").inc()
@@ -639,6 +651,7 @@ class StreamConnection:
             await self._deny(error.status_code, str(error.detail))
             return
         await websocket.accept()
+        self.image_size = (record.image_width, record.image_height)
         worker = self.state.manager.worker(record)
         await websocket.send_json(
             {
@@ -734,6 +747,8 @@ class StreamConnection:
             problem = "left_bytes and right_bytes must be positive integers"
         elif sum(sizes) > self.settings.ws_max_message_bytes:  # type: ignore[arg-type]
             problem = f"images exceed {self.settings.ws_max_message_bytes} bytes"
+        else:
+            problem = self._raw_problem(message, sizes)  # type: ignore[arg-type]
         imu = None
         if problem is None and message.get("imu") is not None:
             try:
@@ -750,7 +765,27 @@ class StreamConnection:
                 }
             )
             return
-        self.header = {"timestamp_ns": timestamp, "sizes": sizes, "imu": imu}
+        self.header = {"timestamp_ns": timestamp, "sizes": sizes, "imu": imu,
+                       "raw": message.get("encoding") == "raw8"}
+
+    def _raw_problem(self, message: dict[str, Any], sizes: tuple[int, int]) -> str | None:
+        """Check the optional ``encoding`` of a frame header (``png`` default, or ``raw8``)."""
+        encoding = message.get("encoding", "png")
+        if encoding in ("png", "jpeg", "image"):
+            return None
+        if encoding != "raw8":
+            return f"unknown encoding {encoding!r} (png|raw8)"
+        width, height = message.get("width"), message.get("height")
+        if not all(isinstance(n, int) and not isinstance(n, bool) and n > 0
+                   for n in (width, height)):
+            return "raw8 frames need positive integer width and height"
+        if (width, height) != self.image_size:
+            return (f"raw8 image is {width}x{height} but the session's calibration is for "
+                    f"{self.image_size[0]}x{self.image_size[1]}")
+        if sizes != (width * height, width * height):
+            return (f"raw8 left_bytes and right_bytes must both be width*height = "
+                    f"{width * height}")
+        return None
 
     async def _on_bytes(self, data: bytes, record: SessionRecord) -> None:
         if self.header is None:
@@ -780,7 +815,8 @@ class StreamConnection:
         worker = self.state.manager.worker(record)
         try:
             future = worker.submit(
-                header["timestamp_ns"], blob[:left_size], blob[left_size:], header["imu"]
+                header["timestamp_ns"], blob[:left_size], blob[left_size:], header["imu"],
+                raw=header["raw"],
             )
         except FrameRejected as error:
             self.state.metrics.errors.labels(error.kind).inc()

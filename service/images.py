@@ -135,6 +135,24 @@ def decode_pair(
     return left_image, right_image
 
 
+def decode_raw_pair(
+    left: bytes, right: bytes, expected_size: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """A raw 8-bit grey pair (row-major, no container): nothing to decode, only sizes to check."""
+    width, height = expected_size
+    pixels = width * height
+    for name, data in (("left", left), ("right", right)):
+        if len(data) != pixels:
+            raise ImageError(
+                f"{name}: {len(data)} raw bytes, but the session's calibration is for "
+                f"{width}x{height} = {pixels} 8-bit pixels"
+            )
+    shape = (height, width)
+    # Copies: the estimator owns writable arrays, as it does after a PNG decode.
+    return (np.frombuffer(left, dtype=np.uint8).reshape(shape).copy(),
+            np.frombuffer(right, dtype=np.uint8).reshape(shape).copy())
+
+
 def _describe(image: np.ndarray) -> str:
     channels = 1 if image.ndim == 2 else image.shape[2]
     return f"{image.shape[1]}x{image.shape[0]}x{channels} {image.dtype}"

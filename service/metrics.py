@@ -42,5 +42,11 @@ class Metrics:
             registry=self.registry,
         )
 
+        self.worker_restarts = Counter(
+            "swarmvo_worker_restarts",
+            "Worker processes replaced after dying unexpectedly",
+            registry=self.registry,
+        )
+
     def render(self) -> bytes:
         return generate_latest(self.registry)

@@ -7,6 +7,8 @@ message fit for a 422 answer.
 
 from __future__ import annotations
 
+import importlib
+import logging
 import math
 import tempfile
 from dataclasses import asdict, dataclass
@@ -105,6 +107,20 @@ class EstimatorFactory:
             image_size=rig.size,
         )
 
+    def warm_up(self) -> None:
+        """Prepare a new worker process: imports, lazily loaded modules and compiled kernels.
+
+        A few synthetic textured frames (with IMU) go through a throw-away ``Odometry`` with the
+        default configuration, so this one-off cost (a few hundred ms) is not paid by the
+        first frames of a robot. Best effort: a failure here only means a slower first frame.
+        """
+        for module in ("estimator.calibration", "estimator.config", "estimator.odometry"):
+            importlib.import_module(module)
+        try:
+            _synthetic_run(self)
+        except Exception:
+            logging.getLogger("swarmvo.service").debug("warm-up run failed", exc_info=True)
+
     def create(
         self, prepared: PreparedSession, initial_pose: np.ndarray | None, first_index: int
     ) -> Pipeline:
@@ -120,6 +136,38 @@ class EstimatorFactory:
             initial_pose=initial_pose,
             first_index=first_index,
         )
+
+
+def _synthetic_run(factory: EstimatorFactory, frames: int = 4) -> None:
+    """Blurred random texture seen by a stereo pair (8 px disparity) sliding 2 px per frame."""
+    import cv2
+
+    width, height, disparity, step = 320, 240, 8, 2
+    rng = np.random.default_rng(0)
+    noise = (rng.random((height, width + disparity + step * frames)) * 255).astype(np.uint8)
+    texture = cv2.GaussianBlur(noise, (0, 0), 1.2)
+
+    def camera(x: float) -> dict[str, Any]:
+        transform = np.eye(4)
+        transform[0, 3] = x
+        return {"width": width, "height": height, "fx": 300.0, "fy": 300.0, "cx": width / 2,
+                "cy": height / 2, "distortion_model": "none", "distortion": [],
+                "T_BS": transform.tolist()}
+
+    prepared = factory.prepare({"left": camera(0.0), "right": camera(0.1)}, {}, {})
+    pipeline = factory.create(prepared, None, 0)
+    period_ns = 50_000_000
+    for k in range(frames):
+        left = np.ascontiguousarray(texture[:, step * k : step * k + width])
+        right = np.ascontiguousarray(
+            texture[:, step * k + disparity : step * k + disparity + width]
+        )
+        imu = None
+        if k:
+            times = np.arange((k - 1) * period_ns + 5_000_000, k * period_ns + 1, 5_000_000)
+            accel = np.tile([0.0, 0.0, 9.81], (len(times), 1))
+            imu = ImuBatch(times.astype(np.int64), np.zeros((len(times), 3)), accel)
+        pipeline.process(StereoFrame(k * period_ns, left, right), imu)
 
 
 def _short_validation(error: ValueError) -> str:

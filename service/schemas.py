@@ -144,6 +144,8 @@ class Health(BaseModel):
     status: Literal["ok"]
     sessions_active: int
     database: str
+    executor: Literal["process", "thread"]  # where the odometry runs
+    workers: int
 
 
 class ErrorOut(BaseModel):

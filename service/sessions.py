@@ -1,9 +1,9 @@
-"""Per-session workers: a bounded queue, strict timestamp order, odometry off the event loop.
+"""Per-session consumers: a bounded queue, strict timestamp order, CPU work off the event loop.
 
-Each live session has one consumer task that takes frames from its queue one at a time and runs
-decode + odometry + persistence in the shared thread pool, so frames of one session never
-overlap while different sessions use all workers. A pose is committed to the database before
-its future resolves, i.e. before any client can see it.
+Each live session has one consumer task that takes frames from its queue one at a time and hands
+them to its worker (see :mod:`service.workers`: a pinned process, or a thread), so frames of one
+session never overlap while different sessions use all workers. The pose is committed to the
+database (in an I/O thread) before its future resolves, i.e. before any client can see it.
 """
 
 from __future__ import annotations
@@ -20,12 +20,21 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from estimator.types import ImuBatch, StereoFrame
-from service.images import ImageError, ImageLimits, decode_pair
+from estimator.types import ImuBatch
+from service.images import ImageLimits
 from service.metrics import Metrics
-from service.pipeline import Pipeline, PipelineFactory, PreparedSession
+from service.pipeline import PipelineFactory, PreparedSession
 from service.settings import ServiceSettings
 from service.storage import PoseRecord, SessionRecord, Store
+from service.workers import (
+    FrameFailure,
+    FrameOutcome,
+    FrameRequest,
+    PipelineSpec,
+    ProcessRunner,
+    Runner,
+    ThreadRunner,
+)
 
 logger = logging.getLogger("swarmvo.service")
 
@@ -64,8 +73,8 @@ class FrameJob:
     timestamp_ns: int
     left: bytes
     right: bytes
-    imu: ImuSamples | None
     future: asyncio.Future[FrameResult]
+    raw: bool = False
     received: float = field(default_factory=time.perf_counter)
 
 
@@ -76,20 +85,26 @@ class FrameResult:
     imu_samples: int
 
 
-def _flat(matrix: np.ndarray) -> list[float]:
-    return [float(v) for v in np.asarray(matrix, dtype=float).reshape(16)]
+@dataclass
+class _ImuTake:
+    """IMU samples chosen for a frame; the buffer only gives them up once the frame is used."""
+
+    batch: ImuBatch | None
+    remainder: list[ImuSamples]
+    parts: int
 
 
 class SessionWorker:
-    """The live state of one session: its queue, its pipeline and its IMU buffer."""
+    """The live state of one session: its queue, its worker slot and its IMU buffer."""
 
     def __init__(
         self,
         record: SessionRecord,
         settings: ServiceSettings,
         store: Store,
-        factory: PipelineFactory,
-        pool: ThreadPoolExecutor,
+        runner: Runner,
+        slot: int,
+        io_pool: ThreadPoolExecutor,
         metrics: Metrics,
     ) -> None:
         self.session_id = record.id
@@ -103,14 +118,16 @@ class SessionWorker:
         )
         self.settings = settings
         self.store = store
-        self.factory = factory
-        self.pool = pool
+        self.runner = runner
+        self.slot = slot
+        self.io_pool = io_pool
         self.metrics = metrics
         self.limits = ImageLimits(
             settings.max_image_width, settings.max_image_height, settings.max_image_pixels
         )
         self.queue: asyncio.Queue[FrameJob] = asyncio.Queue(maxsize=settings.queue_size)
-        self.pipeline: Pipeline | None = None
+        # False until the worker holds a pipeline for this session (built on the next frame).
+        self.pipeline_ready = False
         self.next_index = record.frame_count
         self.last_processed_ns = record.last_timestamp_ns
         self.last_submitted_ns = record.last_timestamp_ns
@@ -142,7 +159,12 @@ class SessionWorker:
             return self._imu_count
 
     def submit(
-        self, timestamp_ns: int, left: bytes, right: bytes, imu: ImuSamples | None
+        self,
+        timestamp_ns: int,
+        left: bytes,
+        right: bytes,
+        imu: ImuSamples | None,
+        raw: bool = False,
     ) -> asyncio.Future[FrameResult]:
         """Queue one frame; the future resolves once its pose is stored (or it is refused)."""
         if self.closed:
@@ -162,7 +184,7 @@ class SessionWorker:
         future: asyncio.Future[FrameResult] = asyncio.get_running_loop().create_future()
         # Nobody may be left to read the outcome (client gone): mark it read, not leaked.
         future.add_done_callback(lambda f: f.cancelled() or f.exception())
-        job = FrameJob(timestamp_ns, left, right, None, future)
+        job = FrameJob(timestamp_ns, left, right, future, raw)
         if self.queue.full():
             if self.settings.queue_policy == "reject":
                 self.metrics.dropped.labels("reject").inc()
@@ -188,7 +210,6 @@ class SessionWorker:
     # -- consumer side
 
     async def _consume(self) -> None:
-        loop = asyncio.get_running_loop()
         while True:
             job = await self.queue.get()
             if job.future.done():
@@ -196,7 +217,7 @@ class SessionWorker:
             self.busy = True
             failed = True
             try:
-                result = await loop.run_in_executor(self.pool, self._process, job)
+                result = await self._process(job)
                 failed = False
             except FrameRejected as error:
                 self.metrics.errors.labels(error.kind).inc()
@@ -205,6 +226,7 @@ class SessionWorker:
             except Exception as error:  # a bug must not kill the session's consumer
                 logger.exception("frame %s of session %s failed", job.timestamp_ns, self.session_id)
                 self.metrics.errors.labels("internal").inc()
+                self.pipeline_ready = False
                 if not job.future.done():
                     job.future.set_exception(
                         FrameRejected(
@@ -220,108 +242,130 @@ class SessionWorker:
                 if failed and self.queue.empty():
                     self.last_submitted_ns = self.last_processed_ns
 
-    def _load_pipeline(self) -> tuple[Pipeline, bool, str]:
-        """Build the pipeline, resuming from the last stored pose when the session has one."""
+    def _pipeline_spec(self) -> tuple[PipelineSpec, str]:
+        """How to build the pipeline: resumed from the last stored pose when there is one."""
         last = self.store.last_pose(self.session_id)
         if last is None:
-            return self.factory.create(self.prepared, None, 0), False, ""
+            return PipelineSpec(self.prepared, None, 0), ""
         initial = np.array(last.pose, dtype=float).reshape(4, 4)
-        pipeline = self.factory.create(self.prepared, initial, last.frame_index + 1)
-        self.store.note_resumed(self.session_id)
         message = (
             f"resumed from the stored pose of frame {last.frame_index} "
             f"(timestamp {last.timestamp_ns}); motion since then is not known to the estimator"
         )
-        return pipeline, True, message
+        return PipelineSpec(self.prepared, initial, last.frame_index + 1), message
 
-    def _take_imu(self, timestamp_ns: int, inline: ImuSamples | None) -> ImuBatch | None:
+    def _peek_imu(self, timestamp_ns: int) -> _ImuTake:
         """IMU samples with previous frame < t <= this frame; later ones stay buffered."""
         with self._imu_lock:
-            parts = [*self._imu, *([inline] if inline is not None and len(inline) else [])]
+            parts = list(self._imu)
             if not parts:
-                return None
+                return _ImuTake(None, [], 0)
             times = np.concatenate([p.timestamps_ns for p in parts])
             gyro = np.concatenate([p.gyro for p in parts])
             accel = np.concatenate([p.accel for p in parts])
-            order = np.argsort(times, kind="stable")
-            times, gyro, accel = times[order], gyro[order], accel[order]
-            keep = np.ones(len(times), dtype=bool)
-            keep[1:] = times[1:] != times[:-1]  # a repeated sample counts once
-            times, gyro, accel = times[keep], gyro[keep], accel[keep]
-            later = times > timestamp_ns
-            self._imu = (
-                [ImuSamples(times[later], gyro[later], accel[later])] if later.any() else []
-            )
-            self._imu_count = int(later.sum())
-            now = ~later
-            if self.last_processed_ns is not None:
-                now &= times > self.last_processed_ns
-            if not now.any():
-                return None
-            return ImuBatch(times[now], gyro[now], accel[now])
+        order = np.argsort(times, kind="stable")
+        times, gyro, accel = times[order], gyro[order], accel[order]
+        keep = np.ones(len(times), dtype=bool)
+        keep[1:] = times[1:] != times[:-1]  # a repeated sample counts once
+        times, gyro, accel = times[keep], gyro[keep], accel[keep]
+        later = times > timestamp_ns
+        remainder = [ImuSamples(times[later], gyro[later], accel[later])] if later.any() else []
+        now = ~later
+        if self.last_processed_ns is not None:
+            now &= times > self.last_processed_ns
+        batch = ImuBatch(times[now], gyro[now], accel[now]) if now.any() else None
+        return _ImuTake(batch, remainder, len(parts))
 
-    def _process(self, job: FrameJob) -> FrameResult:
-        """Decode, run the odometry and persist; runs in a worker thread."""
+    def _consume_imu(self, take: _ImuTake) -> None:
+        """Remove what a frame used; samples that arrived meanwhile stay behind it."""
+        with self._imu_lock:
+            self._imu = [*take.remainder, *self._imu[take.parts :]]
+            self._imu_count = sum(len(p) for p in self._imu)
+
+    async def _process(self, job: FrameJob) -> FrameResult:
+        """Decode + odometry in the session's worker, then persist in an I/O thread."""
+        loop = asyncio.get_running_loop()
         started = time.perf_counter()
         timings = {"queue_wait": started - job.received}
-        try:
-            left, right = decode_pair(job.left, job.right, self.limits, self.prepared.image_size)
-        except ImageError as error:
-            raise FrameRejected(error.status_code, str(error), "bad_image") from error
-        timings["decode"] = time.perf_counter() - started
-
-        resumed, resume_message = False, ""
-        if self.pipeline is None:
-            self.pipeline, resumed, resume_message = self._load_pipeline()
-        imu = self._take_imu(job.timestamp_ns, job.imu)
-        frame = StereoFrame(job.timestamp_ns, left, right)
-        try:
-            report = self.pipeline.process(frame, imu)
-        except ValueError as error:
-            raise FrameRejected(
-                422, f"frame refused by the estimator: {error}", "bad_frame"
-            ) from error
-        except Exception:
-            # Unknown internal state after a failure: rebuild from the last stored pose.
-            self.pipeline = None
-            raise
-        for stage, seconds in report.timings_s.items():
-            timings[f"odometry.{stage}"] = float(seconds)
-        odometry_done = time.perf_counter()
-        timings["odometry"] = odometry_done - started - timings["decode"]
-
-        message = "; ".join(m for m in (resume_message, report.message) if m)
+        take = self._peek_imu(job.timestamp_ns)
+        resume_message = ""
+        outcome: FrameOutcome | FrameFailure | None = None
+        for _attempt in range(2):
+            spec = None
+            if not self.pipeline_ready:
+                spec, resume_message = await loop.run_in_executor(
+                    self.io_pool, self._pipeline_spec
+                )
+            request = FrameRequest(
+                self.session_id, job.timestamp_ns, job.left, job.right, self.limits,
+                self.prepared.image_size, take.batch, job.raw, spec,
+            )
+            sent = time.perf_counter()
+            outcome = await self.runner.run(self.slot, request)
+            answered = time.perf_counter()
+            if outcome.created:
+                self.pipeline_ready = True
+                if spec is not None and spec.initial_pose is not None:
+                    await loop.run_in_executor(
+                        self.io_pool, self.store.note_resumed, self.session_id
+                    )
+            if isinstance(outcome, FrameFailure) and outcome.pipeline_lost:
+                self.pipeline_ready = False
+            # The worker lost the pipeline (it was restarted): build it again and retry once.
+            if not (isinstance(outcome, FrameFailure) and outcome.kind == "pipeline_missing"):
+                break
+        assert outcome is not None
+        if isinstance(outcome, FrameFailure):
+            if outcome.kind not in ("bad_image", "worker_died", "worker_timeout",
+                                    "pipeline_missing"):
+                self._consume_imu(take)  # the estimator saw these samples
+            if outcome.trace:
+                logger.error("frame %s of session %s failed in its worker:\n%s",
+                             job.timestamp_ns, self.session_id, outcome.trace.rstrip())
+            kind = "internal" if outcome.kind == "pipeline_missing" else outcome.kind
+            raise FrameRejected(outcome.status_code, outcome.detail, kind)
+        self._consume_imu(take)
+        timings.update(outcome.timings)
+        timings["transfer"] = max(
+            0.0, answered - sent - outcome.timings["decode"] - outcome.timings["odometry"]
+        )
+        resumed = outcome.created and spec is not None and spec.initial_pose is not None
+        message = "; ".join(m for m in (resume_message if resumed else "", outcome.message) if m)
         record = PoseRecord(
             frame_index=self.next_index,
             timestamp_ns=job.timestamp_ns,
-            pose=_flat(report.pose),
-            frontend_pose=_flat(report.frontend_pose),
-            relative_pose=_flat(report.relative_pose),
-            status=str(report.status),
-            matches=int(report.matches),
-            inliers=int(report.inliers),
-            support=int(report.support),
-            timings=timings,
+            pose=outcome.pose,
+            frontend_pose=outcome.frontend_pose,
+            relative_pose=outcome.relative_pose,
+            status=outcome.status,
+            matches=outcome.matches,
+            inliers=outcome.inliers,
+            support=outcome.support,
+            timings=dict(timings),
             message=message,
             resumed=resumed,
         )
+        stored = time.perf_counter()
         try:
-            self.store.add_pose(self.session_id, record)
+            await loop.run_in_executor(self.io_pool, self.store.add_pose, self.session_id, record)
         except Exception as error:
             # The estimator has moved on but the pose is not stored: rebuild from the last
             # stored pose on the next frame so the stored trajectory stays the source of truth.
-            self.pipeline = None
+            self.pipeline_ready = False
             logger.exception("storing a pose of session %s failed", self.session_id)
             raise FrameRejected(503, f"the pose could not be stored: {error}", "storage") from error
         done = time.perf_counter()
-        timings["persist"] = done - odometry_done
+        timings["persist"] = done - stored
         timings["total"] = done - job.received
         self.next_index += 1
         self.last_processed_ns = job.timestamp_ns
         for stage, seconds in timings.items():
             self.metrics.stage_latency.labels(stage).observe(seconds)
         self.metrics.frames.labels(record.status).inc()
-        return FrameResult(self.session_id, replace(record, timings=timings), len(imu or ()))
+        return FrameResult(
+            self.session_id, replace(record, timings=timings),
+            0 if take.batch is None else len(take.batch.timestamps_ns),
+        )
 
     async def close(self, reason: str, drain_seconds: float = 0.0) -> None:
         """Stop the consumer; queued frames are processed first for up to ``drain_seconds``."""
@@ -334,7 +378,7 @@ class SessionWorker:
             job = self.queue.get_nowait()
             if not job.future.done():
                 job.future.set_exception(FrameRejected(503, reason, "shutdown"))
-        # Let a frame already in a worker thread finish and store its pose.
+        # Let a frame already in a worker finish and store its pose.
         while self.busy:
             await asyncio.sleep(0.01)
         self._task.cancel()
@@ -343,7 +387,7 @@ class SessionWorker:
 
 
 class SessionManager:
-    """Live workers by session id, with a soft cap on pipelines held in memory."""
+    """Live sessions by id, with a soft cap on pipelines held in memory."""
 
     def __init__(
         self,
@@ -351,16 +395,35 @@ class SessionManager:
         store: Store,
         factory: PipelineFactory,
         metrics: Metrics,
+        mode: str = "thread",
     ) -> None:
         self.settings = settings
         self.store = store
         self.factory = factory
         self.metrics = metrics
-        self.pool = ThreadPoolExecutor(settings.workers, thread_name_prefix="swarmvo-worker")
+        self.runner: Runner = (
+            ProcessRunner(
+                settings.workers, factory, metrics.worker_restarts.inc, settings.frame_timeout_s
+            )
+            if mode == "process"
+            else ThreadRunner(settings.workers, factory)
+        )
+        # Database reads/writes of the consumers (SQLite serialises writers anyway).
+        self.io_pool = ThreadPoolExecutor(
+            max(2, min(settings.workers, 8)), thread_name_prefix="swarmvo-io"
+        )
         self.workers: OrderedDict[str, SessionWorker] = OrderedDict()
         self._on_change: Callable[[], None] = lambda: metrics.sessions_active.set(
             len(self.workers)
         )
+
+    async def start(self) -> None:
+        """Start the worker processes (they import the estimator) before serving."""
+        try:
+            await self.runner.start()
+        except BaseException:
+            self.io_pool.shutdown(wait=False)
+            raise
 
     def worker(self, record: SessionRecord) -> SessionWorker:
         worker = self.workers.get(record.id)
@@ -368,8 +431,9 @@ class SessionManager:
             self.workers.move_to_end(record.id)
             return worker
         self._evict_idle()
+        slot = self.runner.assign(record.id)
         worker = SessionWorker(
-            record, self.settings, self.store, self.factory, self.pool, self.metrics
+            record, self.settings, self.store, self.runner, slot, self.io_pool, self.metrics
         )
         self.workers[record.id] = worker
         self._on_change()
@@ -381,6 +445,9 @@ class SessionManager:
             if victim is None:
                 return  # all busy: exceed the soft cap rather than refuse work
             worker = self.workers.pop(victim)
+            # Freed now, not when the close task runs: the session may come back before that,
+            # and its new pipeline must not be dropped by this late release.
+            self.runner.release(worker.slot, victim)
             asyncio.get_running_loop().create_task(worker.close("session unloaded"))
 
     async def remove(self, session_id: str) -> None:
@@ -388,6 +455,7 @@ class SessionManager:
         if worker is not None:
             self._on_change()
             await worker.close("session was deleted")
+            self.runner.release(worker.slot, session_id)
 
     async def shutdown(self, drain_seconds: float = 10.0) -> None:
         workers = list(self.workers.values())
@@ -397,4 +465,5 @@ class SessionManager:
             *(w.close("server shutting down", drain_seconds) for w in workers),
             return_exceptions=True,
         )
-        self.pool.shutdown(wait=True, cancel_futures=False)
+        await self.runner.shutdown()
+        self.io_pool.shutdown(wait=True, cancel_futures=False)

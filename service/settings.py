@@ -32,8 +32,17 @@ class ServiceSettings(BaseSettings):
     # Comma-separated API keys. Kept as one string so the environment form stays simple.
     api_keys: str = ""
     open: bool = False
-    # Threads running decode + odometry + persistence; frames of one session never overlap.
+    # Worker processes (or threads) running decode + odometry; frames of one session never
+    # overlap and always go to the same worker.
     workers: int = Field(default_factory=lambda: max(1, os.cpu_count() or 1), ge=1, le=256)
+    # process: each session's odometry lives in one worker process (no GIL contention).
+    # thread: everything in the server process. auto: process for the built-in estimator,
+    # thread when the app is given its own pipeline factory (it may not be picklable, and its
+    # caller may inspect it in-process).
+    executor: Literal["auto", "process", "thread"] = "auto"
+    # Process mode: a frame not answered by its worker within this time gets a 503 and the
+    # worker is killed and replaced (an estimator stuck in a loop must not hold a session).
+    frame_timeout_s: float = Field(60.0, gt=0, le=3600)
 
     # Limits (each produces a clear 4xx answer).
     max_request_bytes: int = Field(16 * 1024 * 1024, ge=1024)

@@ -143,3 +143,29 @@ def test_imu_selection_between_frames() -> None:
     assert json.loads(json.dumps(samples)) == [
         {"timestamp_ns": 90, "gyro": [0.0, 0.0, 0.0], "accel": [0.0, 0.0, 0.0]}
     ]
+
+
+def test_raw_frame_message_shape() -> None:
+    """Header first (encoding, size, byte counts), then both images in one binary message."""
+    import asyncio
+
+    from swarmvo_client.stream import FrameStream
+
+    class Recorder:
+        def __init__(self) -> None:
+            self.sent: list = []
+
+        async def send(self, message) -> None:
+            self.sent.append(message)
+
+    recorder = Recorder()
+    frames = FrameStream(recorder, {})  # type: ignore[arg-type]
+    left, right = bytes(range(6)), bytes(6)
+    asyncio.run(frames.send_raw_frame(7, left, right, 3, 2))
+    header = json.loads(recorder.sent[0])
+    assert header == {"type": "frame", "timestamp_ns": 7, "encoding": "raw8", "width": 3,
+                      "height": 2, "left_bytes": 6, "right_bytes": 6}
+    assert recorder.sent[1] == left + right
+    with pytest.raises(ValueError, match="width\\*height"):
+        asyncio.run(frames.send_raw_frame(8, left, right[:5], 3, 2))
+    assert len(recorder.sent) == 2  # nothing sent for the refused frame

@@ -86,6 +86,22 @@ class Server:
         self.process.kill()
         self.process.wait(timeout=30)
 
+    def children(self) -> list[int]:
+        """Process ids of the server's direct children (its worker processes)."""
+        pids = []
+        for task in Path(f"/proc/{self.process.pid}/task").iterdir():
+            pids += [int(pid) for pid in (task / "children").read_text().split()]
+        return pids
+
+
+def _alive(pid: int) -> bool:
+    """Running (a zombie waiting to be reaped by init counts as gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return False
+    return fields[0] != "Z"
+
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
@@ -153,6 +169,7 @@ def test_restart_mid_sequence_loses_nothing_and_resumes(
 ) -> None:
     data, log = tmp_path / "data", tmp_path / "server.log"
     first = Server(data, log)
+    workers = first.children()
     try:
         result = replay(first.url, euroc_v101_micro, KEY, limit=8, config={"seed": SEED},
                         progress=False)
@@ -160,6 +177,12 @@ def test_restart_mid_sequence_loses_nothing_and_resumes(
         first.kill()  # SIGKILL: whatever was answered must already be committed
     answered = [p.pose.tolist() for p in result.poses]
     assert len(answered) == 8
+    # The worker processes notice that their server is gone and exit: no orphans.
+    assert len(workers) >= 2
+    deadline = time.monotonic() + 15
+    while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(pid) for pid in workers)
 
     second = Server(data, log)
     try:
@@ -280,7 +303,9 @@ def test_malformed_requests_get_4xx_and_the_server_stays_healthy(server: Server)
             assert 400 <= response.status_code < 500, (number, path, response.text)
             assert isinstance(response.json()["detail"], str) and response.json()["detail"]
         # After all that, the session still works and nothing was stored from bad input.
-        assert http.get("/healthz").status_code == 200
+        health = http.get("/healthz")
+        assert health.status_code == 200
+        assert health.json()["executor"] == "process" and health.json()["workers"] == 2
         ok = http.post(f"/v1/sessions/{sid}/frames", headers=AUTH, data={"timestamp_ns": "100"},
                        files={"left": _png(), "right": _png()})
         assert ok.status_code == 200, ok.text

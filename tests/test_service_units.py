@@ -8,6 +8,8 @@ in test_service_server.py.
 from __future__ import annotations
 
 import json
+import os
+import signal
 import struct
 import threading
 import time
@@ -605,6 +607,221 @@ def test_idle_pipelines_are_unloaded_beyond_the_cap_and_resume(tmp_path: Path) -
         assert send(c, first, 1).json()["resumed"] is False
         assert send(c, second, 1).json()["resumed"] is False  # unloads the idle first one
         assert c.get("/healthz").json()["sessions_active"] == 1
+        assert c.get("/healthz").json()["executor"] == "thread"  # injected factory
         again = send(c, first, 2).json()
         assert again["resumed"] is True and again["index"] == 1
         assert len(factory.created) == 3
+
+
+# ----------------------------------------------------------------------------- worker processes
+
+
+class PidPipeline(RecordingPipeline):
+    """Names the process it runs in; timestamp 666 kills that process outright."""
+
+    def process(self, frame: StereoFrame, imu: ImuBatch | None = None) -> FrameReport:
+        if frame.timestamp_ns == 666:
+            os._exit(3)
+        if frame.timestamp_ns == 777:
+            time.sleep(3600)  # stuck
+        report = super().process(frame, imu)
+        report.message = f"pid={os.getpid()}"
+        return report
+
+
+class ProcessFactory(EstimatorFactory):
+    """Picklable (module level, plain state), so it can be sent to worker processes."""
+
+    def __init__(self, delay: float = 0.0) -> None:
+        self.delay = delay
+
+    def create(self, prepared: PreparedSession, initial_pose, first_index):  # type: ignore[override]
+        return PidPipeline(initial_pose, first_index, self.delay)
+
+
+def _pid(pose: dict) -> int:
+    return int(pose["message"].rsplit("pid=", 1)[1])
+
+
+def _parent_of(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+
+
+def test_process_mode_runs_sessions_in_their_own_worker_process_in_order(
+    tmp_path: Path,
+) -> None:
+    settings = settings_for(tmp_path, executor="process", workers=2)
+    app = create_app(settings, ProcessFactory(delay=0.02))
+    stamps = [100 + 10 * k for k in range(8)]
+    with TestClient(app) as c:
+        assert c.get("/healthz").json()["executor"] == "process"
+        pids = app.state.swarmvo.manager.runner.worker_pids()
+        assert len(pids) == 2 and os.getpid() not in pids
+        assert all(_parent_of(pid) == os.getpid() for pid in pids)
+        sids = [new_session(c), new_session(c)]
+        replies: dict[str, list[dict]] = {}
+
+        def stream_all(sid: str) -> None:
+            # Every frame is sent before any answer is read: order is the server's job.
+            with c.websocket_connect(f"/v1/sessions/{sid}/stream", headers=A) as ws:
+                ws.receive_json()
+                for t in stamps:
+                    _ws_frame(ws, t)
+                replies[sid] = [ws.receive_json() for _ in stamps]
+
+        threads = [threading.Thread(target=stream_all, args=(sid,)) for sid in sids]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(timeout=60)
+        used = set()
+        for sid in sids:
+            answers = replies[sid]
+            assert [r["type"] for r in answers] == ["pose"] * len(stamps), answers
+            assert [r["timestamp_ns"] for r in answers] == stamps
+            assert [r["index"] for r in answers] == list(range(len(stamps)))
+            # The pipeline moves 1 cm per frame: a frame out of order would break the chain.
+            assert [r["pose"][0][3] for r in answers] == pytest.approx(
+                [0.01 * k for k in range(len(stamps))])
+            session_pids = {_pid(r) for r in answers}
+            assert len(session_pids) == 1 and session_pids <= set(pids)  # pinned to one worker
+            used |= session_pids
+            stored = c.get(f"/v1/sessions/{sid}/trajectory", headers=A).json()["poses"]
+            assert [p["pose"] for p in stored] == [r["pose"] for r in answers]
+        assert used == set(pids)  # the two sessions were spread over both workers
+    for pid in pids:  # shut down with the app: no process left behind
+        assert not Path(f"/proc/{pid}").exists()
+
+
+def test_a_dying_worker_fails_only_its_frame_and_the_session_resumes(tmp_path: Path) -> None:
+    settings = settings_for(tmp_path, executor="process", workers=2)
+    app = create_app(settings, ProcessFactory())
+    with TestClient(app) as c:
+        runner = app.state.swarmvo.manager.runner
+        victim, bystander = new_session(c), new_session(c)
+        before = [send(c, victim, t).json() for t in (10, 20)]
+        assert send(c, bystander, 10).status_code == 200
+        dead = _pid(before[0])
+        died = send(c, victim, 666)
+        assert died.status_code == 503 and "stopped unexpectedly" in died.json()["detail"]
+        assert not Path(f"/proc/{dead}").exists() or _parent_of(dead) != os.getpid()
+        again = send(c, victim, 30)
+        assert again.status_code == 200, again.text
+        body = again.json()
+        assert body["resumed"] is True and body["index"] == 2 and _pid(body) != dead
+        assert body["pose"] == before[-1]["pose"]  # restarted at the last stored pose
+        assert send(c, bystander, 20).status_code == 200
+        assert c.get("/healthz").status_code == 200
+        stored = c.get(f"/v1/sessions/{victim}/trajectory", headers=A).json()["poses"]
+        assert [p["timestamp_ns"] for p in stored] == [10, 20, 30]
+        assert runner.restarts == 1
+        # A worker killed while idle: the next frame goes to its replacement, nothing fails.
+        idle = _pid(send(c, bystander, 30).json())
+        os.kill(idle, signal.SIGKILL)
+        deadline = time.monotonic() + 10
+        while Path(f"/proc/{idle}").exists() and time.monotonic() < deadline:
+            time.sleep(0.05)  # reaped once the server noticed
+        after = send(c, bystander, 40)
+        assert after.status_code == 200, after.text
+        assert after.json()["resumed"] is True and _pid(after.json()) != idle
+        assert runner.restarts == 2
+        metrics = c.get("/metrics").text
+        assert "swarmvo_worker_restarts_total 2.0" in metrics
+        assert 'swarmvo_errors_total{kind="worker_died"} 1.0' in metrics
+        pids = runner.worker_pids()
+    for pid in pids:
+        assert pid is None or not Path(f"/proc/{pid}").exists()
+
+
+def test_a_stuck_worker_is_killed_after_the_frame_timeout(tmp_path: Path) -> None:
+    settings = settings_for(tmp_path, executor="process", workers=1, frame_timeout_s=1.0)
+    app = create_app(settings, ProcessFactory())
+    with TestClient(app) as c:
+        sid = new_session(c)
+        first = send(c, sid, 10).json()
+        started = time.monotonic()
+        stuck = send(c, sid, 777)
+        assert stuck.status_code == 503 and "not done after 1 s" in stuck.json()["detail"]
+        assert time.monotonic() - started < 30
+        assert not _alive(_pid(first))
+        again = send(c, sid, 20)
+        assert again.status_code == 200, again.text
+        assert again.json()["resumed"] is True and again.json()["index"] == 1
+        assert 'swarmvo_errors_total{kind="worker_timeout"} 1.0' in c.get("/metrics").text
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_process_mode_refuses_to_start_with_a_factory_it_cannot_send(tmp_path: Path) -> None:
+    class Local(FakeFactory):  # defined in a function: not picklable
+        pass
+
+    app = create_app(settings_for(tmp_path, executor="process"), Local())
+    with pytest.raises(RuntimeError, match="worker processes could not be started"):
+        with TestClient(app):
+            pass
+
+
+def test_raw8_websocket_frames_skip_the_image_container(client: TestClient) -> None:
+    sid = new_session(client)
+    pixels = (np.arange(WIDTH * HEIGHT) % 251).astype(np.uint8).tobytes()
+
+    def header(t: int, **extra) -> str:
+        return json.dumps({"type": "frame", "timestamp_ns": t, "encoding": "raw8",
+                           "width": WIDTH, "height": HEIGHT, "left_bytes": len(pixels),
+                           "right_bytes": len(pixels), **extra})
+
+    with client.websocket_connect(f"/v1/sessions/{sid}/stream", headers=A) as ws:
+        ws.receive_json()
+        ws.send_text(header(10))
+        ws.send_bytes(pixels + pixels)
+        assert ws.receive_json()["type"] == "pose"
+        for extra, words in (({"width": HEIGHT, "height": WIDTH}, "calibration is for"),
+                             ({"left_bytes": 5}, "width*height"),
+                             ({"encoding": "tiff"}, "unknown encoding"),
+                             ({"width": "x"}, "positive integer")):
+            ws.send_text(header(20, **extra))
+            reply = ws.receive_json()
+            assert reply["type"] == "rejected" and reply["status"] == 422
+            assert words in reply["detail"], reply
+        ws.send_text(header(20))
+        ws.send_bytes(pixels + pixels)
+        assert ws.receive_json()["index"] == 1
+
+
+class StrictFactory(FakeFactory):
+    """Refuses a non-rigid initial pose, like the estimator; can answer a skewed pose itself."""
+
+    def __init__(self, skew: bool) -> None:
+        super().__init__()
+        self.skew = skew
+
+    def create(self, prepared, initial_pose, first_index):  # type: ignore[override]
+        if initial_pose is not None:
+            rotation = initial_pose[:3, :3]
+            if np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-9:
+                raise ValueError("initial_pose must be a rigid transform")
+        pipeline = super().create(prepared, initial_pose, first_index)
+        if self.skew:
+            pipeline.pose[0, 0] = 1.01
+        return pipeline
+
+
+def test_a_stored_pose_that_is_not_quite_rigid_still_resumes(tmp_path: Path) -> None:
+    with TestClient(create_app(settings_for(tmp_path), StrictFactory(skew=True))) as c:
+        sid = new_session(c)
+        assert send(c, sid, 10).json()["pose"][0][0] == 1.01
+    factory = StrictFactory(skew=False)
+    with TestClient(create_app(settings_for(tmp_path), factory)) as c:
+        resumed = send(c, sid, 20)
+        assert resumed.status_code == 200, resumed.text
+        body = resumed.json()
+        assert body["resumed"] is True and "nearest rotation" in body["message"]
+        rotation = factory.created[0].initial_pose[:3, :3]
+        np.testing.assert_allclose(rotation.T @ rotation, np.eye(3), atol=1e-12)
+        assert send(c, sid, 30).status_code == 200

@@ -13,7 +13,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--database-url", default=None, help="SQLAlchemy URL (e.g. postgresql+psycopg://...)"
     )
     parser.add_argument(
-        "--workers", type=int, default=None, help="threads running the odometry (default: cores)"
+        "--workers",
+        type=int,
+        default=None,
+        help="worker processes (or threads) running the odometry (default: cores)",
+    )
+    parser.add_argument(
+        "--executor",
+        choices=("auto", "process", "thread"),
+        default=None,
+        help="where the odometry runs: worker processes with session affinity (auto for the "
+        "built-in estimator) or threads of the server process",
     )
     parser.add_argument(
         "--open",
@@ -35,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
         "data_dir": args.data_dir,
         "database_url": args.database_url,
         "workers": args.workers,
+        "executor": args.executor,
         "open": args.open,
     }
     settings = ServiceSettings(**{k: v for k, v in overrides.items() if v is not None})

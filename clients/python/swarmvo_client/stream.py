@@ -55,6 +55,36 @@ class FrameStream:
         await self.connection.send(json.dumps(header))
         await self.connection.send(left + right)
 
+    async def send_raw_frame(
+        self,
+        timestamp_ns: int,
+        left: bytes,
+        right: bytes,
+        width: int,
+        height: int,
+        imu: ImuData | None = None,
+    ) -> None:
+        """Raw 8-bit grey pixels (row-major, width*height bytes each): the server skips decoding.
+
+        Noisy camera images barely compress as PNG, so this costs little more bandwidth while
+        sparing the robot the encode and the server the decode.
+        """
+        if len(left) != width * height or len(right) != width * height:
+            raise ValueError(f"raw8 images must be width*height = {width * height} bytes each")
+        header: dict[str, Any] = {
+            "type": "frame",
+            "timestamp_ns": int(timestamp_ns),
+            "encoding": "raw8",
+            "width": int(width),
+            "height": int(height),
+            "left_bytes": len(left),
+            "right_bytes": len(right),
+        }
+        if imu is not None and len(imu):
+            header["imu"] = imu.to_samples()
+        await self.connection.send(json.dumps(header))
+        await self.connection.send(left + right)
+
     async def send_imu(self, imu: ImuData) -> None:
         await self.connection.send(json.dumps({"type": "imu", "samples": imu.to_samples()}))
 
