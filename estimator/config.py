@@ -119,6 +119,14 @@ class BackendConfig(_Section):
     imu_time_offset_s: float = 0.0  # t_imu = t_camera + offset (Kalibr's convention)
     imu_max_gap_s: float = Field(0.02, gt=0)  # larger holes in the gyro -> no IMU factor
     gravity_align: bool = True
+    # Static initialisation (backend/rest.py): while the IMU (and vision, when it sees) shows
+    # the platform at rest at start-up, the gyro bias starts from the mean gyro before the
+    # first frame and consecutive frames are tied by a zero-motion factor.
+    static_init: bool = True
+    rest_z: float = Field(5.0, gt=0)  # standard deviations each standstill test allows
+    rest_min_duration_s: float = Field(0.04, gt=0)  # shortest IMU window before frame 0 used
+    zero_motion_sigma_rad: float = Field(1e-5, gt=0)
+    zero_motion_sigma_m: float = Field(1e-4, gt=0)
     # 16 numbers, row-major T_BS of the left camera; overrides the calibration when given.
     body_from_camera: list[float] | None = Field(None, min_length=16, max_length=16)
 

@@ -7,7 +7,8 @@ a chosen length: an ellipse with a vertical wave, varying speed, and yaw/pitch/r
 oscillations on top of the heading. Position and Euler angles are closed-form functions of
 time, so velocity, acceleration and angular velocity are exact derivatives, and the simulated
 200 Hz IMU (white noise + random-walk bias, specific force in the body frame) is consistent
-with the ground truth by construction.
+with the ground truth by construction. ``standstill_s`` lets the body wait at its start pose
+first and then start the same flight from rest (a smooth time warp, ``start_after_rest``).
 
 Each plane is drawn with one ``cv2.warpPerspective`` of its texture over the image rectangle it
 covers, and a per-pixel inverse-depth test (inverse depth of a plane is affine in the pixel
@@ -41,6 +42,7 @@ __all__ = [
     "build_world",
     "read_broken_frames",
     "simulate_imu",
+    "start_after_rest",
     "synthesize",
 ]
 
@@ -96,6 +98,9 @@ class SynthOptions:
     imu_noise_scale: float = 1.0  # 1 = EuRoC's ADIS16448 noise, 0 = perfect IMU, zero bias
     imu_rate_hz: float = 200.0
     texture_px_per_m: float = 96.0
+    # Seconds the body waits at its start pose before flying (extra frames in front of the
+    # ``frames`` of the flight), as EuRoC's drones do: lets a VIO initialise its gyro bias.
+    standstill_s: float = 0.0
 
     def validate(self) -> None:
         if self.frames < 2:
@@ -107,7 +112,7 @@ class SynthOptions:
         ratio = self.imu_rate_hz / self.fps
         if abs(ratio - round(ratio)) > 1e-9:
             raise ValueError(f"imu_rate_hz ({self.imu_rate_hz}) must be a multiple of fps")
-        for name in ("noise", "brightness", "blur", "imu_noise_scale"):
+        for name in ("noise", "brightness", "blur", "imu_noise_scale", "standstill_s"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.brightness >= 1.0:
@@ -118,6 +123,8 @@ class SynthOptions:
             raise ValueError(f"blur is an exposure fraction in [0, 1], got {self.blur}")
         if not 0.0 <= self.broken_fraction <= 0.5:
             raise ValueError(f"broken_fraction must be in [0, 0.5], got {self.broken_fraction}")
+        if self.standstill_s > 60.0:
+            raise ValueError(f"standstill_s must be <= 60, got {self.standstill_s}")
         if self.texture_px_per_m < 8:
             raise ValueError(f"texture_px_per_m must be >= 8, got {self.texture_px_per_m}")
 
@@ -225,6 +232,33 @@ class LoopTrajectory:
         # Body = heading frame rotated so the left camera (T_BS) looks along the heading x.
         m = R_HEADING_CAM @ T_BS_CAM0[:3, :3].T
         return TrajectoryState(p, heading @ m, velocity, acceleration, omega_heading @ m)
+
+
+# Time to reach the flight's speed after a standstill (smooth start, bounded acceleration).
+START_RAMP_S = 1.0
+
+
+def start_after_rest(trajectory: LoopTrajectory, t: np.ndarray, ramp_s: float) -> TrajectoryState:
+    """The flight started from rest at t = 0: standing still before, speeding up over ``ramp_s``.
+
+    A time warp s(t) with s' = smoothstep(t / ramp_s) (0 before, 1 after the ramp) and s''
+    continuous, so the warped states keep exact derivatives: v = v(s) s',
+    a = a(s) s'^2 + v(s) s'', omega = omega(s) s'. Jumping straight to the loop's start speed
+    would be an infinite acceleration, which no IMU can measure.
+    """
+    t = np.asarray(t, dtype=float)
+    x = np.clip(t / ramp_s, 0.0, 1.0)
+    s = np.where(t < ramp_s, ramp_s * (x**3 - 0.5 * x**4), t - 0.5 * ramp_s)
+    ds = 3.0 * x**2 - 2.0 * x**3
+    dds = 6.0 * x * (1.0 - x) / ramp_s
+    base = trajectory.state(s)
+    return TrajectoryState(
+        base.positions,
+        base.rotations,
+        base.velocities * ds[:, None],
+        base.accelerations * ds[:, None] ** 2 + base.velocities * dds[:, None],
+        base.angular_velocities * ds[:, None],
+    )
 
 
 def _rx(angle: np.ndarray) -> np.ndarray:
@@ -734,13 +768,20 @@ def synthesize(
     world = build_world(trajectory, rng, options.texture_px_per_m)
 
     # IMU and ground truth on one 200 Hz grid, 0.2 s beyond both ends; frames every per_frame.
+    # A standstill prepends still frames; the flight then starts (from rest) at frame ``still``.
+    still = round(options.standstill_s * options.fps)
+    total = options.frames + still
     margin = round(0.2 * options.imu_rate_hz)
-    imu_index = np.arange(-margin, (options.frames - 1) * per_frame + margin + 1)
+    imu_index = np.arange(-margin, (total - 1) * per_frame + margin + 1)
     imu_ns = START_NS + imu_index * imu_step_ns
-    state = trajectory.state(imu_index * (imu_step_ns * 1e-9))
+    if still:
+        flight_t = (imu_index - still * per_frame) * (imu_step_ns * 1e-9)
+        state = start_after_rest(trajectory, flight_t, START_RAMP_S)
+    else:
+        state = trajectory.state(imu_index * (imu_step_ns * 1e-9))
     noise = ImuNoise(rate_hz=options.imu_rate_hz)
     gyro, accel, gyro_bias, accel_bias = simulate_imu(state, noise, rng, options.imu_noise_scale)
-    frame_rows = margin + np.arange(options.frames) * per_frame
+    frame_rows = margin + np.arange(total) * per_frame
     frame_ns = imu_ns[frame_rows]
     body_poses = state.poses()
 
@@ -775,13 +816,9 @@ def synthesize(
         ),
     )
 
-    broken = _choose_broken(options, rng)
+    broken = _choose_broken(options, total, rng)
     # A shuffled frame gets the (unbroken) right image of the frame half a loop away.
-    donors = {
-        i: (i + options.frames // 2) % options.frames
-        for i, kind in broken.items()
-        if kind == "shuffled"
-    }
+    donors = {i: (i + total // 2) % total for i, kind in broken.items() if kind == "shuffled"}
     kept_right: dict[int, np.ndarray] = {}
     for index, left, right in _render_frames(
         world, body_poses, frame_rows, per_frame, options, rng, progress
@@ -823,10 +860,10 @@ def synthesize(
     )
 
 
-def _choose_broken(options: SynthOptions, rng: np.random.Generator) -> dict[int, str]:
-    """Frames to break (never the first two, so the odometry can initialise)."""
-    count = round(options.broken_fraction * options.frames)
-    candidates = np.arange(2, options.frames)
+def _choose_broken(options: SynthOptions, total: int, rng: np.random.Generator) -> dict[int, str]:
+    """Frames to break among all ``total`` (never the first two, so the odometry can start)."""
+    count = round(options.broken_fraction * total)
+    candidates = np.arange(2, total)
     count = min(count, len(candidates))
     if count == 0:
         return {}

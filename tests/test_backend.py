@@ -533,3 +533,65 @@ def test_an_unknown_reference_is_not_used():
     )
     assert out.status is FrameStatus.LOST
     assert "unknown" in out.message
+
+
+def _standstill_run(config: BackendConfig, seconds: float, seed: int = 0):
+    """A still body (IMU with EuRoC noise and a known bias) seen by noisy identity poses."""
+    noise = ImuNoise()
+    rng = np.random.default_rng(seed)
+    bias = np.array([0.003, -0.004, 0.002])
+    step = 5_000_000
+    stamps = np.arange(-40, round(seconds * 200) + 1, dtype=np.int64) * step
+    gyro = bias + rng.normal(0.0, noise.gyro_noise_density * np.sqrt(200.0), (len(stamps), 3))
+    accel = np.array([0.0, 0.0, 9.81]) + rng.normal(
+        0.0, noise.accel_noise_density * np.sqrt(200.0), (len(stamps), 3)
+    )
+    imu = ImuBatch(stamps, gyro, accel)
+    backend = FusionBackend(config, BODY_FROM_CAMERA, noise)
+    out = [backend.add_frame(0, None, None, 0, imu.between(-(10**10), 0))]
+    for k in range(1, round(seconds * 20) + 1):
+        jitter = make_pose(
+            Rotation.from_rotvec(rng.normal(0, 2e-4, 3)).as_matrix(), rng.normal(0, 1e-3, 3)
+        )
+        out.append(
+            backend.add_frame(
+                k * 50_000_000,
+                jitter,
+                np.full(100, 0.01),
+                100,
+                imu.between((k - 1) * 50_000_000, k * 50_000_000),
+            )
+        )
+    return out, bias, backend, gyro.mean(axis=0)  # every sample was delivered, all at rest
+
+
+def test_static_initialisation_estimates_the_gyro_bias_from_the_standstill():
+    out, bias, backend, window_mean = _standstill_run(BackendConfig(), 2.0)
+    assert "at rest for 0.20 s before frame 0" in out[0].message
+    assert backend.rest_summary is None  # still at rest: the start-up goes on
+    # 2.2 s of rest: density / sqrt(T) = 1.1e-4 rad/s per axis; allow 4 sigma.
+    assert np.abs(out[-1].gyro_bias - bias).max() < 4 * 1.7e-4 / np.sqrt(2.2)
+    # With the rotation pinned, the gyro factors make the bias the mean gyro of the window
+    # (each sample used once); 1e-5 rad/s is a tenth of that mean's noise.
+    np.testing.assert_allclose(out[-1].gyro_bias, window_mean, atol=1e-5)
+    # The zero-motion factors hold the pose against the vision jitter.
+    assert np.abs(out[-1].body_pose[:3, 3]).max() < 1e-3
+    # Over a few seeds the static initialisation beats what vision and the gyro factors alone
+    # make of the bias.
+    errors = {True: [], False: []}
+    for seed in range(4):
+        for static in (True, False):
+            run, truth, _, _ = _standstill_run(BackendConfig(static_init=static), 2.0, seed)
+            errors[static].append(run[-1].gyro_bias - truth)
+    rms = {key: float(np.sqrt(np.mean(np.square(value)))) for key, value in errors.items()}
+    assert rms[True] < 4 * 1.7e-4 / np.sqrt(2.2)
+    assert rms[True] < 0.7 * rms[False]
+
+
+def test_static_initialisation_is_skipped_when_the_imu_moves_before_the_first_frame():
+    scenario = smooth_trajectory(30, seed=2)
+    measurements = simulate_frontend(scenario.body_poses, BODY_FROM_CAMERA, seed=3)
+    with_init = _run(scenario, measurements, BackendConfig())
+    without = _run(scenario, measurements, BackendConfig(static_init=False))
+    assert "IMU not at rest before frame 0" in with_init[0].message
+    np.testing.assert_array_equal(_poses(with_init), _poses(without))

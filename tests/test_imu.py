@@ -183,3 +183,73 @@ def test_buffer_drops_repeats_and_cuts_windows():
         buffer.extend(ImuBatch(np.array([200, 200]), np.ones((2, 3)), np.ones((2, 3))))
     with pytest.raises(ValueError, match="sizes differ"):
         buffer.extend(ImuBatch(np.array([300]), np.ones((2, 3)), np.ones((2, 3))))
+
+
+# ----------------------------------------------------------------------------- standstill
+
+
+def _rest_imu(
+    rng: np.random.Generator, seconds: float, noise: ImuNoise, bias: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A still, tilted IMU: EuRoC white noise around its bias and the reaction to gravity."""
+    count = round(seconds * noise.rate_hz)
+    stamps = np.arange(count, dtype=np.int64) * round(1e9 / noise.rate_hz)
+    up = gtsam.Rot3.Ypr(0.3, 0.1, -0.2).matrix().T @ np.array([0.0, 0.0, GRAVITY])
+    gyro_sigma = noise.gyro_noise_density * np.sqrt(noise.rate_hz)
+    accel_sigma = noise.accel_noise_density * np.sqrt(noise.rate_hz)
+    gyro = bias + rng.normal(0.0, gyro_sigma, (count, 3))
+    accel = up + rng.normal(0.0, accel_sigma, (count, 3))
+    return stamps, gyro, accel
+
+
+def test_standstill_detector_accepts_rest_and_rejects_motion():
+    from estimator.backend.rest import RestWindow, at_rest
+    from estimator.synthetic import loop_for_length, simulate_imu, start_after_rest
+
+    noise = ImuNoise()
+    rng = np.random.default_rng(0)
+    bias = np.array([0.004, -0.002, 0.003])
+    stamps, gyro, accel = _rest_imu(rng, 10.0, noise, bias)
+    # Every frame interval (10 samples) and the whole window pass, also against the window
+    # before them.
+    windows = np.arange(len(stamps)).reshape(-1, 10)
+    assert all(at_rest(gyro[w], accel[w], noise) for w in windows)
+    reference = RestWindow.of(stamps[:200], gyro[:200], accel[:200])
+    assert all(at_rest(gyro[w], accel[w], noise, reference=reference) for w in windows[20:])
+    assert at_rest(gyro, accel, noise)
+
+    # A flight: every 0.5 s piece is rejected on its own.
+    trajectory = loop_for_length(20.0, 10.0)
+    flight = trajectory.state(np.arange(2000) / noise.rate_hz)
+    gyro_m, accel_m, _, _ = simulate_imu(flight, noise, np.random.default_rng(1))
+    pieces = np.arange(2000).reshape(-1, 100)
+    assert not any(at_rest(gyro_m[p], accel_m[p], noise) for p in pieces)
+
+    # The first 50 ms of a smooth start from rest hardly raise the variance, but the mean
+    # specific force moves away from the rest window's.
+    t = np.arange(-400, 10) / noise.rate_hz
+    start = start_after_rest(trajectory, t, 1.0)
+    gyro_s, accel_s, _, _ = simulate_imu(start, noise, np.random.default_rng(2))
+    rest = RestWindow.of(np.arange(400) * 5_000_000, gyro_s[:400], accel_s[:400])
+    assert at_rest(gyro_s[:400], accel_s[:400], noise)
+    assert not at_rest(gyro_s[400:], accel_s[400:], noise, reference=rest)
+
+
+def test_rest_bias_estimate_is_as_accurate_as_the_noise_density_says():
+    from estimator.backend.rest import RestWindow
+
+    noise = ImuNoise()
+    errors = []
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        bias = rng.normal(0.0, 0.01, 3)
+        stamps, gyro, accel = _rest_imu(rng, 2.0, noise, bias)
+        window = RestWindow.of(stamps, gyro, accel)
+        sigma = window.bias_sigma(noise)
+        # density / sqrt(T) (plus a negligible walk term over 2 s).
+        assert sigma == pytest.approx(noise.gyro_noise_density / np.sqrt(2.0), rel=0.02)
+        errors.append((window.gyro_mean - bias) / sigma)
+    errors = np.concatenate(errors)
+    # 120 normalised errors: none beyond 4 sigma, spread 1 within sampling noise (~7 %).
+    assert np.abs(errors).max() < 4.0
+    assert 0.75 < float(np.sqrt(np.mean(errors**2))) < 1.25

@@ -279,3 +279,33 @@ def test_image_effects_change_the_images_as_specified(tmp_path):
     bright = left("bright", brightness=0.3)
     gain = np.median(bright[clean > 20] / clean[clean > 20])
     assert abs(gain - 1.0) > 0.01 and abs(gain - 1.0) <= 0.3 + 0.01
+
+
+def test_standstill_option_holds_the_body_still_then_starts_smoothly(tmp_path):
+    options = SynthOptions(frames=4, length_m=0.5, seed=5, standstill_s=0.5)
+    result = synthesize(tmp_path / "still", options)
+    # 10 still frames in front of the 4 of the flight (the flight starts at frame 10).
+    assert len(result.frame_timestamps_ns) == 14
+    gt = open_sequence(tmp_path / "still").ground_truth
+    start = result.frame_timestamps_ns[10]
+    still = gt.timestamps_ns <= start
+    assert still.sum() == 40 + 100 + 1  # the 0.2 s IMU lead-in, the 0.5 s standstill, t = 0
+    np.testing.assert_array_equal(
+        gt.poses[still], np.broadcast_to(gt.poses[0], gt.poses[still].shape)
+    )
+    assert gt.velocities is not None and np.abs(gt.velocities[still]).max() == 0.0
+    # The IMU reads only its bias and noise there: the mean rate minus the bias is noise.
+    imu = open_sequence(tmp_path / "still").imu
+    assert imu is not None and gt.gyro_bias is not None
+    at_rest = imu.timestamps_ns <= start
+    noise = ImuNoise()
+    sigma_mean = noise.gyro_noise_density * np.sqrt(noise.rate_hz) / np.sqrt(at_rest.sum())
+    residual = (imu.gyro[at_rest] - gt.gyro_bias[still]).mean(axis=0)
+    assert np.abs(residual).max() < 5 * sigma_mean
+    # Then it moves, and the velocity column stays the derivative of the positions.
+    moving = ~still
+    assert np.linalg.norm(gt.poses[-1, :3, 3] - gt.poses[0, :3, 3]) > 0.02
+    dt = np.diff(gt.timestamps_ns[moving]) * 1e-9
+    finite = np.diff(gt.poses[moving, :3, 3], axis=0) / dt[:, None]
+    mid = 0.5 * (gt.velocities[moving][1:] + gt.velocities[moving][:-1])
+    np.testing.assert_allclose(finite, mid, atol=2e-3)

@@ -14,6 +14,14 @@ One Pose3 per frame (body in world) and, with an IMU, one gyro bias per frame. P
   frame with ``motion_prior="always"``). It carries the translation when vision fails; with the
   gyro present its rotation part is left free so it cannot bend the bias.
 
+Static initialisation (``rest.py``), with the IMU: when the samples before the first frame
+show the platform at rest, the first gyro bias gets the prior mean gyro +- density / sqrt(T)
+(with the bias walk) instead of 0 +- ``gyro_bias_prior_sigma``; and for as long as every frame
+interval from the start shows rest too (IMU tests, and the relative pose when vision has one),
+consecutive poses are tied by a tight zero-motion factor. The gyro factors of those intervals
+then estimate the bias in the graph exactly as the mean gyro would, with no sample used twice.
+The first interval that moves ends the start-up for good.
+
 World frame: the first body pose, rotated so that z is up (roll and pitch from the mean
 accelerometer reading of the first frame's IMU batch, yaw = 0) when the IMU is used; without
 IMU (or without accelerometer data with the first frame) the world is the first body pose.
@@ -22,7 +30,7 @@ IMU (or without accelerometer data with the first frame) the world is the first 
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
@@ -42,6 +50,7 @@ from estimator.backend.noise import (
     robust,
     sigma_covariance,
 )
+from estimator.backend.rest import RestWindow, at_rest
 from estimator.config import BackendConfig
 from estimator.geometry import invert_pose, make_pose
 from estimator.types import FrameStatus, ImuBatch, ImuNoise
@@ -56,6 +65,9 @@ _GATE_GYRO_FLOOR_RAD = 0.005
 _GATE_GYRO_BIAS_RATE = 0.1  # rad/s
 # Rotation sigma of the motion prior when the gyro provides the rotation (effectively free).
 _FREE_ROTATION_SIGMA = 10.0
+# A relative pose within this squared Mahalanobis distance of the identity (6 DOF, 99.9 %)
+# agrees with a standstill.
+_STILL_CHI2 = 22.46
 # Frame gaps at least this fraction of the smoother lag restamp the previous frame's keys (a
 # margin below 1 so that float rounding of the stamps cannot marginalise them).
 _KEEP_ALIVE_FRACTION = 0.9
@@ -128,8 +140,17 @@ class FusionBackend:
         self.use_imu = bool(config.use_imu and imu_noise is not None)
         self._imu_params = None
         self._bias_sigma_density = 0.0
+        self._imu_noise: ImuNoise | None = None
         if self.use_imu:
             assert imu_noise is not None
+            scale = config.imu_noise_scale
+            self._imu_noise = replace(
+                imu_noise,
+                gyro_noise_density=imu_noise.gyro_noise_density * scale,
+                accel_noise_density=imu_noise.accel_noise_density * scale,
+                gyro_random_walk=imu_noise.gyro_random_walk * scale,
+                accel_random_walk=imu_noise.accel_random_walk * scale,
+            )
             self._imu_params = rotation_params(imu_noise, config.imu_noise_scale)
             self._bias_sigma_density = (
                 config.gyro_random_walk
@@ -152,6 +173,11 @@ class FusionBackend:
         # body pose estimate), the pose for references that have left the smoother's window.
         self._frames: OrderedDict[int, tuple[int, np.ndarray]] = OrderedDict()
         self._oldest_reference = 0
+        # Static initialisation: looking for rest while True; the rest window so far.
+        self._starting = bool(self.use_imu and config.static_init)
+        self._rest: RestWindow | None = None
+        # (duration s, mean gyro) of the start-up rest once it has ended, for reports.
+        self.rest_summary: tuple[float, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ public
 
@@ -265,6 +291,12 @@ class FusionBackend:
                     message = f"world = first body pose ({error})"
             else:
                 message = "world = first body pose (no accelerometer samples with frame 0)"
+        bias_mean = np.zeros(3)
+        bias_sigma = self.config.gyro_bias_prior_sigma
+        if self._starting:
+            bias_mean, bias_sigma, note = self._rest_before(timestamp_ns + self._offset_ns)
+            if note:
+                message += "; " + note
         self._body_pose = make_pose(rotation, np.zeros(3))
         factors = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
@@ -279,15 +311,51 @@ class FusionBackend:
         if self.use_imu:
             factors.add(
                 gtsam.PriorFactorVector(
-                    _bias_key(0),
-                    np.zeros(3),
-                    gtsam.noiseModel.Isotropic.Sigma(3, self.config.gyro_bias_prior_sigma),
+                    _bias_key(0), bias_mean, gtsam.noiseModel.Isotropic.Sigma(3, bias_sigma)
                 )
             )
-            values.insert(_bias_key(0), np.zeros(3))
+            values.insert(_bias_key(0), bias_mean)
             keys.append(_bias_key(0))
         self._update(factors, values, keys)
         return self._estimate(FrameStatus.OK, message)
+
+    def _rest_before(self, end_ns: int) -> tuple[np.ndarray, float, str]:
+        """Bias prior (mean, sigma, note) from the IMU before the first frame if it was at rest."""
+        assert self._imu_noise is not None
+        stamps, gyro, accel = self._buffer.between(-(2**62), end_ns)
+        loose = (np.zeros(3), self.config.gyro_bias_prior_sigma, "")
+        if len(stamps) < 2 or (stamps[-1] - stamps[0]) * 1e-9 < self.config.rest_min_duration_s:
+            return loose
+        if not at_rest(gyro, accel, self._imu_noise, self.config.rest_z):
+            self._starting = False  # already moving: no static initialisation
+            return (*loose[:2], "IMU not at rest before frame 0")
+        self._rest = RestWindow.of(stamps, gyro, accel)
+        sigma = self._rest.bias_sigma(self._imu_noise)
+        return (
+            self._rest.gyro_mean,
+            sigma,
+            f"at rest for {self._rest.duration_s:.2f} s before frame 0: gyro bias prior "
+            f"{np.array2string(self._rest.gyro_mean, precision=5)} +- {sigma:.1e} rad/s",
+        )
+
+    def _still_interval(
+        self, start_ns: int, end_ns: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The IMU samples of this frame interval if they continue the start-up rest."""
+        assert self._imu_noise is not None
+        samples = self._buffer.between(start_ns + self._offset_ns, end_ns + self._offset_ns)
+        if len(samples[0]) < 2 or not at_rest(
+            samples[1], samples[2], self._imu_noise, self.config.rest_z, self._rest
+        ):
+            return None
+        return samples
+
+    def _end_start_up(self, notes: list[str]) -> None:
+        self._starting = False
+        if self._rest is not None:
+            duration = self._rest.duration_s
+            notes.append(f"start-up standstill ended after {duration:.2f} s of rest")
+            self.rest_summary = (duration, self._rest.gyro_mean.copy())
 
     def _preintegrate(self, start_ns: int, end_ns: int) -> GyroPreintegration | None:
         start_ns += self._offset_ns
@@ -406,6 +474,10 @@ class FusionBackend:
         notes: list[str] = []
 
         preintegration = None
+        rest_samples = None
+        if self._starting:
+            rest_samples = self._still_interval(self._last_ns, timestamp_ns)
+        still = rest_samples is not None
         if self.use_imu:
             preintegration = self._preintegrate(self._last_ns, timestamp_ns)
             if preintegration is not None:
@@ -458,6 +530,9 @@ class FusionBackend:
                     self._pose_estimate(reference) if live else self._frames[int(reference_ns)][1]
                 )
                 body_motion = _rigid(invert_pose(self._body_pose) @ reference_pose @ body_measured)
+            if still:  # vision must agree with the standstill too
+                moved = gtsam.Pose3.Logmap(gtsam.Pose3(body_motion))
+                still = float(moved @ np.linalg.solve(covariance, moved)) <= _STILL_CHI2
             distance = self._gate_distance(body_motion, prediction, covariance, preintegration, dt)
             gate = self.config.outlier_gate_chi2
             if gate is None or distance <= gate:
@@ -495,6 +570,23 @@ class FusionBackend:
                     pose_noise(rotation_sigma, self.config.cv_translation_sigma_m),
                 )
             )
+        if still:
+            assert rest_samples is not None
+            if self._rest is None:
+                self._rest = RestWindow.of(*rest_samples)
+            else:
+                self._rest.extend(*rest_samples)
+            factors.add(
+                gtsam.BetweenFactorPose3(
+                    _pose_key(previous),
+                    _pose_key(current),
+                    gtsam.Pose3(),
+                    pose_noise(self.config.zero_motion_sigma_rad, self.config.zero_motion_sigma_m),
+                )
+            )
+            guess = np.eye(4)
+        elif self._starting:
+            self._end_start_up(notes)
         values.insert(_pose_key(current), gtsam.Pose3(_rigid(self._body_pose @ guess)))
 
         # The previous frame's keys would be marginalised by this update when the gap exceeds

@@ -53,6 +53,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--rendered-frames", type=int, default=200)
     parser.add_argument(
+        "--standstill-s",
+        type=float,
+        default=0.0,
+        help="pipeline part: the rendered body stands still this long before flying",
+    )
+    parser.add_argument(
         "--parts",
         nargs="+",
         choices=("gyro", "simulated", "pipeline"),
@@ -371,13 +377,24 @@ def _pipeline_runs(name: str, path: Path, seed: int) -> tuple[dict[str, Any], li
 def bench_pipeline(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     from estimator.synthetic import SynthOptions, synthesize
 
-    rendered = args.data / f"backend_rendered_{args.rendered_frames}f_broken20_seed{args.seed}"
+    still = f"_still{args.standstill_s:g}s" if args.standstill_s > 0 else ""
+    rendered = (
+        args.data / f"backend_rendered_{args.rendered_frames}f_broken20{still}_seed{args.seed}"
+    )
     if not (rendered / "mav0").is_dir():
         synthesize(
             rendered,
-            SynthOptions(frames=args.rendered_frames, seed=args.seed, broken_fraction=0.2),
+            SynthOptions(
+                frames=args.rendered_frames,
+                seed=args.seed,
+                broken_fraction=0.2,
+                standstill_s=args.standstill_s,
+            ),
         )
-    datasets = {"rendered, 20 % broken": rendered}
+    label = "rendered, 20 % broken" + (
+        f", {args.standstill_s:g} s standstill" if args.standstill_s > 0 else ""
+    )
+    datasets = {label: rendered}
     if (args.euroc_micro / "mav0").is_dir():
         datasets["EuRoC V1_01 micro"] = args.euroc_micro
     result: dict[str, Any] = {}

@@ -43,6 +43,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=defaults.imu_noise_scale,
         help="1 = EuRoC ADIS16448 noise and bias walk, 0 = perfect IMU",
     )
+    parser.add_argument(
+        "--standstill-s",
+        type=float,
+        default=defaults.standstill_s,
+        help="seconds the body stands still before flying (extra frames before the flight)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -57,13 +63,15 @@ def run(args: argparse.Namespace) -> int:
         blur=args.blur,
         broken_fraction=args.broken_fraction,
         imu_noise_scale=args.imu_noise_scale,
+        standstill_s=args.standstill_s,
     )
     options.validate()
     start = time.perf_counter()
-    with tqdm(total=options.frames, unit="frame", disable=args.quiet) as bar:
+    frames = options.frames + round(options.standstill_s * options.fps)
+    with tqdm(total=frames, unit="frame", disable=args.quiet) as bar:
         result = synthesize(args.out_dir, options, progress=bar.update)
     print(
-        f"rendered {options.frames} stereo frames, body path {result.path_length_m:.2f} m, "
+        f"rendered {frames} stereo frames, body path {result.path_length_m:.2f} m, "
         f"{len(result.broken)} broken, in {time.perf_counter() - start:.1f} s -> "
         f"{result.root / 'mav0'}"
     )
