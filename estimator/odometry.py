@@ -142,6 +142,15 @@ class Odometry:
     def frame_count(self) -> int:
         return self._count
 
+    @property
+    def reference_index(self) -> int | None:
+        """Index of the frame the next one is matched against (None before the first frame).
+
+        Each keyframe is measured once against the previous keyframe, so the errors of those
+        measurements are independent and their sum is the drift: evaluations need to know them.
+        """
+        return self._reference.index if self._reference is not None else None
+
     # ------------------------------------------------------------------ the algorithm
 
     def process(self, frame: StereoFrame, imu: ImuBatch | None = None) -> FrameReport:

@@ -21,6 +21,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import ValidationError
+from sqlalchemy.exc import OperationalError
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import FormData, UploadFile
 from starlette.formparsers import MultiPartException
@@ -257,6 +258,8 @@ def _text(form: FormData, name: str, required: bool = True) -> str | None:
         return None
     if not isinstance(item, str):
         raise HTTPException(422, f"form field {name!r} must be text, not a file")
+    if "\x00" in item:  # no database text type stores NUL (PostgreSQL refuses it)
+        raise HTTPException(422, f"form field {name!r} contains a NUL character")
     return item
 
 
@@ -421,6 +424,17 @@ def create_app(
             location = ".".join(str(p) for p in item.get("loc", ()))
             parts.append(f"{location}: {item.get('msg')}")
         return JSONResponse({"detail": "; ".join(parts) or "invalid request"}, status_code=422)
+
+    @app.exception_handler(OperationalError)
+    async def _database_down(_request: Request, error: OperationalError) -> JSONResponse:
+        """A lost database connection is a temporary outage (retry later), not a server bug."""
+        logger.error("database unavailable: %s", str(error).splitlines()[0])
+        metrics.errors.labels("storage").inc()
+        return JSONResponse(
+            {"detail": "database unavailable; retry later"},
+            status_code=503,
+            headers={"Retry-After": "1"},
+        )
 
     @app.exception_handler(Exception)
     async def _internal(_request: Request, error: Exception) -> JSONResponse:

@@ -46,7 +46,8 @@ class ImuNoiseIn(_Strict):
 class SessionCreate(_Strict):
     """A session from the plain calibration form (what ``StereoRig.to_dict`` writes)."""
 
-    name: str = Field("", max_length=200)
+    # No NUL: database text types cannot store it (PostgreSQL refuses it outright).
+    name: str = Field("", max_length=200, pattern=r"^[^\x00]*$")
     calibration: dict[str, Any] = Field(
         description="{'left': camera, 'right': camera}; camera = width, height, fx, fy, cx, cy, "
         "distortion_model (radtan|equidistant|none), distortion, T_BS (4x4 camera->body)"

@@ -3,11 +3,14 @@
 The schema is owned by the Alembic migrations in ``service/migrations`` (run at start-up); the
 ORM classes below mirror it. Poses are stored as JSON lists of 16 floats: Python's float repr
 round-trips float64 exactly, so a trajectory read back equals the one answered, bit for bit.
+On PostgreSQL the columns are ``json`` (kept as written), not ``jsonb`` (which would turn -0.0
+into 0); both backends are exercised live by tests/test_service_postgres.py.
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import json
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +37,8 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
 MIGRATIONS_DIR = Path(__file__).resolve().parent / "migrations"
+# PostgreSQL advisory lock id held while migrating (any constant other applications do not use).
+MIGRATION_LOCK_KEY = 0x5357_564F_4D49_4752  # "SWVOMIGR"
 
 
 class Base(DeclarativeBase):
@@ -61,7 +66,10 @@ class PoseRow(Base):
     __tablename__ = "poses"
     __table_args__ = (UniqueConstraint("session_id", "frame_index", name="uq_pose_frame"),)
 
-    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    # 64-bit on PostgreSQL (migration 0002); SQLite's INTEGER PRIMARY KEY is its 64-bit rowid.
+    id: Mapped[int] = mapped_column(
+        BigInteger().with_variant(Integer, "sqlite"), primary_key=True, autoincrement=True
+    )
     session_id: Mapped[str] = mapped_column(
         String(32), ForeignKey("sessions.id", ondelete="CASCADE"), index=True
     )
@@ -115,6 +123,8 @@ def _session_record(row: SessionRow) -> SessionRecord:
     created = row.created_at
     if created.tzinfo is None:  # SQLite drops the zone; everything is stored in UTC
         created = created.replace(tzinfo=dt.UTC)
+    else:  # PostgreSQL answers in its session time zone: the API speaks UTC on every backend
+        created = created.astimezone(dt.UTC)
     return SessionRecord(
         id=row.id,
         owner=row.owner,
@@ -148,12 +158,37 @@ def _pose_record(row: PoseRow) -> PoseRecord:
     )
 
 
+def _strict_json(value: Any) -> str:
+    """JSON without NaN/Infinity: PostgreSQL's json type refuses them, so SQLite must too.
+
+    Otherwise a non-finite pose would be stored on one backend and refused on the other (and
+    once stored, no JSON answer could carry it).
+    """
+    return json.dumps(value, allow_nan=False)
+
+
+def with_driver(url: str) -> str:
+    """A plain ``postgresql://`` (or ``postgres://``) URL gets the psycopg 3 driver.
+
+    SQLAlchemy would otherwise pick psycopg2, which the ``postgres`` extra does not install.
+    """
+    for scheme in ("postgresql://", "postgres://"):
+        if url.startswith(scheme):
+            return "postgresql+psycopg://" + url.removeprefix(scheme)
+    return url
+
+
 def make_engine(url: str, sqlite_synchronous: str = "NORMAL") -> Engine:
     """Engine for ``url``; SQLite gets WAL so readers never block the writer."""
     if sqlite_synchronous not in ("NORMAL", "FULL"):
         raise ValueError(f"sqlite_synchronous must be NORMAL or FULL, not {sqlite_synchronous!r}")
+    url = with_driver(url)
     if url.startswith("sqlite"):
-        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
+        engine = create_engine(
+            url,
+            connect_args={"check_same_thread": False, "timeout": 30},
+            json_serializer=_strict_json,
+        )
 
         @event.listens_for(engine, "connect")
         def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
@@ -164,7 +199,7 @@ def make_engine(url: str, sqlite_synchronous: str = "NORMAL") -> Engine:
             cursor.close()
 
         return engine
-    return create_engine(url, pool_pre_ping=True)
+    return create_engine(url, pool_pre_ping=True, json_serializer=_strict_json)
 
 
 def run_migrations(engine: Engine) -> None:
@@ -175,6 +210,10 @@ def run_migrations(engine: Engine) -> None:
     config = Config()
     config.set_main_option("script_location", str(MIGRATIONS_DIR))
     with engine.begin() as connection:
+        if connection.dialect.name == "postgresql":
+            # Replicas starting together on an empty database would otherwise all create the
+            # tables and all but one fail; the lock ends with this transaction.
+            connection.execute(select(func.pg_advisory_xact_lock(MIGRATION_LOCK_KEY)))
         config.attributes["connection"] = connection
         command.upgrade(config, "head")
 

@@ -40,8 +40,13 @@ def test_client_does_not_import_the_estimator() -> None:
 
 @pytest.mark.parametrize(
     ("status", "error"),
-    [(401, AuthenticationError), (404, NotFoundError), (409, ConflictError),
-     (429, RateLimitedError), (503, ServerError)],
+    [
+        (401, AuthenticationError),
+        (404, NotFoundError),
+        (409, ConflictError),
+        (429, RateLimitedError),
+        (503, ServerError),
+    ],
 )
 def test_errors_carry_the_server_message(status: int, error: type) -> None:
     def answer(request: httpx.Request) -> httpx.Response:
@@ -61,14 +66,31 @@ def test_frame_request_shape() -> None:
         seen["body"] = request.read()
         seen["type"] = request.headers["content-type"]
         pose = np.eye(4).tolist()
-        return httpx.Response(200, json={
-            "session_id": "s", "index": 0, "timestamp_ns": 7, "pose": pose,
-            "frontend_pose": pose, "relative_pose": pose, "status": "ok", "matches": 1,
-            "inliers": 1, "support": 1, "timings_s": {"total": 0.1}, "message": "",
-            "resumed": False, "imu_samples": 1})
+        return httpx.Response(
+            200,
+            json={
+                "session_id": "s",
+                "index": 0,
+                "timestamp_ns": 7,
+                "pose": pose,
+                "frontend_pose": pose,
+                "relative_pose": pose,
+                "status": "ok",
+                "matches": 1,
+                "inliers": 1,
+                "support": 1,
+                "timings_s": {"total": 0.1},
+                "message": "",
+                "resumed": False,
+                "imu_samples": 1,
+            },
+        )
 
-    imu = ImuData(np.array([5], dtype=np.int64), np.array([[0.1, 0.2, 0.30000000000000004]]),
-                  np.array([[0.0, 0.0, 9.81]]))
+    imu = ImuData(
+        np.array([5], dtype=np.int64),
+        np.array([[0.1, 0.2, 0.30000000000000004]]),
+        np.array([[0.0, 0.0, 9.81]]),
+    )
     with Client("http://service", transport=httpx.MockTransport(answer)) as client:
         pose = client.send_frame("s", 7, b"LEFT", b"RIGHT", imu)
     assert pose.pose.shape == (4, 4) and pose.status == "ok"
@@ -163,8 +185,15 @@ def test_raw_frame_message_shape() -> None:
     left, right = bytes(range(6)), bytes(6)
     asyncio.run(frames.send_raw_frame(7, left, right, 3, 2))
     header = json.loads(recorder.sent[0])
-    assert header == {"type": "frame", "timestamp_ns": 7, "encoding": "raw8", "width": 3,
-                      "height": 2, "left_bytes": 6, "right_bytes": 6}
+    assert header == {
+        "type": "frame",
+        "timestamp_ns": 7,
+        "encoding": "raw8",
+        "width": 3,
+        "height": 2,
+        "left_bytes": 6,
+        "right_bytes": 6,
+    }
     assert recorder.sent[1] == left + right
     with pytest.raises(ValueError, match="width\\*height"):
         asyncio.run(frames.send_raw_frame(8, left, right[:5], 3, 2))

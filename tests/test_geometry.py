@@ -9,9 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from estimator import geometry as g
 
-rotvecs = st.lists(
-    st.floats(-3.0, 3.0, allow_nan=False), min_size=3, max_size=3
-).map(np.array)
+rotvecs = st.lists(st.floats(-3.0, 3.0, allow_nan=False), min_size=3, max_size=3).map(np.array)
 
 
 @given(rotvecs, rotvecs)

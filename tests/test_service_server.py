@@ -61,10 +61,27 @@ class Server:
         env = {**os.environ, "SWARMVO_API_KEYS": f"{KEY},{OTHER_KEY}", "OMP_NUM_THREADS": "1"}
         self.log = log
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "estimator.cli", "serve", "--host", "127.0.0.1",
-             "--port", str(self.port), "--data-dir", str(data_dir), "--workers", "2",
-             "--log-level", "warning", *extra],
-            cwd=PROJECT_ROOT, env=env, stdout=log.open("ab"), stderr=subprocess.STDOUT,
+            [
+                sys.executable,
+                "-m",
+                "estimator.cli",
+                "serve",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(self.port),
+                "--data-dir",
+                str(data_dir),
+                "--workers",
+                "2",
+                "--log-level",
+                "warning",
+                *extra,
+            ],
+            cwd=PROJECT_ROOT,
+            env=env,
+            stdout=log.open("ab"),
+            stderr=subprocess.STDOUT,
         )
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
@@ -118,8 +135,9 @@ def _offline(dataset: Path, limit: int) -> tuple[np.ndarray, np.ndarray, np.ndar
     from estimator.commands.run import build_config, run_sequence
     from estimator.datasets import open_sequence
 
-    result = run_sequence(open_sequence(dataset), build_config("pso-robust", SEED, True, True),
-                          limit=limit)
+    result = run_sequence(
+        open_sequence(dataset), build_config("pso-robust", SEED, True, True), limit=limit
+    )
     return result.timestamps_ns, result.poses("pose"), result.poses("frontend_pose")
 
 
@@ -137,8 +155,15 @@ def test_http_and_websocket_replay_equal_the_offline_run(
 ) -> None:
     times, offline, offline_frontend = _offline(euroc_v101_micro, FRAMES)
     for use_ws in (False, True):
-        result = replay(server.url, euroc_v101_micro, KEY, use_ws=use_ws, limit=FRAMES,
-                        config={"seed": SEED}, progress=False)
+        result = replay(
+            server.url,
+            euroc_v101_micro,
+            KEY,
+            use_ws=use_ws,
+            limit=FRAMES,
+            config={"seed": SEED},
+            progress=False,
+        )
         assert not result.dropped and not result.rejected
         assert result.timestamps_ns.tolist() == times.tolist()
         np.testing.assert_allclose(result.matrices, offline, rtol=0, atol=1e-9)
@@ -171,8 +196,9 @@ def test_restart_mid_sequence_loses_nothing_and_resumes(
     first = Server(data, log)
     workers = first.children()
     try:
-        result = replay(first.url, euroc_v101_micro, KEY, limit=8, config={"seed": SEED},
-                        progress=False)
+        result = replay(
+            first.url, euroc_v101_micro, KEY, limit=8, config={"seed": SEED}, progress=False
+        )
     finally:
         first.kill()  # SIGKILL: whatever was answered must already be committed
     answered = [p.pose.tolist() for p in result.poses]
@@ -188,8 +214,15 @@ def test_restart_mid_sequence_loses_nothing_and_resumes(
     try:
         session_id = result.session.id
         assert [p.pose.tolist() for p in _stored(second.url, session_id)] == answered
-        continued = replay(second.url, euroc_v101_micro, KEY, use_ws=True, limit=6,
-                           session_id=session_id, progress=False)
+        continued = replay(
+            second.url,
+            euroc_v101_micro,
+            KEY,
+            use_ws=True,
+            limit=6,
+            session_id=session_id,
+            progress=False,
+        )
         assert [p.index for p in continued.poses] == list(range(8, 14))
         assert continued.poses[0].resumed and "resumed from the stored pose" in (
             continued.poses[0].message
@@ -220,8 +253,16 @@ def _calibration() -> dict:
     eye = np.eye(4)
     right = eye.copy()
     right[0, 3] = 0.1
-    camera = {"width": 32, "height": 24, "fx": 30.0, "fy": 30.0, "cx": 16.0, "cy": 12.0,
-              "distortion_model": "none", "distortion": []}
+    camera = {
+        "width": 32,
+        "height": 24,
+        "fx": 30.0,
+        "fy": 30.0,
+        "cx": 16.0,
+        "cy": 12.0,
+        "distortion_model": "none",
+        "distortion": [],
+    }
     return {"left": {**camera, "T_BS": eye.tolist()}, "right": {**camera, "T_BS": right.tolist()}}
 
 
@@ -241,9 +282,11 @@ def _malformed_requests(sid: str) -> list[tuple[str, str, dict]]:
     nan_imu = '{"samples": [{"timestamp_ns": 1, "gyro": [NaN, 0, 0], "accel": [0, 0, 1]}]}'
 
     def frame(timestamp="100", left=good, right=good, **extra):
-        return {"data": {"timestamp_ns": timestamp, **extra},
-                "files": {"left": ("l.png", left), "right": ("r.png", right)},
-                "headers": AUTH}
+        return {
+            "data": {"timestamp_ns": timestamp, **extra},
+            "files": {"left": ("l.png", left), "right": ("r.png", right)},
+            "headers": AUTH,
+        }
 
     return [
         ("GET", "/v1/sessions", {}),
@@ -257,16 +300,38 @@ def _malformed_requests(sid: str) -> list[tuple[str, str, dict]]:
         ("POST", "/v1/sessions", {"headers": AUTH, "json": [1, 2, 3]}),
         ("POST", "/v1/sessions", {"headers": AUTH, "json": {"calibration": "x"}}),
         ("POST", "/v1/sessions", {"headers": AUTH, "data": {"calibration": "x"}}),
-        ("POST", "/v1/sessions", {"headers": {**AUTH, "content-type": "application/json"},
-                                  "content": '{"calibration": {"left": NaN}}'}),
+        (
+            "POST",
+            "/v1/sessions",
+            {
+                "headers": {**AUTH, "content-type": "application/json"},
+                "content": '{"calibration": {"left": NaN}}',
+            },
+        ),
         ("POST", "/v1/sessions/euroc", {"headers": AUTH, "files": {"cam0": b"\x00" * 10}}),
-        ("POST", "/v1/sessions/kitti", {"headers": AUTH, "files": {"calib": b"P0: 1 2"},
-                                        "data": {"width": "-5", "height": "x"}}),
+        (
+            "POST",
+            "/v1/sessions/kitti",
+            {
+                "headers": AUTH,
+                "files": {"calib": b"P0: 1 2"},
+                "data": {"width": "-5", "height": "x"},
+            },
+        ),
         ("POST", frames, {"headers": AUTH, "json": {"timestamp_ns": 1}}),
-        ("POST", frames, {"headers": {**AUTH, "content-type": "multipart/form-data"},
-                          "content": b"garbage"}),
-        ("POST", frames, {"headers": {**AUTH, "content-type": "multipart/form-data; boundary=xx"},
-                          "content": b"--xx\r\nContent-Disposition: form-data; name=\"left\"\r\n"}),
+        (
+            "POST",
+            frames,
+            {"headers": {**AUTH, "content-type": "multipart/form-data"}, "content": b"garbage"},
+        ),
+        (
+            "POST",
+            frames,
+            {
+                "headers": {**AUTH, "content-type": "multipart/form-data; boundary=xx"},
+                "content": b'--xx\r\nContent-Disposition: form-data; name="left"\r\n',
+            },
+        ),
         ("POST", frames, frame(left=os.urandom(5000))),
         ("POST", frames, frame(left=good[: len(good) // 2])),
         ("POST", frames, frame(left=bytes(big_header))),
@@ -283,10 +348,24 @@ def _malformed_requests(sid: str) -> list[tuple[str, str, dict]]:
         ("POST", frames, {**frame(), "headers": {}}),
         ("POST", "/v1/sessions/0123456789abcdef0123456789abcdef/frames", frame()),
         ("POST", f"/v1/sessions/{sid}/imu", {"headers": AUTH, "json": {"samples": "x"}}),
-        ("POST", f"/v1/sessions/{sid}/imu", {"headers": AUTH, "json": {
-            "samples": [{"timestamp_ns": 1, "gyro": [0, 0], "accel": [0, 0, 0]}]}}),
-        ("POST", f"/v1/sessions/{sid}/imu", {"headers": AUTH, "json": {
-            "samples": [{"timestamp_ns": 1, "gyro": [0, 0, 0], "accel": [0, 0, 0]}] * 20000}}),
+        (
+            "POST",
+            f"/v1/sessions/{sid}/imu",
+            {
+                "headers": AUTH,
+                "json": {"samples": [{"timestamp_ns": 1, "gyro": [0, 0], "accel": [0, 0, 0]}]},
+            },
+        ),
+        (
+            "POST",
+            f"/v1/sessions/{sid}/imu",
+            {
+                "headers": AUTH,
+                "json": {
+                    "samples": [{"timestamp_ns": 1, "gyro": [0, 0, 0], "accel": [0, 0, 0]}] * 20000
+                },
+            },
+        ),
         ("GET", f"/v1/sessions/{sid}/trajectory?format=xml", {"headers": AUTH}),
     ]
 
@@ -306,8 +385,12 @@ def test_malformed_requests_get_4xx_and_the_server_stays_healthy(server: Server)
         health = http.get("/healthz")
         assert health.status_code == 200
         assert health.json()["executor"] == "process" and health.json()["workers"] == 2
-        ok = http.post(f"/v1/sessions/{sid}/frames", headers=AUTH, data={"timestamp_ns": "100"},
-                       files={"left": _png(), "right": _png()})
+        ok = http.post(
+            f"/v1/sessions/{sid}/frames",
+            headers=AUTH,
+            data={"timestamp_ns": "100"},
+            files={"left": _png(), "right": _png()},
+        )
         assert ok.status_code == 200, ok.text
         assert ok.json()["index"] == 0
     assert {401, 404, 413, 415, 422} <= set(statuses.values())
@@ -337,12 +420,16 @@ def test_random_image_bytes_never_break_the_server(server: Server) -> None:
     prefix = st.sampled_from([b"", b"\x89PNG\r\n\x1a\n", b"\xff\xd8\xff", _png()[:33]])
     counter = iter(range(1, 10**6))
 
-    @settings(max_examples=40, deadline=None, derandomize=True,
-              suppress_health_check=list(HealthCheck))
+    @settings(
+        max_examples=40, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck)
+    )
     @given(prefix, st.binary(max_size=2000), prefix, st.binary(max_size=2000))
     def check(p1: bytes, body1: bytes, p2: bytes, body2: bytes) -> None:
-        response = http.post(f"/v1/sessions/{sid}/frames", data={"timestamp_ns": next(counter)},
-                             files={"left": p1 + body1, "right": p2 + body2})
+        response = http.post(
+            f"/v1/sessions/{sid}/frames",
+            data={"timestamp_ns": next(counter)},
+            files={"left": p1 + body1, "right": p2 + body2},
+        )
         assert 400 <= response.status_code < 500, response.text
 
     try:
@@ -358,8 +445,11 @@ def test_websocket_refusals_and_garbage(server: Server) -> None:
         sid = client.create_session(_calibration(), config={"backend": {"enabled": False}}).id
 
     async def scenario() -> list[dict]:
-        for key, expected in ((None, AuthenticationError), ("wrong", AuthenticationError),
-                              (OTHER_KEY, NotFoundError)):
+        for key, expected in (
+            (None, AuthenticationError),
+            ("wrong", AuthenticationError),
+            (OTHER_KEY, NotFoundError),
+        ):
             with pytest.raises(expected):
                 async with stream(server.url, sid, key):
                     pass
@@ -369,12 +459,17 @@ def test_websocket_refusals_and_garbage(server: Server) -> None:
         url = server.url.replace("http://", "ws://") + f"/v1/sessions/{sid}/stream?token={KEY}"
         async with websockets.connect(url) as ws:
             assert json.loads(await ws.recv())["type"] == "hello"
-            for message in ("{", "[]", '{"type": "nope"}', b"\x00" * 10,
-                            '{"type": "frame", "timestamp_ns": 5, "left_bytes": -1}',
-                            '{"type": "frame", "timestamp_ns": 5, "left_bytes": 3, '
-                            '"right_bytes": 3}', b"abcdef",
-                            '{"type": "imu", "samples": [{"timestamp_ns": 1}]}',
-                            '{"type": "close"}'):
+            for message in (
+                "{",
+                "[]",
+                '{"type": "nope"}',
+                b"\x00" * 10,
+                '{"type": "frame", "timestamp_ns": 5, "left_bytes": -1}',
+                '{"type": "frame", "timestamp_ns": 5, "left_bytes": 3, "right_bytes": 3}',
+                b"abcdef",
+                '{"type": "imu", "samples": [{"timestamp_ns": 1}]}',
+                '{"type": "close"}',
+            ):
                 await ws.send(message)
             async for text in ws:
                 replies.append(json.loads(text))
@@ -384,8 +479,15 @@ def test_websocket_refusals_and_garbage(server: Server) -> None:
         return replies
 
     replies = asyncio.run(asyncio.wait_for(scenario(), timeout=60))
-    assert [r["type"] for r in replies] == ["error", "error", "error", "error", "rejected",
-                                           "rejected", "error"]
+    assert [r["type"] for r in replies] == [
+        "error",
+        "error",
+        "error",
+        "error",
+        "rejected",
+        "rejected",
+        "error",
+    ]
     assert "PNG or JPEG" in replies[5]["detail"]
 
 
@@ -393,15 +495,25 @@ def test_websocket_refusals_and_garbage(server: Server) -> None:
 def test_openapi_fuzzing_finds_no_server_error(server: Server, tmp_path: Path) -> None:
     """Schemathesis against the published schema (a few hundred cases); any 5xx fails."""
     command = [
-        str(Path(sys.executable).with_name("schemathesis")), "run",
-        f"{server.url}/openapi.json", "-H", f"Authorization: Bearer {KEY}",
-        "--checks", "not_a_server_error", "--max-examples", "5",
-        "--phases", "coverage,fuzzing", "-w", "1", "--seed", "1",
+        str(Path(sys.executable).with_name("schemathesis")),
+        "run",
+        f"{server.url}/openapi.json",
+        "-H",
+        f"Authorization: Bearer {KEY}",
+        "--checks",
+        "not_a_server_error",
+        "--max-examples",
+        "5",
+        "--phases",
+        "coverage,fuzzing",
+        "-w",
+        "1",
+        "--seed",
+        "1",
     ]
     if not Path(command[0]).exists():
         pytest.skip("schemathesis is not installed in this environment")
-    finished = subprocess.run(command, capture_output=True, text=True, timeout=120,
-                              cwd=tmp_path)
+    finished = subprocess.run(command, capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert finished.returncode == 0, finished.stdout[-4000:]
     generated = re.search(r"(\d+) generated, (\d+) passed", finished.stdout)
     assert generated is not None, finished.stdout[-2000:]
@@ -431,8 +543,24 @@ def test_client_cli_replay_writes_the_acknowledged_trajectory(
     from swarmvo_client.cli import main
 
     out = tmp_path / "out"
-    code = main(["replay", str(euroc_v101_micro), "--url", server.url, "--api-key", KEY, "--ws",
-                 "--limit", "5", "--seed", str(SEED), "--out", str(out), "--quiet"])
+    code = main(
+        [
+            "replay",
+            str(euroc_v101_micro),
+            "--url",
+            server.url,
+            "--api-key",
+            KEY,
+            "--ws",
+            "--limit",
+            "5",
+            "--seed",
+            str(SEED),
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
     assert code == 0
     printed = capsys.readouterr().out
     assert "ate_rmse_m" in printed and "frames_acknowledged: 5" in printed
@@ -443,6 +571,22 @@ def test_client_cli_replay_writes_the_acknowledged_trajectory(
     stored = _stored(server.url, summary["session_id"])
     assert times.tolist() == [p.timestamp_ns for p in stored]
     np.testing.assert_allclose(poses, np.array([p.pose for p in stored]), rtol=0, atol=1e-9)
-    assert main(["replay", str(euroc_v101_micro), "--url", server.url, "--api-key", "wrong",
-                 "--limit", "2", "--out", str(out), "--quiet"]) == 2
+    assert (
+        main(
+            [
+                "replay",
+                str(euroc_v101_micro),
+                "--url",
+                server.url,
+                "--api-key",
+                "wrong",
+                "--limit",
+                "2",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 2
+    )
     assert "HTTP 401" in capsys.readouterr().err

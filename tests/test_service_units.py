@@ -40,8 +40,14 @@ def calibration(width: int = WIDTH, height: int = HEIGHT) -> dict:
         transform = np.eye(4)
         transform[0, 3] = x
         return {
-            "width": width, "height": height, "fx": 50.0, "fy": 50.0, "cx": width / 2,
-            "cy": height / 2, "distortion_model": "none", "distortion": [],
+            "width": width,
+            "height": height,
+            "fx": 50.0,
+            "fy": 50.0,
+            "cx": width / 2,
+            "cy": height / 2,
+            "distortion_model": "none",
+            "distortion": [],
             "T_BS": transform.tolist(),
         }
 
@@ -73,9 +79,16 @@ class RecordingPipeline:
         self.pose = self.pose @ relative
         self.last_ns = frame.timestamp_ns
         return FrameReport(
-            index=self.index, timestamp_ns=frame.timestamp_ns, pose=self.pose.copy(),
-            frontend_pose=self.pose.copy(), relative_pose=relative, status=FrameStatus.OK,
-            matches=10, inliers=8, support=9, timings_s={"fake": 0.001},
+            index=self.index,
+            timestamp_ns=frame.timestamp_ns,
+            pose=self.pose.copy(),
+            frontend_pose=self.pose.copy(),
+            relative_pose=relative,
+            status=FrameStatus.OK,
+            matches=10,
+            inliers=8,
+            support=9,
+            timings_s={"fake": 0.001},
         )
 
 
@@ -117,8 +130,9 @@ def client(tmp_path: Path, factory: FakeFactory):
 
 
 def new_session(client: TestClient, headers=A, **body) -> str:
-    response = client.post("/v1/sessions", headers=headers,
-                           json={"calibration": calibration(), **body})
+    response = client.post(
+        "/v1/sessions", headers=headers, json={"calibration": calibration(), **body}
+    )
     assert response.status_code == 201, response.text
     return response.json()["id"]
 
@@ -225,8 +239,7 @@ def test_session_crud_and_ownership(client: TestClient) -> None:
     ("body", "words"),
     [
         ({"calibration": {"left": {}}}, "right"),
-        ({"calibration": {**calibration(), "left": {**calibration()["left"], "fx": -1}}},
-         "focal"),
+        ({"calibration": {**calibration(), "left": {**calibration()["left"], "fx": -1}}}, "focal"),
         ({"calibration": calibration(), "config": {"bogus": 1}}, "bogus"),
         ({"calibration": calibration(), "config": {"seed": "x"}}, "seed"),
         ({"calibration": calibration(), "imu_noise": {"rate_hz": 0}}, "rate_hz"),
@@ -260,7 +273,9 @@ def test_nan_and_inf_are_refused_everywhere(client: TestClient, where: str) -> N
     )
     assert response.status_code == 422
     response = client.post(
-        f"/v1/sessions/{sid}/frames", headers=A, data={"timestamp_ns": "5", "imu": imu},
+        f"/v1/sessions/{sid}/frames",
+        headers=A,
+        data={"timestamp_ns": "5", "imu": imu},
         files={"left": png(), "right": png()},
     )
     assert response.status_code == 422
@@ -278,23 +293,31 @@ def test_session_limit_per_key(tmp_path: Path, factory: FakeFactory) -> None:
 def test_euroc_and_kitti_uploads(client: TestClient, euroc_v101_micro: Path) -> None:
     mav0 = euroc_v101_micro / "mav0"
     response = client.post(
-        "/v1/sessions/euroc", headers=A,
-        files={"cam0": (mav0 / "cam0/sensor.yaml").read_bytes(),
-               "cam1": (mav0 / "cam1/sensor.yaml").read_bytes(),
-               "imu0": (mav0 / "imu0/sensor.yaml").read_bytes()},
+        "/v1/sessions/euroc",
+        headers=A,
+        files={
+            "cam0": (mav0 / "cam0/sensor.yaml").read_bytes(),
+            "cam1": (mav0 / "cam1/sensor.yaml").read_bytes(),
+            "imu0": (mav0 / "imu0/sensor.yaml").read_bytes(),
+        },
         data={"config": json.dumps({"seed": 2})},
     )
     assert response.status_code == 201, response.text
     body = response.json()
     assert (body["image_width"], body["image_height"]) == (752, 480)
     assert body["imu_noise"]["gyro_noise_density"] == pytest.approx(1.6968e-4)
-    broken = client.post("/v1/sessions/euroc", headers=A,
-                         files={"cam0": b"resolution: [1, 2", "cam1": b"x: 1"})
+    broken = client.post(
+        "/v1/sessions/euroc", headers=A, files={"cam0": b"resolution: [1, 2", "cam1": b"x: 1"}
+    )
     assert broken.status_code == 422
     assert "/tmp" not in broken.json()["detail"]
     calib = b"P0: 700 0 600 0 0 700 180 0 0 0 1 0\nP1: 700 0 600 -378 0 700 180 0 0 0 1 0\n"
-    kitti = client.post("/v1/sessions/kitti", headers=A, files={"calib": calib},
-                        data={"width": "1241", "height": "376"})
+    kitti = client.post(
+        "/v1/sessions/kitti",
+        headers=A,
+        files={"calib": calib},
+        data={"width": "1241", "height": "376"},
+    )
     assert kitti.status_code == 201, kitti.text
     assert kitti.json()["calibration"]["right"]["T_BS"][0][3] == pytest.approx(0.54)
     no_size = client.post("/v1/sessions/kitti", headers=A, files={"calib": calib})
@@ -336,8 +359,9 @@ def test_imu_buffer_is_split_by_frame_time(client: TestClient, factory: FakeFact
     def sample(t: int) -> dict:
         return {"timestamp_ns": t, "gyro": [0.1, 0, 0], "accel": [0, 0, 9.81]}
 
-    response = client.post(f"/v1/sessions/{sid}/imu", headers=A,
-                           json={"samples": [sample(t) for t in (50, 90, 150)]})
+    response = client.post(
+        f"/v1/sessions/{sid}/imu", headers=A, json={"samples": [sample(t) for t in (50, 90, 150)]}
+    )
     assert response.json() == {"accepted": 3, "buffered": 3}
     assert send(client, sid, 100).json()["imu_samples"] == 2  # 50, 90
     # Inline samples merge with the buffer; duplicates count once; stale ones are ignored.
@@ -359,8 +383,10 @@ def test_imu_batch_limits(tmp_path: Path, factory: FakeFactory) -> None:
         samples = [{"timestamp_ns": t, "gyro": [0, 0, 0], "accel": [0, 0, 0]} for t in range(4)]
         response = c.post(f"/v1/sessions/{sid}/imu", headers=A, json={"samples": samples})
         assert response.status_code == 413
-        assert c.post(f"/v1/sessions/{sid}/imu", headers=A,
-                      json={"samples": samples[:3]}).status_code == 200
+        assert (
+            c.post(f"/v1/sessions/{sid}/imu", headers=A, json={"samples": samples[:3]}).status_code
+            == 200
+        )
         full = c.post(f"/v1/sessions/{sid}/imu", headers=A, json={"samples": samples[:2]})
         assert full.status_code == 429 and "buffer" in full.json()["detail"]
 
@@ -378,8 +404,11 @@ def test_request_size_limit(tmp_path: Path, factory: FakeFactory) -> None:
             yield b"x" * 3000
             yield b"x" * 3000
 
-        streamed = c.post(f"/v1/sessions/{sid}/imu", headers={**A, "content-type":
-                          "application/json"}, content=chunks())
+        streamed = c.post(
+            f"/v1/sessions/{sid}/imu",
+            headers={**A, "content-type": "application/json"},
+            content=chunks(),
+        )
         assert streamed.status_code == 413
 
 
@@ -408,6 +437,7 @@ def test_pipeline_crash_is_contained(tmp_path: Path) -> None:
         def create(self, prepared, initial_pose, first_index):  # type: ignore[override]
             pipeline = super().create(prepared, initial_pose, first_index)
             if len(self.created) == 1:
+
                 def explode(frame, imu=None):
                     raise RuntimeError("boom")
 
@@ -430,8 +460,11 @@ def test_pipeline_crash_is_contained(tmp_path: Path) -> None:
 
 def _ws_frame(ws, t: int, left: bytes | None = None, right: bytes | None = None, split=False):
     left, right = left or png(), right or png(value=2)
-    ws.send_text(json.dumps({"type": "frame", "timestamp_ns": t,
-                             "left_bytes": len(left), "right_bytes": len(right)}))
+    ws.send_text(
+        json.dumps(
+            {"type": "frame", "timestamp_ns": t, "left_bytes": len(left), "right_bytes": len(right)}
+        )
+    )
     if split:
         ws.send_bytes(left)
         ws.send_bytes(right)
@@ -450,8 +483,9 @@ def test_websocket_protocol_and_auth(client: TestClient) -> None:
         ws.send_bytes(b"orphan")
         _ws_frame(ws, 15)  # out of order
         ws.send_text(json.dumps({"type": "imu", "samples": [{"timestamp_ns": 25}]}))
-        ws.send_text(json.dumps({"type": "frame", "timestamp_ns": "x", "left_bytes": 1,
-                                 "right_bytes": 1}))
+        ws.send_text(
+            json.dumps({"type": "frame", "timestamp_ns": "x", "left_bytes": 1, "right_bytes": 1})
+        )
         _ws_frame(ws, 30, left=b"garbage!", right=b"garbage!")
         ws.send_text(json.dumps({"type": "close"}))
         replies = []
@@ -462,16 +496,24 @@ def test_websocket_protocol_and_auth(client: TestClient) -> None:
                 break
     kinds = [(r["type"], r.get("timestamp_ns")) for r in replies]
     assert kinds[:2] == [("pose", 10), ("pose", 20)]
-    assert [r["type"] for r in replies[2:]] == ["error", "error", "rejected", "error",
-                                                "rejected", "rejected"]
+    assert [r["type"] for r in replies[2:]] == [
+        "error",
+        "error",
+        "rejected",
+        "error",
+        "rejected",
+        "rejected",
+    ]
     assert replies[4]["status"] == 409
     assert replies[7]["status"] == 422 and "PNG or JPEG" in replies[7]["detail"]
     # with a token query parameter, and refused without credentials / for another key
     with client.websocket_connect(f"/v1/sessions/{sid}/stream?token={KEY_A}") as ws:
         assert ws.receive_json()["next_index"] == 2
-    for url, headers in ((f"/v1/sessions/{sid}/stream", {}),
-                         (f"/v1/sessions/{sid}/stream", B),
-                         ("/v1/sessions/nope/stream", A)):
+    for url, headers in (
+        (f"/v1/sessions/{sid}/stream", {}),
+        (f"/v1/sessions/{sid}/stream", B),
+        ("/v1/sessions/nope/stream", A),
+    ):
         with pytest.raises(Exception) as info, client.websocket_connect(url, headers=headers):
             pass
         assert getattr(info.value, "status_code", None) in (401, 404)
@@ -682,7 +724,8 @@ def test_process_mode_runs_sessions_in_their_own_worker_process_in_order(
             assert [r["index"] for r in answers] == list(range(len(stamps)))
             # The pipeline moves 1 cm per frame: a frame out of order would break the chain.
             assert [r["pose"][0][3] for r in answers] == pytest.approx(
-                [0.01 * k for k in range(len(stamps))])
+                [0.01 * k for k in range(len(stamps))]
+            )
             session_pids = {_pid(r) for r in answers}
             assert len(session_pids) == 1 and session_pids <= set(pids)  # pinned to one worker
             used |= session_pids
@@ -734,14 +777,16 @@ def test_a_dying_worker_fails_only_its_frame_and_the_session_resumes(tmp_path: P
 
 
 def test_a_stuck_worker_is_killed_after_the_frame_timeout(tmp_path: Path) -> None:
-    settings = settings_for(tmp_path, executor="process", workers=1, frame_timeout_s=1.0)
+    # 5 s: well above a fresh worker's start-up under load (the frame after the kill runs on a
+    # new process), far below the stuck frame's hour.
+    settings = settings_for(tmp_path, executor="process", workers=1, frame_timeout_s=5.0)
     app = create_app(settings, ProcessFactory())
     with TestClient(app) as c:
         sid = new_session(c)
         first = send(c, sid, 10).json()
         started = time.monotonic()
         stuck = send(c, sid, 777)
-        assert stuck.status_code == 503 and "not done after 1 s" in stuck.json()["detail"]
+        assert stuck.status_code == 503 and "not done after 5 s" in stuck.json()["detail"]
         assert time.monotonic() - started < 30
         assert not _alive(_pid(first))
         again = send(c, sid, 20)
@@ -772,19 +817,30 @@ def test_raw8_websocket_frames_skip_the_image_container(client: TestClient) -> N
     pixels = (np.arange(WIDTH * HEIGHT) % 251).astype(np.uint8).tobytes()
 
     def header(t: int, **extra) -> str:
-        return json.dumps({"type": "frame", "timestamp_ns": t, "encoding": "raw8",
-                           "width": WIDTH, "height": HEIGHT, "left_bytes": len(pixels),
-                           "right_bytes": len(pixels), **extra})
+        return json.dumps(
+            {
+                "type": "frame",
+                "timestamp_ns": t,
+                "encoding": "raw8",
+                "width": WIDTH,
+                "height": HEIGHT,
+                "left_bytes": len(pixels),
+                "right_bytes": len(pixels),
+                **extra,
+            }
+        )
 
     with client.websocket_connect(f"/v1/sessions/{sid}/stream", headers=A) as ws:
         ws.receive_json()
         ws.send_text(header(10))
         ws.send_bytes(pixels + pixels)
         assert ws.receive_json()["type"] == "pose"
-        for extra, words in (({"width": HEIGHT, "height": WIDTH}, "calibration is for"),
-                             ({"left_bytes": 5}, "width*height"),
-                             ({"encoding": "tiff"}, "unknown encoding"),
-                             ({"width": "x"}, "positive integer")):
+        for extra, words in (
+            ({"width": HEIGHT, "height": WIDTH}, "calibration is for"),
+            ({"left_bytes": 5}, "width*height"),
+            ({"encoding": "tiff"}, "unknown encoding"),
+            ({"width": "x"}, "positive integer"),
+        ):
             ws.send_text(header(20, **extra))
             reply = ws.receive_json()
             assert reply["type"] == "rejected" and reply["status"] == 422
@@ -825,3 +881,36 @@ def test_a_stored_pose_that_is_not_quite_rigid_still_resumes(tmp_path: Path) -> 
         rotation = factory.created[0].initial_pose[:3, :3]
         np.testing.assert_allclose(rotation.T @ rotation, np.eye(3), atol=1e-12)
         assert send(c, sid, 30).status_code == 200
+
+
+def test_nul_characters_in_text_are_refused(client: TestClient) -> None:
+    """No database text type stores NUL: refused up front on every backend, not a 500 later."""
+    response = client.post(
+        "/v1/sessions", headers=A, json={"calibration": calibration(), "name": "robot\x00one"}
+    )
+    assert response.status_code == 422, response.text
+    sid = new_session(client, name="robot one")
+    response = client.post(
+        f"/v1/sessions/{sid}/frames",
+        headers=A,
+        data={"timestamp_ns": "10\x00"},
+        files={"left": ("l.png", png()), "right": ("r.png", png(value=3))},
+    )
+    assert response.status_code == 422 and "NUL" in response.text
+    assert client.get("/healthz").status_code == 200
+
+
+def test_a_lost_database_answers_503_not_500(client: TestClient, monkeypatch) -> None:
+    from sqlalchemy.exc import OperationalError
+
+    def down(*_args, **_kwargs):
+        raise OperationalError("SELECT 1", {}, ConnectionRefusedError("connection refused"))
+
+    store = client.app.state.swarmvo.store
+    monkeypatch.setattr(store, "list_sessions", down)
+    response = client.get("/v1/sessions", headers=A)
+    assert response.status_code == 503, response.text
+    assert "database unavailable" in response.json()["detail"]
+    assert response.headers["retry-after"] == "1"
+    monkeypatch.undo()
+    assert client.get("/v1/sessions", headers=A).status_code == 200

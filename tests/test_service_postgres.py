@@ -1,0 +1,459 @@
+"""The service on a live PostgreSQL: a throwaway cluster (initdb + pg_ctl) in a temp directory.
+
+- the Alembic migrations build the schema on an empty database (also when several servers
+  start at once), with the column types the data needs (BIGINT nanoseconds, exact JSON floats);
+- the storage layer round-trips sessions and poses exactly as SQLite does, and survives a
+  restart of the database;
+- a real ``swarmvo serve`` on PostgreSQL, killed mid-sequence and started again, keeps every
+  session and pose and continues the session; its trajectory (JSON, TUM, KITTI) equals the one
+  the same replay gives on SQLite.
+
+Skipped with a reason when no PostgreSQL server binaries are installed; CI installs them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as dt
+import glob
+import os
+import pwd
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from swarmvo_client import Client, Pose, replay
+from test_service_server import KEY, SEED, Server
+
+from service.storage import PoseRecord, Store
+
+psycopg = pytest.importorskip(
+    "psycopg", reason="the PostgreSQL driver is missing: pip install -e '.[postgres]'"
+)
+
+USER = "swarmvo"
+# A zone far from UTC: answers must still be in UTC whatever the database server's zone is.
+SERVER_TIMEZONE = "Asia/Kolkata"
+FIRST, MORE = 8, 6  # frames before the server is killed, frames after it comes back
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def _server_binaries() -> Path | None:
+    """Folder with initdb and pg_ctl: Debian's newest /usr/lib/postgresql/N/bin, else PATH."""
+    folders = sorted(
+        (Path(p).parent for p in glob.glob("/usr/lib/postgresql/*/bin/pg_ctl")),
+        key=lambda folder: int(folder.parent.name) if folder.parent.name.isdigit() else 0,
+    )
+    if folders and (folders[-1] / "initdb").exists():
+        return folders[-1]
+    pg_ctl = shutil.which("pg_ctl")
+    if pg_ctl and (Path(pg_ctl).parent / "initdb").exists():
+        return Path(pg_ctl).parent
+    return None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return False
+    return fields[0] != "Z"
+
+
+class Cluster:
+    """A private PostgreSQL cluster: own data directory, socket directory and port.
+
+    PostgreSQL refuses to run as root, so as root every server command runs as the
+    unprivileged ``postgres`` user (which Debian's package creates).
+    """
+
+    def __init__(self, binaries: Path) -> None:
+        self.binaries = binaries
+        self.prefix: list[str] = []
+        self.root = Path(tempfile.mkdtemp(prefix="swarmvo-pg-"))
+        if os.geteuid() == 0:
+            account = pwd.getpwnam("postgres")
+            os.chown(self.root, account.pw_uid, account.pw_gid)
+            self.prefix = ["runuser", "-u", "postgres", "--"]
+        self.data = self.root / "data"
+        self.log = self.root / "server.log"
+        self.port = _free_port()
+        self.postmaster: int | None = None
+        try:
+            self._run("initdb", "-D", str(self.data), "-U", USER, "--auth=trust", "-E", "UTF8",
+                      "--locale=C", "--no-sync")
+            self.start()
+        except BaseException:
+            self.remove()
+            raise
+
+    def _run(self, program: str, *args: str) -> None:
+        command = [*self.prefix, str(self.binaries / program), *args]
+        finished = subprocess.run(command, capture_output=True, text=True, timeout=60,
+                                  cwd=self.root)
+        if finished.returncode != 0:
+            log = self.log.read_text() if self.log.exists() else ""
+            raise RuntimeError(f"{program} failed:\n{finished.stdout}{finished.stderr}{log}")
+
+    def start(self) -> None:
+        # fsync off: the data of a throwaway cluster need not survive a power cut of this
+        # machine, and the test is several times faster; the socket stays in our directory.
+        options = (f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1 "
+                   f"-c fsync=off -c timezone={SERVER_TIMEZONE}")
+        self._run("pg_ctl", "-D", str(self.data), "-l", str(self.log), "-w", "-t", "30",
+                  "-o", options, "start")
+        self.postmaster = int((self.data / "postmaster.pid").read_text().split()[0])
+
+    def stop(self) -> None:
+        if not (self.data / "postmaster.pid").exists() and self.postmaster is None:
+            return
+        with contextlib.suppress(RuntimeError, subprocess.TimeoutExpired):
+            self._run("pg_ctl", "-D", str(self.data), "-m", "fast", "-w", "-t", "30", "stop")
+        if self.postmaster is not None and _alive(self.postmaster):
+            os.kill(self.postmaster, signal.SIGQUIT)  # immediate shutdown of all backends
+            deadline = time.monotonic() + 10
+            while _alive(self.postmaster) and time.monotonic() < deadline:
+                time.sleep(0.05)
+
+    def restart(self) -> None:
+        self.stop()
+        self.start()
+
+    def remove(self) -> None:
+        self.stop()
+        shutil.rmtree(self.root, ignore_errors=True)
+
+    def url(self, database: str) -> str:
+        return f"postgresql+psycopg://{USER}@127.0.0.1:{self.port}/{database}"
+
+    def admin(self, sql: str) -> list[tuple]:
+        """Run one statement on the maintenance database (autocommit: CREATE DATABASE)."""
+        with psycopg.connect(host="127.0.0.1", port=self.port, user=USER, dbname="postgres",
+                             autocommit=True) as connection:
+            cursor = connection.execute(sql)
+            return cursor.fetchall() if cursor.description else []
+
+    def query(self, database: str, sql: str) -> list[tuple]:
+        with psycopg.connect(host="127.0.0.1", port=self.port, user=USER,
+                             dbname=database) as connection:
+            return connection.execute(sql).fetchall()
+
+
+@pytest.fixture(scope="module")
+def cluster() -> Iterator[Cluster]:
+    binaries = _server_binaries()
+    if binaries is None:
+        pytest.skip("no PostgreSQL server binaries (initdb, pg_ctl) found in "
+                    "/usr/lib/postgresql/*/bin or on PATH; install the 'postgresql' package")
+    if os.geteuid() == 0:
+        try:
+            pwd.getpwnam("postgres")
+        except KeyError:
+            pytest.skip("running as root, and there is no 'postgres' user to run PostgreSQL as")
+        if shutil.which("runuser") is None:
+            pytest.skip("running as root, and runuser (util-linux) is missing")
+    running = Cluster(binaries)
+    try:
+        yield running
+    finally:
+        running.remove()
+    assert running.postmaster is not None and not _alive(running.postmaster)
+    assert not running.root.exists()
+
+
+@pytest.fixture
+def database(cluster: Cluster, request: pytest.FixtureRequest) -> Iterator[str]:
+    """A fresh, empty database for one test; dropped afterwards."""
+    name = "t_" + request.node.name.lower().replace("[", "_").replace("]", "")[:50]
+    cluster.admin(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+    cluster.admin(f'CREATE DATABASE "{name}"')
+    yield name
+    cluster.admin(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+
+
+def _calibration() -> dict:
+    camera = {"width": 64, "height": 48, "fx": 50.0, "fy": 50.0, "cx": 32.0, "cy": 24.0,
+              "distortion_model": "none", "distortion": [], "T_BS": np.eye(4).tolist()}
+    return {"left": camera, "right": {**camera, "T_BS": [[1, 0, 0, 0.1], [0, 1, 0, 0],
+                                                         [0, 0, 1, 0], [0, 0, 0, 1]]}}
+
+
+# ----------------------------------------------------------------------------- schema
+
+
+def test_migrations_build_the_schema_on_an_empty_database(
+    cluster: Cluster, database: str
+) -> None:
+    from alembic.autogenerate import compare_metadata
+    from alembic.config import Config
+    from alembic.migration import MigrationContext
+    from alembic.script import ScriptDirectory
+
+    from service.storage import MIGRATIONS_DIR, Base
+
+    assert cluster.query(database, "SELECT count(*) FROM pg_tables WHERE schemaname = 'public'"
+                         ) == [(0,)]
+    version = cluster.query(database, "SHOW server_version_num")[0][0]
+    assert int(version) >= 130000  # DROP DATABASE ... WITH (FORCE) above
+    store = Store.open(cluster.url(database))
+    try:
+        with store.engine.connect() as connection:
+            assert compare_metadata(MigrationContext.configure(connection), Base.metadata) == []
+    finally:
+        store.close()
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+    head = ScriptDirectory.from_config(config).get_current_head()
+    assert cluster.query(database, "SELECT version_num FROM alembic_version") == [(head,)]
+    types = dict(cluster.query(
+        database, "SELECT table_name || '.' || column_name, data_type "
+        "FROM information_schema.columns WHERE table_schema = 'public'"))
+    assert types["poses.timestamp_ns"] == "bigint"
+    assert types["sessions.last_timestamp_ns"] == "bigint"
+    assert types["poses.id"] == "bigint"  # migration 0002: beyond 2^31 stored poses
+    assert cluster.query(
+        database, "SELECT data_type FROM information_schema.sequences "
+        "WHERE sequence_name = 'poses_id_seq'") == [("bigint",)]
+    assert types["sessions.created_at"] == "timestamp with time zone"
+    # json keeps the text it was given (jsonb would turn -0.0 into 0 and reorder keys).
+    assert {types[f"poses.{c}"] for c in ("pose", "frontend_pose", "relative_pose")} == {"json"}
+    cascade = cluster.query(database, "SELECT confdeltype FROM pg_constraint WHERE contype = 'f'"
+                            " AND conrelid = 'poses'::regclass")
+    assert cascade == [("c",)]
+    # A second start changes nothing; a plain postgresql:// URL gets the installed driver.
+    plain = cluster.url(database).replace("postgresql+psycopg://", "postgresql://")
+    Store.open(plain).close()
+    assert cluster.query(database, "SELECT version_num FROM alembic_version") == [(head,)]
+
+
+def test_servers_starting_together_on_an_empty_database_all_come_up(
+    cluster: Cluster, database: str
+) -> None:
+    """Replicas run the migrations at the same moment; exactly one may build the schema."""
+    code = ("import sys\nfrom service.storage import Store\nprint('ready', flush=True)\n"
+            f"sys.stdin.readline()\nStore.open({cluster.url(database)!r}).close()\n")
+    starts = [subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+              for _ in range(6)]
+    for start in starts:  # all imported: the migrations then begin as close together as can be
+        assert start.stdout is not None and start.stdout.readline() == "ready\n"
+    for start in starts:
+        assert start.stdin is not None
+        start.stdin.write("go\n")
+        start.stdin.flush()
+    outputs = [start.communicate(timeout=60) for start in starts]
+    failures = [err for start, (_out, err) in zip(starts, outputs, strict=True)
+                if start.returncode != 0]
+    assert failures == []
+    assert cluster.query(database, "SELECT count(*) FROM alembic_version") == [(1,)]
+
+
+# ----------------------------------------------------------------------------- storage
+
+
+def _awkward_floats() -> list[float]:
+    """Sixteen values that a lossy float path would change: extremes, -0.0, 0.1 + 0.2..."""
+    rng = np.random.default_rng(7)
+    special = [5e-324, 2.2250738585072014e-308, 1.7976931348623157e308, -0.0, 0.1 + 0.2,
+               1 / 3, -np.pi, 1e-300]
+    return special + [float(v) for v in rng.normal(size=8) * 1e3]
+
+
+def _fill(store: Store) -> str:
+    """The same session and poses, whichever backend ``store`` is on."""
+    values = _awkward_floats()
+    record = store.create_session("owner-a", "Ünïcode ✓ \"quoted\" 'name'", _calibration(),
+                                  {"seed": 3, "nested": {"list": [1, 2.5, None, True]}},
+                                  {"rate_hz": 200.0}, (64, 48))
+    for index, timestamp in enumerate((0, 1_403_715_273_262_142_976, 2**62, 2**63 - 1)):
+        pose = values[index:] + values[:index]
+        store.add_pose(record.id, PoseRecord(
+            index, timestamp, pose, pose[::-1], values, "ok" if index % 2 else "degraded",
+            matches=2**31 - 1, inliers=index, support=7, timings={"persist": 1.25e-4, "x": 0.1},
+            message="line one\nline two ✓", resumed=index == 2,
+        ))
+    return record.id
+
+
+def test_storage_round_trips_exactly_and_equals_sqlite(
+    cluster: Cluster, database: str, tmp_path: Path
+) -> None:
+    on_postgres = Store.open(cluster.url(database))
+    on_sqlite = Store.open(f"sqlite:///{tmp_path / 'db.sqlite3'}")
+    try:
+        ids = {store: _fill(store) for store in (on_postgres, on_sqlite)}
+        poses = {store: store.poses(sid) for store, sid in ids.items()}
+        assert poses[on_postgres] == poses[on_sqlite]  # dataclass equality: every field
+        stored = poses[on_postgres]
+        assert [p.timestamp_ns for p in stored] == [0, 1_403_715_273_262_142_976, 2**62, 2**63 - 1]
+        assert stored[0].relative_pose == _awkward_floats()
+        assert [np.copysign(1, v) for v in stored[0].pose] == [
+            np.copysign(1, v) for v in _awkward_floats()]  # -0.0 kept its sign
+        sessions = {store: store.get_session(sid, "owner-a") for store, sid in ids.items()}
+        pg_session, sqlite_session = sessions[on_postgres], sessions[on_sqlite]
+        assert pg_session is not None and sqlite_session is not None
+        assert pg_session.created_at.utcoffset() == dt.timedelta(0)
+        assert pg_session.created_at.tzinfo is dt.UTC  # not the database server's zone
+        assert abs(pg_session.created_at - dt.datetime.now(dt.UTC)) < dt.timedelta(minutes=5)
+        for name in ("name", "calibration", "config", "imu_noise", "frame_count",
+                     "last_timestamp_ns", "resume_count", "image_width", "image_height"):
+            assert getattr(pg_session, name) == getattr(sqlite_session, name), name
+        assert pg_session.last_timestamp_ns == 2**63 - 1 and pg_session.frame_count == 4
+        assert on_postgres.get_session(ids[on_postgres], "owner-b") is None
+        assert [s.id for s in on_postgres.list_sessions("owner-a")] == [ids[on_postgres]]
+
+        # A second pose for a stored frame index is refused on both backends.
+        for store, sid in ids.items():
+            with pytest.raises(Exception, match=r"uq_pose_frame|UNIQUE"):
+                store.add_pose(sid, PoseRecord(0, 5, [0.0] * 16, [0.0] * 16, [0.0] * 16, "ok"))
+            assert len(store.poses(sid)) == 4
+
+        # Non-finite numbers are not JSON: refused on both backends, nothing half-stored.
+        for store, sid in ids.items():
+            nan = [float("nan")] * 16
+            with pytest.raises(Exception, match="not JSON compliant"):
+                store.add_pose(sid, PoseRecord(4, 2**63 - 1, nan, nan, nan, "lost"))
+            assert len(store.poses(sid)) == 4
+            assert store.get_session(sid).frame_count == 4  # type: ignore[union-attr]
+
+        # The database restarts under a running service: the next request reconnects.
+        cluster.restart()
+        on_postgres.note_resumed(ids[on_postgres])
+        assert on_postgres.get_session(ids[on_postgres]).resume_count == 1  # type: ignore[union-attr]
+
+        assert on_postgres.delete_session(ids[on_postgres], "owner-a")
+        assert on_postgres.poses(ids[on_postgres]) == []
+        assert cluster.query(database, "SELECT count(*) FROM poses") == [(0,)]
+    finally:
+        on_postgres.close()
+        on_sqlite.close()
+
+
+# ----------------------------------------------------------------------------- real server
+
+
+@dataclass
+class Run:
+    """What one kill-and-restart replay left behind."""
+
+    poses: list[Pose]
+    session: dict
+    tum: str
+    kitti: str
+
+
+def _same_answer(stored: list[Pose], answered: list[Pose]) -> None:
+    """Stored equals answered, bit for bit (timings aside: those are measured per request)."""
+    assert len(stored) == len(answered)
+    for s, a in zip(stored, answered, strict=True):
+        assert (s.index, s.timestamp_ns, s.status, s.matches, s.inliers, s.support,
+                s.message, s.resumed) == (a.index, a.timestamp_ns, a.status, a.matches,
+                                          a.inliers, a.support, a.message, a.resumed)
+        for name in ("pose", "frontend_pose", "relative_pose"):
+            assert getattr(s, name).tolist() == getattr(a, name).tolist(), name
+
+
+def _kill_restart_continue(dataset: Path, folder: Path, *extra: str) -> Run:
+    """Replay FIRST frames, SIGKILL the server, start it again, check, continue MORE frames."""
+    folder.mkdir()
+    data, log = folder / "data", folder / "server.log"
+    first = Server(data, log, *extra)
+    try:
+        result = replay(first.url, dataset, KEY, limit=FIRST, config={"seed": SEED},
+                        progress=False)
+        with Client(first.url, KEY) as client:
+            before = client.get_session(result.session.id)
+    finally:
+        first.kill()  # nothing gets flushed: what was answered must already be committed
+    session_id = result.session.id
+    assert len(result.poses) == FIRST and not result.rejected
+
+    second = Server(data, log, *extra)
+    try:
+        with Client(second.url, KEY) as client:
+            listed = client.list_sessions()
+            assert [s.id for s in listed] == [session_id]
+            assert listed[0].created_at == before.created_at
+            assert listed[0].frame_count == FIRST
+            stored = client.trajectory(session_id)
+        assert isinstance(stored, list)
+        _same_answer(stored, result.poses)
+
+        continued = replay(second.url, dataset, KEY, use_ws=True, limit=MORE,
+                           session_id=session_id, progress=False)
+        assert [p.index for p in continued.poses] == list(range(FIRST, FIRST + MORE))
+        assert continued.poses[0].resumed
+        assert "resumed from the stored pose" in continued.poses[0].message
+        assert not any(p.resumed for p in continued.poses[1:])
+
+        with httpx.Client(base_url=second.url, headers={"Authorization": f"Bearer {KEY}"},
+                          timeout=30) as http:
+            session = http.get(f"/v1/sessions/{session_id}").json()
+            tum = http.get(f"/v1/sessions/{session_id}/trajectory?format=tum")
+            kitti = http.get(f"/v1/sessions/{session_id}/trajectory?format=kitti")
+        assert tum.status_code == 200 and kitti.status_code == 200
+        assert session["frame_count"] == FIRST + MORE and session["resume_count"] == 1
+        with Client(second.url, KEY) as client:
+            everything = client.trajectory(session_id)
+        assert isinstance(everything, list)
+        _same_answer(everything, result.poses + continued.poses)
+        assert second.stop()
+    finally:
+        if second.process.poll() is None:
+            second.kill()
+    assert "Traceback" not in log.read_text(), log.read_text()
+    return Run(everything, session, tum.text, kitti.text)
+
+
+@pytest.mark.slow
+@pytest.mark.euroc
+def test_real_server_on_postgresql_restarts_losing_nothing_and_equals_sqlite(
+    cluster: Cluster, database: str, euroc_v101_micro: Path, tmp_path: Path
+) -> None:
+    on_postgres = _kill_restart_continue(euroc_v101_micro, tmp_path / "postgres",
+                                         "--database-url", cluster.url(database))
+    # Everything went to PostgreSQL: no SQLite file appeared, and the rows are there.
+    assert not (tmp_path / "postgres" / "data" / "swarmvo.sqlite3").exists()
+    assert cluster.query(database, "SELECT count(*), max(frame_index) FROM poses") == [
+        (FIRST + MORE, FIRST + MORE - 1)]
+    assert cluster.query(database, "SELECT frame_count, resume_count FROM sessions") == [
+        (FIRST + MORE, 1)]
+    on_sqlite = _kill_restart_continue(euroc_v101_micro, tmp_path / "sqlite")
+    assert (tmp_path / "sqlite" / "data" / "swarmvo.sqlite3").exists()
+
+    # The created time is UTC on both backends, whatever the database server's zone.
+    for run in (on_postgres, on_sqlite):
+        created = dt.datetime.fromisoformat(run.session["created_at"])
+        assert created.utcoffset() == dt.timedelta(0), run.session["created_at"]
+    assert on_postgres.session["image_width"] == on_sqlite.session["image_width"]
+    assert on_postgres.session["calibration"] == on_sqlite.session["calibration"]
+    assert on_postgres.session["config"] == on_sqlite.session["config"]
+
+    # Same replay, same seed: the same trajectory whichever database stored it.
+    assert [p.timestamp_ns for p in on_postgres.poses] == [p.timestamp_ns for p in on_sqlite.poses]
+    assert [p.status for p in on_postgres.poses] == [p.status for p in on_sqlite.poses]
+    for name in ("pose", "frontend_pose", "relative_pose"):
+        np.testing.assert_allclose(
+            np.array([getattr(p, name) for p in on_postgres.poses]),
+            np.array([getattr(p, name) for p in on_sqlite.poses]), rtol=0, atol=1e-12,
+        )
+    for export in ("tum", "kitti"):
+        pg_rows = np.loadtxt(getattr(on_postgres, export).splitlines(), ndmin=2)
+        sqlite_rows = np.loadtxt(getattr(on_sqlite, export).splitlines(), ndmin=2)
+        assert pg_rows.shape == sqlite_rows.shape == (FIRST + MORE, 8 if export == "tum" else 12)
+        np.testing.assert_allclose(pg_rows, sqlite_rows, rtol=0, atol=1e-12)
