@@ -244,7 +244,10 @@ def test_stereo_disparities_in_a_rendered_hall_are_unbiased(subpixel: str) -> No
         "distortion_model": "none", "distortion": [],
     }  # fmt: skip
     rig = StereoRig.from_dict(
-        {"left": {**camera, "T_BS": T_BS_CAM0.tolist()}, "right": {**camera, "T_BS": T_BS_CAM1.tolist()}}
+        {
+            "left": {**camera, "T_BS": T_BS_CAM0.tolist()},
+            "right": {**camera, "T_BS": T_BS_CAM1.tolist()},
+        }
     )
     config = FrontendConfig(subpixel=subpixel)
     detector = FeatureDetector(config)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from functools import cache
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -129,7 +130,7 @@ def test_rendered_flight_rotation_errors_are_noise_not_a_bias() -> None:
     keyframes = sorted(set(references))
     estimate = np.array(poses)
     errors = []
-    for a, b in zip(keyframes[:-1], keyframes[1:], strict=True):
+    for a, b in pairwise(keyframes):
         measured = invert_pose(estimate[a]) @ estimate[b]
         error = invert_pose(invert_pose(truth[a]) @ truth[b]) @ measured
         errors.append(Rotation.from_matrix(error[:3, :3]).as_rotvec())

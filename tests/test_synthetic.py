@@ -190,7 +190,9 @@ def test_rendered_images_agree_with_the_calibration_to_sub_pixel(rendered):
         edges = cv2.dilate(
             (cv2.Laplacian(inv_depth, cv2.CV_32F) ** 2 > 1e-8).astype(np.uint8), np.ones((15, 15))
         )
-        keep = (inv_depth[pixels[:, 1], pixels[:, 0]] > 0) & (edges[pixels[:, 1], pixels[:, 0]] == 0)
+        keep = (inv_depth[pixels[:, 1], pixels[:, 0]] > 0) & (
+            edges[pixels[:, 1], pixels[:, 0]] == 0
+        )
         pixels = pixels[keep].astype(float)
         depth = 1.0 / inv_depth[pixels[:, 1].astype(int), pixels[:, 0].astype(int)]
         points = np.column_stack(
