@@ -465,13 +465,13 @@ def test_full_fit_covariance_lets_the_gyro_correct_the_translation_too():
 # ----------------------------------------------------------------------------- keyframes
 
 
-def _keyframe_run(poses, stamps, span: int, config: BackendConfig, reference_age: int = 0):
-    """Perfect keyframe measurements: frame k against the last multiple of ``span`` before it."""
+def _keyframe_run(poses, stamps, reference_of, config: BackendConfig):
+    """Perfect keyframe measurements: frame k measured against frame ``reference_of(k)``."""
     camera = poses @ BODY_FROM_CAMERA
     backend = FusionBackend(config, BODY_FROM_CAMERA, None)
     out = [backend.add_frame(int(stamps[0]), None, None, 0, None)]
     for k in range(1, len(stamps)):
-        reference = max((k - 1) // span * span - reference_age, 0)
+        reference = reference_of(k)
         out.append(
             backend.add_frame(
                 int(stamps[k]),
@@ -490,7 +490,12 @@ def test_keyframe_measurements_are_tied_to_their_reference(span):
     # Inverse and product of the same poses fed back as initial values: orthonormal only to
     # rounding, a deviation that compounded from frame to frame until the graph diverged.
     scenario = smooth_trajectory(120, seed=23)
-    out = _keyframe_run(scenario.body_poses, scenario.timestamps_ns, span, BackendConfig())
+    out = _keyframe_run(
+        scenario.body_poses,
+        scenario.timestamps_ns,
+        lambda k: (k - 1) // span * span,  # the last multiple of span before k
+        BackendConfig(),
+    )
     truth = _relative_to_first(scenario.body_poses @ BODY_FROM_CAMERA)
     error = _relative_to_first(_poses(out))[:, :3, 3] - truth[:, :3, 3]
     assert np.abs(error).max() < 1e-6
@@ -501,22 +506,13 @@ def test_a_reference_older_than_the_lag_is_reached_through_its_last_estimate():
     # The reference (30 frames = 1.5 s back) has left the window: the measurement is chained
     # through the previous frame with the reference's remembered pose, and stays exact.
     scenario = smooth_trajectory(80, seed=24)
-    stamps = scenario.timestamps_ns
     camera = scenario.body_poses @ BODY_FROM_CAMERA
-    backend = FusionBackend(BackendConfig(), BODY_FROM_CAMERA, None)
-    out = [backend.add_frame(int(stamps[0]), None, None, 0, None)]
-    for k in range(1, len(stamps)):
-        reference = 10 if 10 < k < 45 else k - 1  # frames 11..44 are measured against 10
-        out.append(
-            backend.add_frame(
-                int(stamps[k]),
-                invert_pose(camera[reference]) @ camera[k],
-                np.full(150, 0.02),
-                150,
-                None,
-                reference_ns=int(stamps[reference]),
-            )
-        )
+    out = _keyframe_run(
+        scenario.body_poses,
+        scenario.timestamps_ns,
+        lambda k: 10 if 10 < k < 45 else k - 1,  # frames 11..44 are measured against 10
+        BackendConfig(),
+    )
     error = _relative_to_first(_poses(out))[:, :3, 3] - _relative_to_first(camera)[:, :3, 3]
     assert np.abs(error).max() < 1e-6
     assert all(o.status is FrameStatus.OK for o in out)

@@ -33,7 +33,7 @@ import httpx
 import numpy as np
 import pytest
 from swarmvo_client import Client, Pose, replay
-from test_service_server import KEY, SEED, Server
+from test_service_server import KEY, SEED, Server, process_alive
 
 from service.storage import PoseRecord, Store
 
@@ -65,14 +65,6 @@ def _server_binaries() -> Path | None:
     if pg_ctl and (Path(pg_ctl).parent / "initdb").exists():
         return Path(pg_ctl).parent
     return None
-
-
-def _alive(pid: int) -> bool:
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return False
-    return fields[0] != "Z"
 
 
 class Cluster:
@@ -124,10 +116,10 @@ class Cluster:
             return
         with contextlib.suppress(RuntimeError, subprocess.TimeoutExpired):
             self._run("pg_ctl", "-D", str(self.data), "-m", "fast", "-w", "-t", "30", "stop")
-        if self.postmaster is not None and _alive(self.postmaster):
+        if self.postmaster is not None and process_alive(self.postmaster):
             os.kill(self.postmaster, signal.SIGQUIT)  # immediate shutdown of all backends
             deadline = time.monotonic() + 10
-            while _alive(self.postmaster) and time.monotonic() < deadline:
+            while process_alive(self.postmaster) and time.monotonic() < deadline:
                 time.sleep(0.05)
 
     def restart(self) -> None:
@@ -172,7 +164,7 @@ def cluster() -> Iterator[Cluster]:
         yield running
     finally:
         running.remove()
-    assert running.postmaster is not None and not _alive(running.postmaster)
+    assert running.postmaster is not None and not process_alive(running.postmaster)
     assert not running.root.exists()
 
 

@@ -111,7 +111,7 @@ class Server:
         return pids
 
 
-def _alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
     """Running (a zombie waiting to be reaped by init counts as gone)."""
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -206,9 +206,9 @@ def test_restart_mid_sequence_loses_nothing_and_resumes(
     # The worker processes notice that their server is gone and exit: no orphans.
     assert len(workers) >= 2
     deadline = time.monotonic() + 15
-    while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
+    while any(process_alive(pid) for pid in workers) and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert not any(_alive(pid) for pid in workers)
+    assert not any(process_alive(pid) for pid in workers)
 
     second = Server(data, log)
     try:

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from test_service_server import process_alive
 
 from estimator.types import FrameReport, FrameStatus, ImuBatch, StereoFrame
 from service.app import create_app
@@ -788,18 +789,11 @@ def test_a_stuck_worker_is_killed_after_the_frame_timeout(tmp_path: Path) -> Non
         stuck = send(c, sid, 777)
         assert stuck.status_code == 503 and "not done after 5 s" in stuck.json()["detail"]
         assert time.monotonic() - started < 30
-        assert not _alive(_pid(first))
+        assert not process_alive(_pid(first))
         again = send(c, sid, 20)
         assert again.status_code == 200, again.text
         assert again.json()["resumed"] is True and again.json()["index"] == 1
         assert 'swarmvo_errors_total{kind="worker_timeout"} 1.0' in c.get("/metrics").text
-
-
-def _alive(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
 
 
 def test_process_mode_refuses_to_start_with_a_factory_it_cannot_send(tmp_path: Path) -> None:

@@ -44,16 +44,7 @@ class FrameStream:
         self, timestamp_ns: int, left: bytes, right: bytes, imu: ImuData | None = None
     ) -> None:
         """Header as JSON, then both encoded images in one binary message."""
-        header: dict[str, Any] = {
-            "type": "frame",
-            "timestamp_ns": int(timestamp_ns),
-            "left_bytes": len(left),
-            "right_bytes": len(right),
-        }
-        if imu is not None and len(imu):
-            header["imu"] = imu.to_samples()
-        await self.connection.send(json.dumps(header))
-        await self.connection.send(left + right)
+        await self._send_frame({"timestamp_ns": int(timestamp_ns)}, left, right, imu)
 
     async def send_raw_frame(
         self,
@@ -71,18 +62,22 @@ class FrameStream:
         """
         if len(left) != width * height or len(right) != width * height:
             raise ValueError(f"raw8 images must be width*height = {width * height} bytes each")
-        header: dict[str, Any] = {
-            "type": "frame",
+        header = {
             "timestamp_ns": int(timestamp_ns),
             "encoding": "raw8",
             "width": int(width),
             "height": int(height),
-            "left_bytes": len(left),
-            "right_bytes": len(right),
         }
+        await self._send_frame(header, left, right, imu)
+
+    async def _send_frame(
+        self, header: dict[str, Any], left: bytes, right: bytes, imu: ImuData | None
+    ) -> None:
+        """The JSON header (with the payload sizes and IMU), then both images in one message."""
+        message = {"type": "frame", **header, "left_bytes": len(left), "right_bytes": len(right)}
         if imu is not None and len(imu):
-            header["imu"] = imu.to_samples()
-        await self.connection.send(json.dumps(header))
+            message["imu"] = imu.to_samples()
+        await self.connection.send(json.dumps(message))
         await self.connection.send(left + right)
 
     async def send_imu(self, imu: ImuData) -> None:
