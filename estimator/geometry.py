@@ -29,6 +29,7 @@ __all__ = [
     "quat_to_rotation_vector",
     "rotation_angle_deg",
     "rotation_vector_to_quat",
+    "skew",
     "transform_points",
     "wahba",
 ]
@@ -123,6 +124,16 @@ def quat_to_rotation_vector(q: np.ndarray) -> np.ndarray:
     small = sin_half < 1e-12
     scale = np.where(small, 2.0, angle / np.where(small, 1.0, sin_half))
     return vec * scale
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices [v]x (skew(a) @ b == a x b), broadcast over leading axes."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
 
 
 # ----------------------------------------------------------------------------- SE(3)

@@ -1,11 +1,12 @@
 """The stereo odometry pipeline: one stereo frame in, one pose report out.
 
 Per frame: rectify -> detect -> match stereo -> triangulate -> match in time -> estimate the
-relative pose by rigid 3D-3D registration -> chain it onto the reference pose -> fuse with the
-IMU in the back end. Frames are matched against a *reference*: by default a keyframe that is
-kept while the view still overlaps well, so that standing still (or hovering) measures the same
-relative pose again and again instead of integrating frame-to-frame noise into a creeping drift;
-``frontend.tracking = "frame"`` matches against the previous frame instead.
+relative pose by rigid 3D-3D registration (optionally refined on its inliers with the full
+stereo point covariances, ``registration.mahalanobis_refine``) -> chain it onto the reference
+pose -> fuse with the IMU in the back end. Frames are matched against a *reference*: by default
+a keyframe that is kept while the view still overlaps well, so that standing still (or hovering)
+measures the same relative pose again and again instead of integrating frame-to-frame noise into
+a creeping drift; ``frontend.tracking = "frame"`` matches against the previous frame instead.
 
 Geometry runs in the rectified left camera frame; reported poses are of the original
 (unrectified) left camera, so the relative pose is conjugated by the rectifying rotation.
@@ -30,8 +31,9 @@ from estimator.calibration import StereoRig
 from estimator.config import SwarmvoConfig
 from estimator.features import FeatureDetector
 from estimator.geometry import invert_pose, make_pose, rotation_angle_deg, transform_points
+from estimator.refine import refine_pose_mahalanobis
 from estimator.registration import RegistrationResult, register
-from estimator.stereo import StereoMatcher, StereoPoints
+from estimator.stereo import StereoMatcher, StereoPoints, point_covariances
 from estimator.temporal import Correspondences, match_temporal
 from estimator.types import FrameReport, FrameStatus, ImuBatch, ImuNoise, StereoFrame
 
@@ -93,6 +95,8 @@ class _Estimate:
     message: str
     pairs: Correspondences | None = None
     reference: _Reference | None = None  # the frame it was measured against
+    # 6x6 of (rotation, translation), right perturbation, when the pose was refined.
+    covariance: np.ndarray | None = None
 
 
 class Odometry:
@@ -253,6 +257,8 @@ class Odometry:
             )
         with _stage(timings, "estimate"):
             estimate = self._estimate(pairs, _pair_sigmas(reference.points, points, pairs))
+            if self.config.registration.mahalanobis_refine:
+                estimate = self._refine(estimate, pairs)
         estimate.pairs, estimate.reference = pairs, reference
         return estimate
 
@@ -289,6 +295,33 @@ class Odometry:
             )
         pose = make_pose(result.rotation, result.translation)
         return _Estimate(pose, result, "")
+
+    def _refine(self, estimate: _Estimate, correspondences: Correspondences) -> _Estimate:
+        """Maximum-likelihood pose on the registration inliers, each point weighed by its full
+        stereo covariance (uncertain along the ray); the inlier set stays the estimator's.
+        When the refinement cannot improve on the registration its pose is kept."""
+        if estimate.reference_from_current is None or estimate.result is None:
+            return estimate
+        frontend, registration = self.config.frontend, self.config.registration
+        inliers = estimate.result.inliers
+        current = correspondences.current_points[inliers]
+        reference = correspondences.reference_points[inliers]
+        noise = (frontend.pixel_sigma_u_px, frontend.pixel_sigma_v_px, frontend.disparity_sigma_px)
+        refined = refine_pose_mahalanobis(
+            current,
+            reference,
+            point_covariances(current, self.rectification, *noise),
+            point_covariances(reference, self.rectification, *noise),
+            estimate.reference_from_current[:3, :3],
+            estimate.reference_from_current[:3, 3],
+            iterations=registration.refine_iterations,
+            robust=registration.refine_robust,
+            robust_scale=registration.refine_robust_scale,
+        )
+        if refined.success:
+            estimate.reference_from_current = make_pose(refined.rotation, refined.translation)
+            estimate.covariance = refined.covariance
+        return estimate
 
     def _chain(self, estimate: _Estimate) -> tuple[np.ndarray, FrameStatus, str]:
         """pose_k = pose_ref @ T_ref_cur (paper eq. 2), in the original left camera frame."""
@@ -329,6 +362,7 @@ class Odometry:
         measured: np.ndarray | None = None
         reference_ns = None
         points = None
+        covariance = None
         if first:
             measured = relative_pose
         elif not failed:
@@ -340,6 +374,7 @@ class Odometry:
             measured = self._reference_from_current(estimate)
             reference_ns = estimate.reference.timestamp_ns
             points = self._inlier_points(estimate)
+            covariance = self._measurement_covariance(estimate)
         fused = self._backend.add_frame(
             int(frame.timestamp_ns),
             relative_pose=measured,
@@ -348,6 +383,7 @@ class Odometry:
             imu=imu,
             reference_ns=reference_ns,
             inlier_points=points,
+            covariance=covariance,
         )
         if first:
             self._world_from_backend = self._pose @ invert_pose(fused.pose)
@@ -355,6 +391,19 @@ class Odometry:
                 self._world_from_backend = np.eye(4)
         text = "; ".join(part for part in (message, fused.message) if part)
         return self._world_from_backend @ fused.pose, fused.status, text
+
+    def _measurement_covariance(self, estimate: _Estimate) -> np.ndarray | None:
+        """The refinement's 6x6 covariance, rotated from the rectified into the camera frame.
+
+        The rectifying transform is a pure rotation, whose adjoint rotates both the rotation and
+        the translation block of the (right-perturbation) tangent.
+        """
+        if estimate.covariance is None:
+            return None
+        rotation = self._camera_from_rect[:3, :3]
+        adjoint = np.zeros((6, 6))
+        adjoint[:3, :3] = adjoint[3:, 3:] = rotation
+        return adjoint @ estimate.covariance @ adjoint.T
 
     def _reference_from_current(self, estimate: _Estimate) -> np.ndarray:
         """T_ref_cur of the original left camera (the estimate is in rectified frames)."""

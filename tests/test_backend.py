@@ -591,3 +591,46 @@ def test_static_initialisation_is_skipped_when_the_imu_moves_before_the_first_fr
     without = _run(scenario, measurements, BackendConfig(static_init=False))
     assert "IMU not at rest before frame 0" in with_init[0].message
     np.testing.assert_array_equal(_poses(with_init), _poses(without))
+
+
+def _yaw_biased_run(rotation_sigma: float) -> float:
+    """Final heading error (deg) when every vision step turns 0.05 deg too far about the
+    camera z axis, with a perfect gyro, given the vision covariance the front end reports."""
+    scenario = smooth_trajectory(60, seed=1, noise=PERFECT_IMU, initial_bias=(0.0, 0.0, 0.0))
+    camera = scenario.body_poses @ BODY_FROM_CAMERA
+    error = make_pose(Rotation.from_euler("z", 0.05, degrees=True).as_matrix(), [0, 0, 0])
+    covariance = np.diag([rotation_sigma**2] * 3 + [1e-3**2] * 3)
+    backend = FusionBackend(BackendConfig(), BODY_FROM_CAMERA, ImuNoise())
+    stamps = scenario.timestamps_ns
+    out = []
+    for k in range(len(stamps)):
+        start = stamps[k - 1] if k else stamps[0] - 10**9
+        measured = None if k == 0 else invert_pose(camera[k - 1]) @ camera[k] @ error
+        out.append(
+            backend.add_frame(
+                int(stamps[k]), measured, None, 150,
+                scenario.imu.between(int(start), int(stamps[k])),
+                covariance=None if k == 0 else covariance,
+            )
+        )  # fmt: skip
+    final = invert_pose(_relative_to_first(_poses(out))[-1]) @ _relative_to_first(camera)[-1]
+    return float(rotation_angle_deg(final[:3, :3]))
+
+
+def test_a_front_end_covariance_sets_the_weight_of_its_measurement():
+    # Trusted vision (0.001 deg) carries its whole 59 x 0.05 deg turn into the result
+    # (measured 2.94 deg); distrusted vision (1 deg) leaves more of the heading to the gyro
+    # (measured 1.61 deg; the online bias still absorbs part of the turn). Ignoring the
+    # covariance would give both runs the same result.
+    trusted, distrusted = _yaw_biased_run(np.radians(0.001)), _yaw_biased_run(np.radians(1.0))
+    assert trusted > 2.5, trusted
+    assert distrusted < 0.7 * trusted, (trusted, distrusted)
+
+
+def test_a_front_end_covariance_must_be_a_finite_6x6():
+    backend = FusionBackend(BackendConfig(), np.eye(4), None)
+    backend.add_frame(100, None, None, 0, None)
+    with pytest.raises(ValueError, match="6x6"):
+        backend.add_frame(200, np.eye(4), None, 10, None, covariance=np.eye(3))
+    with pytest.raises(ValueError, match="6x6"):
+        backend.add_frame(200, np.eye(4), None, 10, None, covariance=np.full((6, 6), np.nan))

@@ -194,6 +194,7 @@ class FusionBackend:
         imu: ImuBatch | None,
         reference_ns: int | None = None,
         inlier_points: np.ndarray | None = None,
+        covariance: np.ndarray | None = None,
     ) -> FusedEstimate:
         """Add frame ``timestamp_ns``; ``relative_pose`` is the front-end T_ref_cur (camera).
 
@@ -203,6 +204,9 @@ class FusionBackend:
         ``inlier_points`` (N, 3), the registration inliers in the current left camera frame,
         give the relative pose its full covariance (rotation and translation errors of a fit
         are strongly correlated); without them it gets the diagonal one from the residuals.
+        ``covariance`` (6, 6), the relative pose's own covariance in the camera frame (GTSAM
+        tangent, right perturbation) when the front end computed one (the Mahalanobis
+        refinement), takes precedence over both.
         """
         timestamp_ns = int(timestamp_ns)
         if self._index >= 0 and timestamp_ns <= self._last_ns:
@@ -211,10 +215,13 @@ class FusionBackend:
             )
         if inlier_count < 0:
             raise ValueError(f"inlier_count must be >= 0, got {inlier_count}")
-        covariance = None
-        if relative_pose is not None:
+        if relative_pose is None:
+            covariance = None
+        else:
             relative_pose = _check_pose("relative_pose", relative_pose)
-            if inlier_points is not None and len(inlier_points) > 0:
+            if covariance is not None:
+                covariance = _measured_covariance(covariance, self.config)
+            elif inlier_points is not None and len(inlier_points) > 0:
                 covariance = fit_covariance(inlier_points, inlier_residuals, self.config)
             else:
                 sigmas = relative_pose_sigmas(inlier_residuals, inlier_count, self.config)
@@ -642,3 +649,13 @@ class FusionBackend:
         self._frames[timestamp_ns] = (index, body_pose)
         while self._frames and next(iter(self._frames.values()))[0] < self._oldest_reference:
             self._frames.popitem(last=False)
+
+
+def _measured_covariance(covariance: np.ndarray, config: BackendConfig) -> np.ndarray:
+    """A front-end covariance checked, symmetrised and floored like the fitted ones."""
+    covariance = np.asarray(covariance, dtype=float)
+    if covariance.shape != (6, 6) or not np.all(np.isfinite(covariance)):
+        raise ValueError("covariance must be a finite 6x6 matrix")
+    floor = [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
+    covariance = config.fit_covariance_scale**2 * covariance + np.diag(floor)
+    return 0.5 * (covariance + covariance.T)
