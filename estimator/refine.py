@@ -35,6 +35,10 @@ _STEP_TOLERANCE = 1e-6  # rad / m: converged, far below any stereo noise
 # A rejected step this small is the limit of Gauss-Newton with the covariances frozen in the
 # linearisation (they depend on R), not a sign that damping would help: stop there.
 _SETTLED_STEP = 1e-5
+_CHI2_3_MEDIAN = 2.365974  # median of a chi-square variable with 3 degrees of freedom
+# The variance factor is a sample estimate: bounded so that a handful of pairs cannot claim an
+# absurdly small or large covariance.
+_MIN_VARIANCE_FACTOR, _MAX_VARIANCE_FACTOR = 1e-3, 1e3
 
 
 @dataclass
@@ -43,12 +47,16 @@ class RefinementResult:
 
     rotation: np.ndarray  # (3, 3)
     translation: np.ndarray  # (3,)
-    covariance: np.ndarray | None  # (6, 6) of (omega, v), right perturbation; None on failure
+    # (6, 6) of (omega, v), right perturbation, scaled by ``variance_factor``; None on failure
+    covariance: np.ndarray | None
     success: bool
     iterations: int
     initial_cost: float
     final_cost: float
     message: str = ""
+    # A posteriori variance factor: how much larger (or smaller) the residuals are than the
+    # point covariances predict (1 when they are right; robust: from the median distance).
+    variance_factor: float = 1.0
 
 
 @dataclass
@@ -56,6 +64,7 @@ class _Linearisation:
     cost: float
     hessian: np.ndarray  # (6, 6)
     gradient: np.ndarray  # (6,)
+    squared: np.ndarray  # (N,) squared Mahalanobis distances of the pairs
 
 
 def _robust(squared: np.ndarray, kind: Robust, scale: float) -> tuple[np.ndarray, np.ndarray]:
@@ -121,7 +130,7 @@ def _linearise(
     weighted = weighted.reshape(3 * n, 6)
     hessian = jacobian.reshape(3 * n, 6).T @ weighted
     gradient = weighted.T @ residual.reshape(3 * n)
-    return _Linearisation(float(rho.sum()), hessian, gradient)
+    return _Linearisation(float(rho.sum()), hessian, gradient, squared)
 
 
 def _exp(omega: np.ndarray) -> np.ndarray:
@@ -230,8 +239,15 @@ def refine_pose_mahalanobis(
         return unchanged("the cost rose", initial_cost)
     if _condition(current.hessian) > _MAX_CONDITION:
         return unchanged("ill-conditioned: the pairs do not fix all six degrees", initial_cost)
-    covariance = np.linalg.inv(current.hessian)
+    # The point covariances come from nominal pixel and disparity sigmas; the residuals say how
+    # large the noise really was. Scaling by the robust variance factor (median squared
+    # distance over the median of chi-square with 3 degrees of freedom) makes the covariance
+    # match this frame's data, so a consumer weighs it neither too much nor too little.
+    variance_factor = float(np.median(current.squared) / _CHI2_3_MEDIAN)
+    variance_factor = min(max(variance_factor, _MIN_VARIANCE_FACTOR), _MAX_VARIANCE_FACTOR)
+    covariance = variance_factor * np.linalg.inv(current.hessian)
     covariance = 0.5 * (covariance + covariance.T)
     return RefinementResult(
-        estimate_r, estimate_t, covariance, True, steps, initial_cost, current.cost
-    )
+        estimate_r, estimate_t, covariance, True, steps, initial_cost, current.cost,
+        variance_factor=variance_factor,
+    )  # fmt: skip
