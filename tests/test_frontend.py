@@ -205,11 +205,15 @@ def test_triangulate_recovers_projected_points() -> None:
     np.testing.assert_allclose(recovered, points, rtol=1e-12, atol=1e-12)
 
 
+def _random_stereo(seed: int, count: int):
+    """The test rig's rectification with random pixels and disparities of 2-60 px."""
+    rng = np.random.default_rng(seed)
+    pixels = rng.uniform([0, 0], [WIDTH, HEIGHT], size=(count, 2))
+    return _rig().rectification, pixels, rng.uniform(2.0, 60.0, count)
+
+
 def test_triangulation_jacobian_matches_finite_differences() -> None:
-    rect = _rig().rectification
-    rng = np.random.default_rng(11)
-    pixels = rng.uniform([0, 0], [WIDTH, HEIGHT], size=(40, 2))
-    disparity = rng.uniform(2.0, 60.0, 40)
+    rect, pixels, disparity = _random_stereo(11, 40)
     jacobian = triangulation_jacobian(pixels, disparity, rect)
     step = 1e-4
     numeric = np.empty_like(jacobian)
@@ -222,10 +226,7 @@ def test_triangulation_jacobian_matches_finite_differences() -> None:
 
 
 def test_point_covariances_propagate_pixel_and_disparity_noise() -> None:
-    rect = _rig().rectification
-    rng = np.random.default_rng(12)
-    pixels = rng.uniform([0, 0], [WIDTH, HEIGHT], size=(30, 2))
-    disparity = rng.uniform(2.0, 60.0, 30)
+    rect, pixels, disparity = _random_stereo(12, 30)
     points = triangulate(pixels, disparity, rect)
     sigmas = (0.3, 0.2, 0.5)
     covariance = point_covariances(points, rect, *sigmas)
