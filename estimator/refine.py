@@ -22,7 +22,7 @@ from typing import Literal
 
 import numpy as np
 
-from estimator.geometry import skew
+from estimator.geometry import quat_to_matrix, rotation_vector_to_quat, skew
 
 __all__ = ["RefinementResult", "refine_pose_mahalanobis"]
 
@@ -133,15 +133,6 @@ def _linearise(
     return _Linearisation(float(rho.sum()), hessian, gradient, squared)
 
 
-def _exp(omega: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector (Rodrigues; the series near zero keeps it exact)."""
-    angle = float(np.sqrt(omega @ omega))
-    k = skew(omega)
-    if angle < 1e-6:
-        return np.eye(3) + k + 0.5 * (k @ k)
-    return np.eye(3) + np.sin(angle) / angle * k + (1.0 - np.cos(angle)) / angle**2 * (k @ k)
-
-
 def _condition(hessian: np.ndarray) -> float:
     """Condition number after Jacobi scaling (radians and metres are not comparable units)."""
     diagonal = np.diag(hessian)
@@ -219,7 +210,7 @@ def refine_pose_mahalanobis(
             break  # converged; evaluating a smaller step would only compare rounding errors
         candidate = None
         if np.isfinite(step).all():
-            candidate_r = estimate_r @ _exp(step[:3])
+            candidate_r = estimate_r @ quat_to_matrix(rotation_vector_to_quat(step[:3]))
             candidate_t = estimate_t + estimate_r @ step[3:]
             try:
                 candidate = _linearise(*data, candidate_r, candidate_t, robust, robust_scale)

@@ -20,6 +20,7 @@ import gtsam
 import numpy as np
 
 from estimator.config import BackendConfig
+from estimator.geometry import skew
 
 __all__ = ["fit_covariance", "pose_noise", "relative_pose_sigmas", "robust", "sigma_covariance"]
 
@@ -67,9 +68,7 @@ def fit_covariance(
     variance = _residual_variance(residuals, config)
     variance = max(variance, 1e-12)
     total = points.sum(axis=0)
-    cross = np.array(
-        [[0.0, -total[2], total[1]], [total[2], 0.0, -total[0]], [-total[1], total[0], 0.0]]
-    )
+    cross = skew(total)
     information = np.zeros((6, 6))
     information[:3, :3] = np.sum(points**2) * np.eye(3) - points.T @ points
     information[:3, 3:] = cross
