@@ -19,6 +19,7 @@ near plane are rejected by the same test, which is the near-plane clipping.
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -113,6 +114,8 @@ class SynthOptions:
         if abs(ratio - round(ratio)) > 1e-9:
             raise ValueError(f"imu_rate_hz ({self.imu_rate_hz}) must be a multiple of fps")
         for name in ("noise", "brightness", "blur", "imu_noise_scale", "standstill_s"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"{name} must be a finite number, got {getattr(self, name)}")
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.brightness >= 1.0:

@@ -335,7 +335,10 @@ def test_large_loop_keeps_clear_of_the_pillars():
 
 @pytest.mark.parametrize(
     ("field", "value"),
-    [("frames", 1), ("length_m", 0.0), ("noise", -1.0), ("blur", 2.0), ("broken_fraction", 0.9)],
+    [
+        ("frames", 1), ("length_m", 0.0), ("noise", -1.0), ("blur", 2.0),
+        ("broken_fraction", 0.9), ("standstill_s", float("nan")), ("standstill_s", 61.0),
+    ],
 )
 def test_bad_options_are_rejected(tmp_path, field, value):
     with pytest.raises(ValueError, match=field.split("_")[0]):

@@ -424,6 +424,8 @@ def bench_pipeline(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
 def run(args: argparse.Namespace) -> int:
     if args.frames < 10:
         raise ValueError(f"--frames must be at least 10, got {args.frames}")
+    if not 0.0 <= args.standstill_s <= 60.0:  # also refuses NaN, before anything is written
+        raise ValueError(f"--standstill-s must be in [0, 60] s, got {args.standstill_s}")
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     parts = {"gyro": bench_gyro, "simulated": bench_simulated, "pipeline": bench_pipeline}
