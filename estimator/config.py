@@ -12,7 +12,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # Unknown keys and non-finite numbers are input errors, not settings.
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class RegistrationConfig(_Section):

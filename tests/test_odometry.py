@@ -432,3 +432,16 @@ def test_bad_initial_pose() -> None:
         Odometry(_flat_rig(), initial_pose=np.eye(3))
     with pytest.raises(ValueError, match="rigid"):
         Odometry(_flat_rig(), initial_pose=np.diag([1.0, 1.0, 2.0, 1.0]))
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        {"frontend": {"pixel_sigma_u_px": float("inf")}},
+        {"backend": {"rest_z": float("nan")}},
+        {"registration": {"no_such_option": 1}},
+    ],
+)
+def test_config_refuses_unknown_keys_and_non_finite_numbers(overrides) -> None:
+    with pytest.raises(ValueError, match=r"finite|Extra inputs"):
+        SwarmvoConfig(**overrides)
