@@ -20,6 +20,7 @@ __all__ = [
     "kabsch_batched",
     "make_pose",
     "matrix_to_quat",
+    "nearest_rigid",
     "quat_conjugate",
     "quat_multiply",
     "quat_normalize",
@@ -156,6 +157,19 @@ def invert_pose(pose: np.ndarray) -> np.ndarray:
     inverse[..., :3, 3] = -np.einsum("...ji,...j->...i", rotation, translation)
     inverse[..., 3, 3] = 1.0
     return inverse
+
+
+def nearest_rigid(pose: np.ndarray) -> np.ndarray:
+    """``pose`` with its rotation block projected onto SO(3) (closest in Frobenius norm).
+
+    Products of poses, or transforms printed with a few digits, are orthonormal only to
+    rounding; fed back into a chain or a graph, that deviation compounds.
+    """
+    rigid = np.array(pose, dtype=float).reshape(4, 4)
+    u, _, vt = np.linalg.svd(rigid[:3, :3])
+    rigid[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    rigid[3] = (0.0, 0.0, 0.0, 1.0)
+    return rigid
 
 
 def compose(*poses: np.ndarray) -> np.ndarray:

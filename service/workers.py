@@ -36,6 +36,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from estimator.geometry import nearest_rigid
 from estimator.types import ImuBatch, StereoFrame
 from service.images import ImageError, ImageLimits, decode_pair, decode_raw_pair
 from service.pipeline import Pipeline, PipelineFactory, PreparedSession
@@ -99,17 +100,6 @@ class FrameFailure:
 
 def _flat(matrix: np.ndarray) -> list[float]:
     return [float(v) for v in np.asarray(matrix, dtype=float).reshape(16)]
-
-
-def nearest_rigid(pose: np.ndarray) -> np.ndarray:
-    """The rigid transform closest to ``pose``: rotation block projected onto SO(3)."""
-    matrix = np.array(pose, dtype=float).reshape(4, 4)
-    u, _, vt = np.linalg.svd(matrix[:3, :3])
-    if np.linalg.det(u @ vt) < 0:
-        u[:, -1] *= -1
-    matrix[:3, :3] = u @ vt
-    matrix[3] = (0.0, 0.0, 0.0, 1.0)
-    return matrix
 
 
 def compute_frame(

@@ -112,3 +112,16 @@ def test_horn_agrees_with_kabsch_and_returns_a_unit_quaternion() -> None:
         np.testing.assert_allclose(g.quat_to_matrix(quaternion), rotation, atol=1e-12)
         np.testing.assert_allclose(rotation, expected_rotation, atol=1e-9)
         np.testing.assert_allclose(translation, expected_translation, atol=1e-9)
+
+
+def test_nearest_rigid_projects_onto_se3_and_keeps_rigid_poses():
+    rng = np.random.default_rng(3)
+    pose = g.make_pose(Rotation.random(random_state=4).as_matrix(), [1.0, -2.0, 0.5])
+    np.testing.assert_allclose(g.nearest_rigid(pose), pose, atol=1e-12)
+    noisy = pose + np.vstack([rng.normal(scale=1e-4, size=(3, 4)), np.zeros((1, 4))])
+    rigid = g.nearest_rigid(noisy)
+    np.testing.assert_allclose(rigid[:3, :3] @ rigid[:3, :3].T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(rigid[:3, :3]) > 0
+    np.testing.assert_allclose(rigid[:3, 3], noisy[:3, 3])
+    assert g.rotation_angle_deg(rigid[:3, :3].T @ pose[:3, :3]) < 0.05
+    np.testing.assert_array_equal(rigid[3], [0, 0, 0, 1])

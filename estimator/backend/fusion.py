@@ -52,7 +52,7 @@ from estimator.backend.noise import (
 )
 from estimator.backend.rest import RestWindow, at_rest
 from estimator.config import BackendConfig
-from estimator.geometry import invert_pose, make_pose
+from estimator.geometry import invert_pose, make_pose, nearest_rigid
 from estimator.types import FrameStatus, ImuBatch, ImuNoise
 
 __all__ = ["FusedEstimate", "FusionBackend"]
@@ -95,19 +95,6 @@ class FusedEstimate:
     body_motion: np.ndarray | None = None
 
 
-def _rigid(pose: np.ndarray) -> np.ndarray:
-    """``pose`` with its rotation block projected onto SO(3).
-
-    Products such as inv(X_prev) X_ref T (the gate) or a calibration's T_BS are orthonormal
-    only to rounding (or to the printed digits); fed back as initial values, that deviation
-    compounds from frame to frame, so everything entering the graph is projected.
-    """
-    u, _, vt = np.linalg.svd(pose[:3, :3])
-    rigid = pose.copy()
-    rigid[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    return rigid
-
-
 def _check_pose(name: str, pose: np.ndarray) -> np.ndarray:
     pose = np.asarray(pose, dtype=float)
     if pose.shape != (4, 4):
@@ -134,7 +121,7 @@ class FusionBackend:
         self.config = config
         if config.body_from_camera is not None:
             body_from_camera = np.asarray(config.body_from_camera, dtype=float).reshape(4, 4)
-        self.body_from_camera = _rigid(_check_pose("body_from_camera", body_from_camera))
+        self.body_from_camera = nearest_rigid(_check_pose("body_from_camera", body_from_camera))
         self.camera_from_body = invert_pose(self.body_from_camera)
         self._adjoint = np.asarray(gtsam.Pose3(self.body_from_camera).AdjointMap())
         self.use_imu = bool(config.use_imu and imu_noise is not None)
@@ -526,7 +513,9 @@ class FusionBackend:
                 )
         if reference is not None:
             assert relative_pose is not None and covariance is not None
-            body_measured = _rigid(self.body_from_camera @ relative_pose @ self.camera_from_body)
+            body_measured = nearest_rigid(
+                self.body_from_camera @ relative_pose @ self.camera_from_body
+            )
             # The measurement seen as a motion from the previous frame, through the current
             # estimates: for the gate and the initial guess (and as the factor itself when the
             # reference has already left the window).
@@ -536,7 +525,9 @@ class FusionBackend:
                 reference_pose = (
                     self._pose_estimate(reference) if live else self._frames[int(reference_ns)][1]
                 )
-                body_motion = _rigid(invert_pose(self._body_pose) @ reference_pose @ body_measured)
+                body_motion = nearest_rigid(
+                    invert_pose(self._body_pose) @ reference_pose @ body_measured
+                )
             if still:  # vision must agree with the standstill too
                 moved = gtsam.Pose3.Logmap(gtsam.Pose3(body_motion))
                 still = float(moved @ np.linalg.solve(covariance, moved)) <= _STILL_CHI2
@@ -594,7 +585,7 @@ class FusionBackend:
             guess = np.eye(4)
         elif self._starting:
             self._end_start_up(notes)
-        values.insert(_pose_key(current), gtsam.Pose3(_rigid(self._body_pose @ guess)))
+        values.insert(_pose_key(current), gtsam.Pose3(nearest_rigid(self._body_pose @ guess)))
 
         # The previous frame's keys would be marginalised by this update when the gap exceeds
         # the lag (its estimate is needed just below); within the lag they keep their stamps.
