@@ -316,14 +316,15 @@ class FusionBackend:
     def _rest_before(self, end_ns: int) -> tuple[np.ndarray, float, str]:
         """Bias prior (mean, sigma, note) from the IMU before the first frame if it was at rest."""
         assert self._imu_noise is not None
-        stamps, gyro, accel = self._buffer.between(-(2**62), end_ns)
+        samples = self._buffer.between(-(2**62), end_ns)
+        stamps = samples.timestamps_ns
         loose = (np.zeros(3), self.config.gyro_bias_prior_sigma, "")
         if len(stamps) < 2 or (stamps[-1] - stamps[0]) * 1e-9 < self.config.rest_min_duration_s:
             return loose
-        if not at_rest(gyro, accel, self._imu_noise, self.config.rest_z):
+        if not at_rest(samples.gyro, samples.accel, self._imu_noise, self.config.rest_z):
             self._starting = False  # already moving: no static initialisation
             return (*loose[:2], "IMU not at rest before frame 0")
-        self._rest = RestWindow.of(stamps, gyro, accel)
+        self._rest = RestWindow.of(samples.timestamps_ns, samples.gyro, samples.accel)
         sigma = self._rest.bias_sigma(self._imu_noise)
         return (
             self._rest.gyro_mean,
@@ -332,14 +333,12 @@ class FusionBackend:
             f"{np.array2string(self._rest.gyro_mean, precision=5)} +- {sigma:.1e} rad/s",
         )
 
-    def _still_interval(
-        self, start_ns: int, end_ns: int
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    def _still_interval(self, start_ns: int, end_ns: int) -> ImuBatch | None:
         """The IMU samples of this frame interval if they continue the start-up rest."""
         assert self._imu_noise is not None
         samples = self._buffer.between(start_ns + self._offset_ns, end_ns + self._offset_ns)
-        if len(samples[0]) < 2 or not at_rest(
-            samples[1], samples[2], self._imu_noise, self.config.rest_z, self._rest
+        if len(samples) < 2 or not at_rest(
+            samples.gyro, samples.accel, self._imu_noise, self.config.rest_z, self._rest
         ):
             return None
         return samples
@@ -571,9 +570,13 @@ class FusionBackend:
         if still:
             assert rest_samples is not None
             if self._rest is None:
-                self._rest = RestWindow.of(*rest_samples)
+                self._rest = RestWindow.of(
+                    rest_samples.timestamps_ns, rest_samples.gyro, rest_samples.accel
+                )
             else:
-                self._rest.extend(*rest_samples)
+                self._rest.extend(
+                    rest_samples.timestamps_ns, rest_samples.gyro, rest_samples.accel
+                )
             factors.add(
                 gtsam.BetweenFactorPose3(
                     _pose_key(previous),

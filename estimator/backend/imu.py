@@ -189,10 +189,9 @@ class ImuBuffer:
         edges = np.clip(edges, start_ns, end_ns)
         return bool(np.max(np.diff(edges)) <= max_gap_ns)
 
-    def between(self, start_ns: int, end_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(stamps, gyro, accel) of the samples in (start, end]: each sample counted once."""
-        keep = (self.timestamps_ns > start_ns) & (self.timestamps_ns <= end_ns)
-        return self.timestamps_ns[keep], self.gyro[keep], self.accel[keep]
+    def between(self, start_ns: int, end_ns: int) -> ImuBatch:
+        """The samples in (start, end]: each sample counted once."""
+        return ImuBatch(self.timestamps_ns, self.gyro, self.accel).between(start_ns, end_ns)
 
     def window(self, start_ns: int, end_ns: int) -> tuple[np.ndarray, np.ndarray]:
         """Gyro samples spanning [start, end]: one sample either side for interpolation."""
