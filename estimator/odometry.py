@@ -373,9 +373,8 @@ class Odometry:
             # end ties the two frames directly instead of through the poses in between.
             measured = self._reference_from_current(estimate)
             reference_ns = estimate.reference.timestamp_ns
+            points = self._inlier_points(estimate)
             covariance = self._measurement_covariance(estimate)
-            if covariance is None:  # the back end derives one from the inlier points instead
-                points = self._inlier_points(estimate)
         fused = self._backend.add_frame(
             int(frame.timestamp_ns),
             relative_pose=measured,
