@@ -135,6 +135,15 @@ class BackendConfig(_Section):
     imu_time_offset_s: float = 0.0  # t_imu = t_camera + offset (Kalibr's convention)
     imu_max_gap_s: float = Field(0.02, gt=0)  # larger holes in the gyro -> no IMU factor
     gravity_align: bool = True
+    # Accelerometer (backend/inertial.py): a factor on every three consecutive frames ties their
+    # velocity change to the preintegrated specific force, with world gravity (prior: -z with
+    # ``gravity_prior_sigma`` m/s^2 per axis when the world is levelled at start-up) and one
+    # accelerometer bias (prior 0 +- ``accel_bias_prior_sigma`` m/s^2) as graph variables. Its
+    # sigma is the accelerometer's white noise, at least ``inertial_min_sigma_mps`` (m/s).
+    use_accelerometer: bool = True
+    gravity_prior_sigma: float = Field(1.0, gt=0)
+    accel_bias_prior_sigma: float = Field(0.1, gt=0)
+    inertial_min_sigma_mps: float = Field(3e-3, gt=0)
     # Static initialisation (backend/rest.py): while the IMU (and vision, when it sees) shows
     # the platform at rest at start-up, the gyro bias starts from the mean gyro before the
     # first frame and consecutive frames are tied by a zero-motion factor.

@@ -129,6 +129,7 @@ class Odometry:
         self._reference_from_previous = np.eye(4)  # rectified; for predicting the search
         self._motion = np.eye(4)  # last frame-to-frame motion (rectified), constant velocity
         self._failures = 0  # consecutive frames without a vision estimate
+        self._final_poses: tuple[tuple[int, np.ndarray], ...] = ()  # from the back end
 
     def _make_backend(self, imu_noise: ImuNoise | None):
         try:
@@ -196,7 +197,23 @@ class Odometry:
             support=int(result.support) if result is not None else 0,
             timings_s=timings,
             message=message,
+            final_poses=self._final_poses,
         )
+
+    def finish(self) -> tuple[tuple[int, np.ndarray], ...]:
+        """Smoothed poses of the frames the back end still holds (end of a run), oldest first.
+
+        With the back end, every frame's final estimate arrives once: in a later
+        ``FrameReport.final_poses`` or here. Without it there is nothing to smooth.
+        """
+        if self._backend is None:
+            return ()
+        return self._in_world(self._backend.flush())
+
+    def _in_world(
+        self, final_poses: tuple[tuple[int, np.ndarray], ...]
+    ) -> tuple[tuple[int, np.ndarray], ...]:
+        return tuple((stamp, self._world_from_backend @ pose) for stamp, pose in final_poses)
 
     # ------------------------------------------------------------------ stages
 
@@ -389,6 +406,7 @@ class Odometry:
             self._world_from_backend = self._pose @ invert_pose(fused.pose)
             if self._initial_pose is None:
                 self._world_from_backend = np.eye(4)
+        self._final_poses = self._in_world(fused.final_poses)
         text = "; ".join(part for part in (message, fused.message) if part)
         return self._world_from_backend @ fused.pose, fused.status, text
 

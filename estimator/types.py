@@ -78,3 +78,6 @@ class FrameReport:
     support: int = 0
     timings_s: dict[str, float] = field(default_factory=dict)
     message: str = ""
+    # Earlier frames the back end's smoother has finished with at this frame, each once:
+    # (timestamp_ns, left camera pose) with its final, smoothed estimate.
+    final_poses: tuple[tuple[int, np.ndarray], ...] = ()

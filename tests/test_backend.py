@@ -384,6 +384,24 @@ def test_bench_backend_simulated_part_writes_its_tables(tmp_path, capsys):
     assert main(["bench", "backend", "--frames", "3", "--out", str(tmp_path)]) == 2
 
 
+@pytest.mark.slow
+def test_bench_backend_pipeline_tabulates_each_seed(tmp_path, capsys):
+    args = ["bench", "backend", "--parts", "pipeline", "--rendered-frames", "12"]
+    args += ["--data", str(tmp_path / "data"), "--euroc-micro", str(tmp_path / "none")]
+    assert main([*args, "--seeds", "0-1", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "backend.json").read_text())["pipeline"]
+    rows = result["seeds"]
+    assert {"0", "1"} <= set(rows)
+    for row in (rows["0"], rows["1"]):
+        assert set(row["ate_m"]) == {"frontend_pose", "pose", "smoothed"}
+        assert all(np.isfinite(value) for value in row["ate_m"].values())
+    assert 0 <= rows["online_met"] <= 2
+    assert "fused smoothed, IMU" in result["rendered, 20 % broken"]
+    assert "fused smoothed mm" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main([*args, "--seeds", "3-1", "--out", str(tmp_path)])
+
+
 # ----------------------------------------------------------------------------- fit covariance
 
 

@@ -55,8 +55,14 @@ def test_synth_then_run_writes_trajectory_metrics_and_plot(rendered, tmp_path, c
     assert np.isfinite(metrics["ate_rmse_m"])
     assert metrics["ate_rmse_m"] < 0.1 * metrics["path_length_m"]
     assert metrics["frames_failed"] <= 4
-    assert set(metrics["fused"]) >= {"ate_rmse_m", "rpe_rot_rmse_deg"}
-    assert set(metrics["frontend"]) >= {"ate_rmse_m", "rpe_rot_rmse_deg"}
+    for section in ("fused", "smoothed", "frontend"):
+        assert set(metrics[section]) >= {"ate_rmse_m", "rpe_rot_rmse_deg"}, section
+    smoothed_times, smoothed = read_tum(out / "trajectory_smoothed.tum")
+    np.testing.assert_array_equal(smoothed_times, timestamps)  # every frame, once, in order
+    # The newest frame's smoothed estimate is its online answer (nothing came after it); the
+    # earlier ones were revised by later frames.
+    np.testing.assert_allclose(smoothed[-1], poses[-1], atol=1e-6)
+    assert not np.allclose(smoothed[:-2], poses[:-2], atol=1e-6)
     assert metrics["median_stage_time_s"]["total"] > 0
     assert (out / "trajectory.png").read_bytes().startswith(PNG_MAGIC)
 

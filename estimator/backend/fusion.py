@@ -9,10 +9,18 @@ One Pose3 per frame (body in world) and, with an IMU, one gyro bias per frame. P
   translation);
 * the gyro preintegrated over the frame interval (shifted by the camera-IMU time offset) as a
   rotation factor on (X_k-1, X_k, B_k-1) (``factors.py``) and a bias random walk B_k-1 -> B_k;
-* a constant-velocity prior X_k-1 -> X_k (the previous estimated motion, rescaled to this
-  interval) with a loose covariance, on frames without an accepted relative pose (or on every
-  frame with ``motion_prior="always"``). It carries the translation when vision fails; with the
-  gyro present its rotation part is left free so it cannot bend the bias.
+* with the accelerometer, the inertial factor on (X_k-2, X_k-1, X_k, G, A): their velocity
+  change against the preintegrated specific force, with world gravity G and accelerometer
+  bias A as variables of the graph (``inertial.py``); it carries the translation through
+  vision gaps;
+* otherwise a constant-velocity prior X_k-1 -> X_k (the previous estimated motion, rescaled to
+  this interval) with a loose covariance, on frames without an accepted relative pose (or on
+  every frame with ``motion_prior="always"``); with the gyro present its rotation part is left
+  free so it cannot bend the bias.
+
+Smoothed output: ``pose`` is the newest frame's estimate when it arrives (a filter answer);
+the smoother keeps revising a frame until it leaves the window, and that final estimate is
+handed out once (``FusedEstimate.final_poses``, then ``flush()`` at the end of a run).
 
 Static initialisation (``rest.py``), with the IMU: when the samples before the first frame
 show the platform at rest, the first gyro bias gets the prior mean gyro +- density / sqrt(T)
@@ -30,18 +38,26 @@ IMU (or without accelerometer data with the first frame) the world is the first 
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import gtsam
 import numpy as np
 
 from estimator.backend.factors import gyro_rotation_factor
 from estimator.backend.imu import (
+    GRAVITY,
     GyroPreintegration,
     ImuBuffer,
+    SpecificForceDelta,
     gravity_aligned_rotation,
     preintegrate_gyro,
+    preintegrate_specific_force,
     rotation_params,
+)
+from estimator.backend.inertial import (
+    inertial_factor,
+    inertial_factor_sigma,
+    predict_position,
 )
 from estimator.backend.noise import (
     fit_covariance,
@@ -81,6 +97,12 @@ def _bias_key(index: int) -> int:
     return gtsam.symbol("b", index)
 
 
+# World gravity and accelerometer bias: one variable each, restamped with every update so the
+# fixed-lag smoother keeps them (marginalising old frames folds their information in).
+_GRAVITY_KEY = gtsam.symbol("g", 0)
+_ACCEL_BIAS_KEY = gtsam.symbol("a", 0)
+
+
 @dataclass(frozen=True)
 class FusedEstimate:
     """The back end's answer for one frame."""
@@ -93,6 +115,24 @@ class FusedEstimate:
     # Body motion T_prev_cur as estimated now (the previous pose is revised too, so this is
     # smoother than the difference of two consecutive ``body_pose`` outputs).
     body_motion: np.ndarray | None = None
+    # Earlier frames the smoother has finished with at this frame: (timestamp_ns, left camera
+    # pose in world) with their final, smoothed estimate; each frame appears once.
+    final_poses: tuple[tuple[int, np.ndarray], ...] = ()
+    # With the accelerometer: world gravity (m/s^2) and accelerometer bias, current estimates.
+    gravity: np.ndarray | None = None
+    accel_bias: np.ndarray | None = None
+
+
+@dataclass
+class _OpenFrame:
+    """A frame the smoother still holds: what is needed to finish it."""
+
+    index: int
+    timestamp_ns: int
+    stamp_s: float  # smoother time of its keys
+    accepted: bool  # vision measured it (the origin counts)
+    delta: SpecificForceDelta | None  # accelerometer over the interval ending here
+    body_pose: np.ndarray = field(default_factory=lambda: np.eye(4))  # latest estimate
 
 
 def _check_pose(name: str, pose: np.ndarray) -> np.ndarray:
@@ -147,6 +187,13 @@ class FusionBackend:
         self._offset_ns = round(config.imu_time_offset_s * 1e9)
         self._max_gap_ns = round(config.imu_max_gap_s * 1e9)
         self._buffer = ImuBuffer()
+        self._use_accel = bool(self.use_imu and config.use_accelerometer)
+        self._gravity = np.array([0.0, 0.0, -GRAVITY])  # world, latest estimate
+        self._accel_bias = np.zeros(3)
+        # Frames still in the smoother (oldest first), and the final poses handed out with the
+        # next estimate.
+        self._open: OrderedDict[int, _OpenFrame] = OrderedDict()
+        self._final_poses: list[tuple[int, np.ndarray]] = []
         self._smoother = self._make_smoother()
         self._index = -1
         self._start_ns = 0
@@ -232,6 +279,9 @@ class FusionBackend:
         )
         thresholds.insert(("x", np.array([rotation] * 3 + [translation] * 3)))
         thresholds.insert(("b", np.full(3, self.config.relinearize_bias)))
+        # Gravity and accelerometer bias (m/s^2); the inertial factor is linear in both.
+        thresholds.insert(("g", np.full(3, 0.01)))
+        thresholds.insert(("a", np.full(3, 0.01)))
         params.setRelinearizeThreshold(thresholds)
         # QR: the bias random walk (~4e-6 rad/s per frame) against a 0.05 rad/s prior is too
         # ill-conditioned for Cholesky when no gyro factor ties the biases to the poses.
@@ -275,11 +325,13 @@ class FusionBackend:
         self._start_ns = self._last_ns = timestamp_ns
         message = "world = first body pose"
         rotation = np.eye(3)
+        levelled = False
         if self.use_imu and self.config.gravity_align:
             accel = self._buffer.accel[self._buffer.timestamps_ns <= timestamp_ns + self._offset_ns]
             if len(accel):
                 try:
                     rotation = gravity_aligned_rotation(accel)
+                    levelled = True
                     message = f"world gravity-aligned from {len(accel)} accelerometer samples"
                 except ValueError as error:
                     message = f"world = first body pose ({error})"
@@ -310,8 +362,32 @@ class FusionBackend:
             )
             values.insert(_bias_key(0), bias_mean)
             keys.append(_bias_key(0))
+        if self._use_accel:
+            # Levelled: gravity is -z up to the tilt error of an accelerometer that may already
+            # see motion; otherwise its direction in the first body frame is unknown.
+            self._gravity = np.array([0.0, 0.0, -GRAVITY]) if levelled else np.zeros(3)
+            gravity_sigma = self.config.gravity_prior_sigma if levelled else 2.0 * GRAVITY
+            self._add_inertial_variables(factors, values, keys, gravity_sigma)
         self._update(factors, values, keys)
         return self._estimate(FrameStatus.OK, message)
+
+    def _add_inertial_variables(
+        self,
+        factors: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        keys: list[int],
+        gravity_sigma: float,
+    ) -> None:
+        """Gravity and accelerometer bias with their priors (at the latest estimates)."""
+        for key, mean, sigma in (
+            (_GRAVITY_KEY, self._gravity, gravity_sigma),
+            (_ACCEL_BIAS_KEY, self._accel_bias, self.config.accel_bias_prior_sigma),
+        ):
+            factors.add(
+                gtsam.PriorFactorVector(key, mean, gtsam.noiseModel.Isotropic.Sigma(3, sigma))
+            )
+            values.insert(key, mean)
+            keys.append(key)
 
     def _rest_before(self, end_ns: int) -> tuple[np.ndarray, float, str]:
         """Bias prior (mean, sigma, note) from the IMU before the first frame if it was at rest."""
@@ -350,17 +426,25 @@ class FusionBackend:
             notes.append(f"start-up standstill ended after {duration:.2f} s of rest")
             self.rest_summary = (duration, self._rest.gyro_mean.copy())
 
-    def _preintegrate(self, start_ns: int, end_ns: int) -> GyroPreintegration | None:
+    def _preintegrate(
+        self, start_ns: int, end_ns: int
+    ) -> tuple[GyroPreintegration | None, SpecificForceDelta | None]:
+        """Gyro (and, when used, accelerometer) preintegrated over one frame interval."""
         start_ns += self._offset_ns
         end_ns += self._offset_ns
         if not self._buffer.covers(start_ns, end_ns, self._max_gap_ns):
-            return None
-        stamps, gyro = self._buffer.window(start_ns, end_ns)
+            return None, None
+        samples = self._buffer.window(start_ns, end_ns)
         preintegration = preintegrate_gyro(
-            stamps, gyro, start_ns, end_ns, self._imu_params, self._bias
+            samples.timestamps_ns, samples.gyro, start_ns, end_ns, self._imu_params, self._bias
         )
+        delta = None
+        if self._use_accel:
+            delta = preintegrate_specific_force(
+                samples.timestamps_ns, samples.gyro, samples.accel, start_ns, end_ns, self._bias
+            )
         self._buffer.drop_before(end_ns)
-        return preintegration
+        return preintegration, delta
 
     def _motion_prior(self, dt: float) -> np.ndarray:
         """Constant body twist: the previous motion rescaled to this frame interval."""
@@ -392,6 +476,8 @@ class FusionBackend:
             )
             values.insert(_bias_key(index), self._bias)
             keys.append(_bias_key(index))
+        if self._use_accel:
+            self._add_inertial_variables(factors, values, keys, self.config.gravity_prior_sigma)
         self._update(factors, values, keys)
 
     def _gate_distance(
@@ -466,13 +552,13 @@ class FusionBackend:
         keep: list[int] = []
         notes: list[str] = []
 
-        preintegration = None
+        preintegration = delta = None
         rest_samples = None
         if self._starting:
             rest_samples = self._still_interval(self._last_ns, timestamp_ns)
         still = rest_samples is not None
         if self.use_imu:
-            preintegration = self._preintegrate(self._last_ns, timestamp_ns)
+            preintegration, delta = self._preintegrate(self._last_ns, timestamp_ns)
             if preintegration is not None:
                 factors.add(
                     gyro_rotation_factor(
@@ -494,12 +580,16 @@ class FusionBackend:
             keys.append(_bias_key(current))
 
         motion = self._motion_prior(dt)
+        inertial = self._inertial_factor(current, delta, timestamp_ns)
 
         # Prediction (initial guess and outlier gate): gyro rotation (else constant velocity)
-        # with the constant-velocity translation.
+        # with the IMU's translation (else constant velocity).
         prediction = motion.copy()
         if preintegration is not None:
             prediction[:3, :3] = preintegration.delta_rotation
+        if inertial is not None:
+            factors.add(inertial[0])
+            prediction[:3, 3] = self._body_pose[:3, :3].T @ (inertial[1] - self._body_pose[:3, 3])
         guess = prediction
         accepted = False
         reference = None
@@ -551,7 +641,7 @@ class FusionBackend:
                     f"relative pose rejected (squared Mahalanobis distance {distance:.0f} "
                     f"> {gate:g} from the prediction)"
                 )
-        if self.config.motion_prior == "always" or not accepted:
+        if self.config.motion_prior == "always" or not (accepted or inertial is not None):
             # With the gyro the prior carries translation only: its rotation part would
             # otherwise leak into the bias estimate.
             rotation_sigma = (
@@ -594,13 +684,20 @@ class FusionBackend:
         # the lag (its estimate is needed just below); within the lag they keep their stamps.
         if dt >= _KEEP_ALIVE_FRACTION * self.config.smoother_lag_s:
             keep += [_pose_key(previous)] + ([_bias_key(previous)] if self.use_imu else [])
+        if self._use_accel:
+            keep += [_GRAVITY_KEY, _ACCEL_BIAS_KEY]
         self._last_ns = timestamp_ns
         self._index = current
+        stamp = (timestamp_ns - self._start_ns) * 1e-9
+        if _pose_key(previous) in keep:  # restamped below: the previous frame stays open
+            self._open[previous].stamp_s = stamp
+        self._finish_before(stamp - self.config.smoother_lag_s)
         try:
             self._update(factors, values, keys, tuple(keep))
             previous_pose = self._pose_estimate(previous)
         except RuntimeError as error:  # numerical failure inside GTSAM: restart the graph
             previous_pose = self._body_pose
+            self._finish_before(float("inf"), read=False)
             self._restart(current, self._body_pose @ guess)
             notes.append(f"back end restarted at this frame ({str(error).strip().splitlines()[0]})")
 
@@ -617,17 +714,38 @@ class FusionBackend:
                 notes.insert(0, "no vision, no gyro: pose from the constant-velocity prior")
         self._previous_motion = invert_pose(previous_pose) @ self._pose_estimate(current)
         self._previous_dt = dt
-        return self._estimate(status, "; ".join(notes), self._previous_motion.copy())
+        return self._estimate(
+            status, "; ".join(notes), self._previous_motion.copy(), accepted, delta
+        )
 
     def _estimate(
-        self, status: FrameStatus, message: str, motion: np.ndarray | None = None
+        self,
+        status: FrameStatus,
+        message: str,
+        motion: np.ndarray | None = None,
+        accepted: bool = True,
+        delta: SpecificForceDelta | None = None,
     ) -> FusedEstimate:
         self._body_pose = self._pose_estimate(self._index)
         self._remember(self._last_ns, self._index, self._body_pose)
+        self._open[self._index] = _OpenFrame(
+            self._index,
+            self._last_ns,
+            (self._last_ns - self._start_ns) * 1e-9,
+            accepted,
+            delta,
+            self._body_pose.copy(),
+        )
         bias = None
         if self.use_imu:
             self._bias = self._bias_estimate(self._index)
             bias = self._bias.copy()
+        if self._use_accel:
+            self._gravity = np.asarray(self._smoother.calculateEstimateVector(_GRAVITY_KEY))
+            self._accel_bias = np.asarray(
+                self._smoother.calculateEstimateVector(_ACCEL_BIAS_KEY)
+            )
+        final_poses, self._final_poses = tuple(self._final_poses), []
         return FusedEstimate(
             pose=self._body_pose @ self.body_from_camera,
             body_pose=self._body_pose.copy(),
@@ -635,7 +753,75 @@ class FusionBackend:
             message=message,
             gyro_bias=bias,
             body_motion=motion,
+            final_poses=final_poses,
+            gravity=self._gravity.copy() if self._use_accel else None,
+            accel_bias=self._accel_bias.copy() if self._use_accel else None,
         )
+
+    # ------------------------------------------------------------------ smoothed output
+
+    def flush(self) -> tuple[tuple[int, np.ndarray], ...]:
+        """Final estimates of the frames still in the smoother (end of a run), oldest first."""
+        self._finish_before(float("inf"))
+        final_poses, self._final_poses = tuple(self._final_poses), []
+        return final_poses
+
+    def _finish_before(self, stamp_s: float, read: bool = True) -> None:
+        """Finish the frames stamped before ``stamp_s`` (the smoother is about to drop them).
+
+        Their estimate is read one last time (``read=False``: the last one read, after a
+        numerical failure) and handed out as final.
+        """
+        while self._open:
+            frame = next(iter(self._open.values()))
+            if frame.stamp_s >= stamp_s:
+                break
+            del self._open[frame.index]
+            if read:
+                try:
+                    frame.body_pose = self._pose_estimate(frame.index)
+                except RuntimeError:
+                    pass  # already gone: keep the latest estimate read
+            self._final_poses.append((frame.timestamp_ns, frame.body_pose @ self.body_from_camera))
+
+    def _inertial_factor(
+        self, current: int, delta: SpecificForceDelta | None, timestamp_ns: int
+    ) -> tuple[gtsam.CustomFactor, np.ndarray] | None:
+        """The inertial factor on (X_k-2, X_k-1, X_k) and the position it predicts for X_k.
+
+        None without accelerometer data for either interval, or when X_k-2 is about to leave
+        the smoother (after a gap longer than the lag).
+        """
+        if delta is None or current < 2:
+            return None
+        first_frame = self._open.get(current - 2)
+        previous_frame = self._open.get(current - 1)
+        if first_frame is None or previous_frame is None or previous_frame.delta is None:
+            return None
+        if not self._in_window(current - 2, first_frame.timestamp_ns, timestamp_ns):
+            return None
+        assert self._imu_noise is not None
+        sigma = max(
+            inertial_factor_sigma(previous_frame.delta, delta, self._imu_noise.accel_noise_density),
+            self.config.inertial_min_sigma_mps,
+        )
+        factor = inertial_factor(
+            (_pose_key(current - 2), _pose_key(current - 1), _pose_key(current)),
+            _GRAVITY_KEY,
+            _ACCEL_BIAS_KEY,
+            previous_frame.delta,
+            delta,
+            sigma,
+        )
+        predicted = predict_position(
+            previous_frame.delta,
+            delta,
+            self._pose_estimate(current - 2),
+            self._body_pose,
+            self._gravity,
+            self._accel_bias,
+        )
+        return factor, predicted
 
     def _remember(self, timestamp_ns: int, index: int, body_pose: np.ndarray) -> None:
         """Keep the pose of frames that may still be referenced: none older than the latest

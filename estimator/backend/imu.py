@@ -1,7 +1,9 @@
-"""Gyro preintegration, IMU sample buffering and gravity alignment for the back end.
+"""IMU preintegration, sample buffering and gravity alignment for the back end.
 
-The back end only uses the gyro for rotation (the accelerometer sets the initial roll and
-pitch). Between two frames the gyro samples are preintegrated with GTSAM's
+The gyro gives the rotation between frames; the accelerometer sets the initial roll and pitch
+and, preintegrated into a velocity and a position increment per frame interval
+(``preintegrate_specific_force``), feeds the inertial factor of ``inertial.py``. Between two
+frames the gyro samples are preintegrated with GTSAM's
 ``PreintegratedAhrsMeasurements`` (which also propagates the 3x3 covariance); the Jacobian of
 the preintegrated rotation with respect to the gyro bias is propagated alongside with the same
 recursion GTSAM uses internally (its Python binding does not expose it), so the rotation
@@ -21,10 +23,12 @@ __all__ = [
     "GRAVITY",
     "GyroPreintegration",
     "ImuBuffer",
+    "SpecificForceDelta",
     "gravity_aligned_rotation",
-    "gyro_segments",
     "preintegrate_gyro",
+    "preintegrate_specific_force",
     "rotation_params",
+    "sample_segments",
 ]
 
 GRAVITY = 9.81  # m/s^2, magnitude only: the world z axis points up (against gravity)
@@ -59,31 +63,31 @@ def rotation_params(noise: ImuNoise, noise_scale: float = 1.0) -> gtsam.Preinteg
     return params
 
 
-def gyro_segments(
-    timestamps_ns: np.ndarray, gyro: np.ndarray, start_ns: int, end_ns: int
+def sample_segments(
+    timestamps_ns: np.ndarray, samples: np.ndarray, start_ns: int, end_ns: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Split [start, end] at the samples; one mean angular rate per piece.
+    """Split [start, end] at the samples; one mean value (rate or specific force) per piece.
 
-    The rate is interpolated linearly between samples (and held beyond the first/last
-    sample), so each piece uses the average of its two end rates (trapezoidal rule). Sample
+    The signal is interpolated linearly between samples (and held beyond the first/last
+    sample), so each piece uses the average of its two end values (trapezoidal rule). Sample
     times rarely coincide with frame times; cutting at the exact frame times keeps the
-    per-frame rotation unbiased.
+    per-frame increments unbiased.
     """
     timestamps_ns = np.asarray(timestamps_ns, dtype=np.int64)
-    gyro = np.asarray(gyro, dtype=float)
+    values = np.asarray(samples, dtype=float)
     if end_ns <= start_ns:
         raise ValueError(f"IMU interval must have end > start (got {start_ns} .. {end_ns})")
     if len(timestamps_ns) == 0:
-        raise ValueError("no gyro samples to integrate")
-    if gyro.shape != (len(timestamps_ns), 3):
-        raise ValueError(f"gyro must be (M, 3) matching the timestamps, got {gyro.shape}")
+        raise ValueError("no IMU samples to integrate")
+    if values.shape != (len(timestamps_ns), 3):
+        raise ValueError(f"samples must be (M, 3) matching the timestamps, got {values.shape}")
     inside = timestamps_ns[(timestamps_ns > start_ns) & (timestamps_ns < end_ns)]
     breaks = np.concatenate([[start_ns], inside, [end_ns]]).astype(np.int64)
     # Interpolate relative to the first break so float64 keeps nanosecond resolution.
     t = (breaks - start_ns).astype(float)
     samples_t = (timestamps_ns - start_ns).astype(float)
-    rates = np.stack([np.interp(t, samples_t, gyro[:, axis]) for axis in range(3)], axis=1)
-    return 0.5 * (rates[:-1] + rates[1:]), np.diff(breaks) * 1e-9
+    at_breaks = np.stack([np.interp(t, samples_t, values[:, axis]) for axis in range(3)], axis=1)
+    return 0.5 * (at_breaks[:-1] + at_breaks[1:]), np.diff(breaks) * 1e-9
 
 
 def preintegrate_gyro(
@@ -96,7 +100,7 @@ def preintegrate_gyro(
 ) -> GyroPreintegration:
     """Preintegrate the gyro over [start_ns, end_ns] with bias ``bias_hat`` removed."""
     bias_hat = np.zeros(3) if bias_hat is None else np.asarray(bias_hat, dtype=float)
-    rates, durations = gyro_segments(timestamps_ns, gyro, start_ns, end_ns)
+    rates, durations = sample_segments(timestamps_ns, gyro, start_ns, end_ns)
     pim = gtsam.PreintegratedAhrsMeasurements(params, bias_hat)
     bias_jacobian = np.zeros((3, 3))
     # One C++ call per IMU sample (~10 per frame); the 3x3 recursion mirrors GTSAM's
@@ -111,6 +115,58 @@ def preintegrate_gyro(
         bias_jacobian=bias_jacobian,
         covariance=np.array(pim.preintMeasCov()),
         bias_hat=bias_hat.copy(),
+        duration_s=float(pim.deltaTij()),
+    )
+
+
+@dataclass(frozen=True)
+class SpecificForceDelta:
+    """The accelerometer between two frames, in the body frame of the first one.
+
+    With gravity g in the world and the first frame's rotation R_i, velocity v_i:
+    p_j = p_i + v_i dt + g dt^2 / 2 + R_i delta_position and v_j = v_i + g dt + R_i
+    delta_velocity (the specific force rotated by the gyro, integrated once and twice).
+    """
+
+    delta_position: np.ndarray  # (3,) m
+    delta_velocity: np.ndarray  # (3,) m/s
+    duration_s: float
+
+
+# Gravity is left out of GTSAM's integration (the caller handles it in its own world frame),
+# and the covariance it propagates is not used: the inertial factor has its own noise model.
+_SPECIFIC_FORCE_PARAMS = gtsam.PreintegrationParams(np.zeros(3))
+_SPECIFIC_FORCE_PARAMS.setAccelerometerCovariance(np.eye(3))
+_SPECIFIC_FORCE_PARAMS.setGyroscopeCovariance(np.eye(3))
+_SPECIFIC_FORCE_PARAMS.setIntegrationCovariance(np.eye(3))
+
+
+def preintegrate_specific_force(
+    timestamps_ns: np.ndarray,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    start_ns: int,
+    end_ns: int,
+    gyro_bias: np.ndarray | None = None,
+    accel_bias: np.ndarray | None = None,
+) -> SpecificForceDelta:
+    """Velocity and position increments of the specific force over [start_ns, end_ns].
+
+    GTSAM's ``PreintegratedImuMeasurements`` does the integration (gravity zero, biases
+    removed); both signals are cut at the frame times like the gyro (``sample_segments``).
+    """
+    rates, durations = sample_segments(timestamps_ns, gyro, start_ns, end_ns)
+    forces, _ = sample_segments(timestamps_ns, accel, start_ns, end_ns)
+    bias = gtsam.imuBias.ConstantBias(
+        np.zeros(3) if accel_bias is None else np.asarray(accel_bias, dtype=float),
+        np.zeros(3) if gyro_bias is None else np.asarray(gyro_bias, dtype=float),
+    )
+    pim = gtsam.PreintegratedImuMeasurements(_SPECIFIC_FORCE_PARAMS, bias)
+    for force, rate, duration in zip(forces, rates, durations, strict=True):
+        pim.integrateMeasurement(force, rate, duration)
+    return SpecificForceDelta(
+        delta_position=np.asarray(pim.deltaPij(), dtype=float).copy(),
+        delta_velocity=np.asarray(pim.deltaVij(), dtype=float).copy(),
         duration_s=float(pim.deltaTij()),
     )
 
@@ -193,12 +249,12 @@ class ImuBuffer:
         """The samples in (start, end]: each sample counted once."""
         return ImuBatch(self.timestamps_ns, self.gyro, self.accel).between(start_ns, end_ns)
 
-    def window(self, start_ns: int, end_ns: int) -> tuple[np.ndarray, np.ndarray]:
-        """Gyro samples spanning [start, end]: one sample either side for interpolation."""
+    def window(self, start_ns: int, end_ns: int) -> ImuBatch:
+        """Samples spanning [start, end]: one sample either side for interpolation."""
         stamps = self.timestamps_ns
         first = max(int(np.searchsorted(stamps, start_ns, side="right")) - 1, 0)
         last = min(int(np.searchsorted(stamps, end_ns, side="left")) + 1, len(stamps))
-        return stamps[first:last], self.gyro[first:last]
+        return ImuBatch(stamps[first:last], self.gyro[first:last], self.accel[first:last])
 
     def drop_before(self, time_ns: int) -> None:
         """Forget samples older than the last one at or before ``time_ns``."""

@@ -10,7 +10,9 @@ Four parts, each printed as a table and stored in ``backend.json`` / ``backend.m
    half failed, half grossly wrong); fused vs front-end-only ATE and the per-frame back-end
    time (p50 / p95 / max, and the first vs last 10 % of frames to show it stays flat).
 3. ``pipeline`` - the whole ``Odometry`` on a rendered sequence with 20 % broken frames and on
-   EuRoC V1_01 micro (standing still, real IMU): front-end-only vs fused with / without IMU.
+   EuRoC V1_01 micro (standing still, real IMU): front-end-only vs fused (the online answer
+   per frame, and the smoother's final estimates) with / without IMU. With ``--seeds`` it
+   also renders one sequence per seed and tabulates front end vs fused ATE for each.
 """
 
 from __future__ import annotations
@@ -53,6 +55,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--rendered-frames", type=int, default=200)
     parser.add_argument(
+        "--seeds",
+        type=_seed_list,
+        default=None,
+        help="pipeline part: also run these rendered seeds (e.g. 0-9 or 0,3,5), one row each",
+    )
+    parser.add_argument(
         "--standstill-s",
         type=float,
         default=0.0,
@@ -75,6 +83,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 # ----------------------------------------------------------------------------- helpers
+
+
+def _seed_list(text: str) -> list[int]:
+    """``0-9`` or ``0,3,5`` (or both, comma separated) -> a list of seeds."""
+    seeds: list[int] = []
+    try:
+        for part in text.split(","):
+            first, _, last = part.strip().partition("-")
+            seeds += list(range(int(first), int(last or first) + 1))
+    except ValueError:
+        seeds = []
+    if not seeds:
+        raise argparse.ArgumentTypeError(f"seeds must look like 0-9 or 0,3,5, got {text!r}")
+    return seeds
 
 
 def _ate(estimate: np.ndarray, truth: np.ndarray) -> float:
@@ -336,7 +358,8 @@ def _pipeline_runs(name: str, path: Path, seed: int) -> tuple[dict[str, Any], li
         fuse = np.array([r.timings_s.get("fuse", np.nan) for r in run.reports])
         statuses = dict(Counter(str(r.status) for r in run.reports))
         rejected = sum("rejected" in r.message for r in run.reports)
-        variants = [("fused, IMU" if imu else "fused, no IMU", "pose")]
+        suffix = "IMU" if imu else "no IMU"
+        variants = [(f"fused, {suffix}", "pose"), (f"fused smoothed, {suffix}", "smoothed")]
         if imu:
             variants.insert(0, ("front end only", "frontend_pose"))
         for label, which in variants:
@@ -348,7 +371,7 @@ def _pipeline_runs(name: str, path: Path, seed: int) -> tuple[dict[str, Any], li
                 "final_drift_m": metrics["final_drift_m"],
                 "final_rot_drift_deg": metrics["final_rot_drift_deg"],
             }
-            if which == "pose":
+            if which != "frontend_pose":
                 entry.update(
                     statuses=statuses,
                     rejected_by_gate=rejected,
@@ -364,33 +387,98 @@ def _pipeline_runs(name: str, path: Path, seed: int) -> tuple[dict[str, Any], li
                     f"{entry['final_drift_m']:.4f}",
                     f"{entry['final_rot_drift_deg']:.3f}",
                     ", ".join(f"{k} {v}" for k, v in sorted(statuses.items()))
-                    if which == "pose"
+                    if which != "frontend_pose"
                     else "-",
                     f"{entry['fuse_p50_ms']:.1f} / {entry['fuse_max_ms']:.1f}"
-                    if which == "pose"
+                    if which != "frontend_pose"
                     else "-",
                 ]
             )
     return result, rows
 
 
-def bench_pipeline(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+def _rendered(args: argparse.Namespace, seed: int) -> Path:
+    """The rendered 20 %-broken sequence of ``seed``, written once into ``--data``."""
     from estimator.synthetic import SynthOptions, synthesize
 
     still = f"_still{args.standstill_s:g}s" if args.standstill_s > 0 else ""
-    rendered = (
-        args.data / f"backend_rendered_{args.rendered_frames}f_broken20{still}_seed{args.seed}"
-    )
+    rendered = args.data / f"backend_rendered_{args.rendered_frames}f_broken20{still}_seed{seed}"
     if not (rendered / "mav0").is_dir():
         synthesize(
             rendered,
             SynthOptions(
                 frames=args.rendered_frames,
-                seed=args.seed,
+                seed=seed,
                 broken_fraction=0.2,
                 standstill_s=args.standstill_s,
             ),
         )
+    return rendered
+
+
+def _seed_rows(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    """Front end vs fused (online and smoothed) ATE of the whole pipeline, one rendered seed
+    per row, with IMU; the change is against the front end's ATE (target: -30 % or better)."""
+    from estimator.commands.run import build_config, run_sequence
+    from estimator.datasets import open_sequence
+    from estimator.evaluation import evaluate_trajectory
+
+    result: dict[str, Any] = {}
+    rows = []
+    changes: dict[str, list[float]] = {"pose": [], "smoothed": []}
+    for seed in args.seeds:
+        sequence = open_sequence(_rendered(args, seed))
+        run = run_sequence(sequence, build_config("pso-robust", seed, imu=True, backend=True))
+        ate = {
+            which: evaluate_trajectory(
+                run.timestamps_ns, run.poses(which), sequence.ground_truth, sequence.rig.left.T_BS
+            ).metrics["ate_rmse_m"]
+            for which in ("frontend_pose", "pose", "smoothed")
+        }
+        statuses = dict(Counter(str(r.status) for r in run.reports))
+        change = {w: 100.0 * (ate[w] / ate["frontend_pose"] - 1.0) for w in changes}
+        for which in changes:
+            changes[which].append(change[which])
+        result[str(seed)] = {"ate_m": ate, "change_pct": change, "statuses": statuses}
+        rows.append(
+            [
+                str(seed),
+                f"{1e3 * ate['frontend_pose']:.2f}",
+                f"{1e3 * ate['pose']:.2f}",
+                f"{change['pose']:+.1f} %",
+                f"{1e3 * ate['smoothed']:.2f}",
+                f"{change['smoothed']:+.1f} %",
+                ", ".join(f"{k} {v}" for k, v in sorted(statuses.items())),
+            ]
+        )
+    for which, label in (("pose", "online"), ("smoothed", "smoothed")):
+        values = np.array(changes[which])
+        met = int(np.sum(values <= -30.0))
+        result[f"{label}_met"] = met
+        result[f"{label}_mean_change_pct"] = float(values.mean())
+        rows.append(
+            [f"**{label}**", "", "", f"mean {values.mean():+.1f} %, {met}/{len(values)} <= -30 %"]
+            + [""] * 3
+        )
+    table = _table(
+        f"Rendered seeds ({args.rendered_frames} frames, 20 % broken, simulated IMU): "
+        "ATE front end vs fused",
+        [
+            "seed",
+            "front end mm",
+            "fused mm",
+            "change",
+            "fused smoothed mm",
+            "change",
+            "statuses (fused)",
+        ],
+        rows,
+    )
+    return result, table
+
+
+def bench_pipeline(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    rendered = _rendered(args, args.seed)
     label = "rendered, 20 % broken" + (
         f", {args.standstill_s:g} s standstill" if args.standstill_s > 0 else ""
     )
@@ -415,6 +503,9 @@ def bench_pipeline(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
         ],
         rows,
     )
+    if args.seeds:
+        result["seeds"], seed_table = _seed_rows(args)
+        table += "\n" + seed_table
     return result, table
 
 

@@ -1,7 +1,10 @@
 """``swarmvo run DATASET_DIR``: odometry over a whole EuRoC/KITTI sequence, with its metrics.
 
-Writes ``trajectory.tum`` (left-camera poses, one line per input frame), ``metrics.json``
-(accuracy against ground truth when the dataset has it, failures, per-stage median times) and
+Writes ``trajectory.tum`` (left-camera poses, one line per input frame: the fused answer given
+when the frame arrived, or the front end's without the back end), with the back end also
+``trajectory_smoothed.tum`` (each frame's final estimate once the fixed-lag smoother has
+finished with it), ``metrics.json`` (accuracy against ground truth when the dataset has it:
+``fused``, ``smoothed`` and ``frontend`` sections; failures, per-stage median times) and
 ``trajectory.png`` into ``--out``.
 """
 
@@ -12,7 +15,7 @@ import json
 import math
 import time
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -82,12 +85,20 @@ class RunResult:
     config: SwarmvoConfig
     reports: list[FrameReport]
     wall_time_s: float
+    # Final smoothed pose per frame timestamp (back end only; see FrameReport.final_poses).
+    smoothed: dict[int, np.ndarray] = field(default_factory=dict)
 
     @property
     def timestamps_ns(self) -> np.ndarray:
         return np.array([r.timestamp_ns for r in self.reports], dtype=np.int64)
 
     def poses(self, which: str = "pose") -> np.ndarray:
+        """(N, 4, 4) per frame: ``pose`` (fused online answer, or the front end's without the
+        back end), ``frontend_pose``, or ``smoothed`` (the back end's final estimates)."""
+        if which == "smoothed":
+            if len(self.smoothed) != len(self.reports):
+                raise ValueError("no smoothed trajectory: the back end did not run")
+            return np.array([self.smoothed[r.timestamp_ns] for r in self.reports])
         return np.array([getattr(r, which) for r in self.reports]).reshape(-1, 4, 4)
 
 
@@ -147,7 +158,9 @@ def run_sequence(
             imu = sequence.imu_between(start_ns, frame.timestamp_ns)
         reports.append(odometry.process(frame, imu))
         previous_ns = frame.timestamp_ns
-    return RunResult(sequence, config, reports, time.perf_counter() - start)
+    smoothed = dict(pose for report in reports for pose in report.final_poses)
+    smoothed.update(odometry.finish())
+    return RunResult(sequence, config, reports, time.perf_counter() - start, smoothed)
 
 
 def _finite(value: Any) -> Any:
@@ -195,7 +208,7 @@ def summarize(
     if ground_truth is not None:
         T_BS = result.sequence.rig.left.T_BS
         timestamps = result.timestamps_ns
-        sections = {"fused": "pose", "frontend": "frontend_pose"}
+        sections = {"fused": "pose", "smoothed": "smoothed", "frontend": "frontend_pose"}
         if not result.config.backend.enabled:
             sections = {"frontend": "frontend_pose"}
         try:
@@ -224,6 +237,8 @@ def write_outputs(result: RunResult, out: Path) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     summary, evaluations = summarize(result)
     write_tum(out / "trajectory.tum", result.timestamps_ns, result.poses("pose"))
+    if result.config.backend.enabled:
+        write_tum(out / "trajectory_smoothed.tum", result.timestamps_ns, result.poses("smoothed"))
     (out / "metrics.json").write_text(json.dumps(summary, indent=2) + "\n")
     plot_run(
         out / "trajectory.png",
@@ -254,5 +269,6 @@ def run(args: argparse.Namespace) -> int:
         )
     print(
         f"{line}\nwrote {out / 'trajectory.tum'}, {out / 'metrics.json'}, {out / 'trajectory.png'}"
+        + (f", {out / 'trajectory_smoothed.tum'}" if config.backend.enabled else "")
     )
     return 0
