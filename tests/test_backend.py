@@ -231,6 +231,10 @@ def test_a_frame_gap_longer_than_the_smoother_lag_is_bridged(imu, vision_across_
         )
     poses = _poses(out)
     assert np.all(np.isfinite(poses))
+    # Every frame gets its final (smoothed) estimate exactly once, across the gap too.
+    final = [pose for estimate in out for pose in estimate.final_poses] + list(backend.flush())
+    assert [stamp for stamp, _ in final] == [int(stamp) for stamp in stamps]
+    assert np.all(np.isfinite(np.stack([pose for _, pose in final])))
     truth = _relative_to_first(camera)
     error = np.linalg.norm(_relative_to_first(poses)[:, :3, 3] - truth[:, :3, 3], axis=1)
     assert error[:11].max() < 1e-3
@@ -331,33 +335,47 @@ def test_bad_inputs_raise_clear_errors():
     assert np.allclose(FusionBackend(override, np.eye(4), None).body_from_camera, BODY_FROM_CAMERA)
 
 
-def test_a_numerical_failure_inside_gtsam_restarts_the_graph_instead_of_crashing():
+@pytest.mark.parametrize("imu", [False, True])
+def test_a_numerical_failure_inside_gtsam_restarts_the_graph_instead_of_crashing(imu):
     scenario = smooth_trajectory(20, seed=15)
     measurements = simulate_frontend(scenario.body_poses, BODY_FROM_CAMERA, seed=16)
-    backend = FusionBackend(BackendConfig(), BODY_FROM_CAMERA, None)
+    backend = FusionBackend(BackendConfig(), BODY_FROM_CAMERA, ImuNoise() if imu else None)
     stamps = scenario.timestamps_ns
 
     class Failing:
+        """The real smoother, except that its next update fails."""
+
+        def __init__(self, smoother):
+            self.smoother = smoother
+
         def update(self, *args, **kwargs):
             raise RuntimeError("Indeterminant linear system detected (simulated)")
+
+        def __getattr__(self, name):
+            return getattr(self.smoother, name)
 
     out = []
     for k, m in enumerate(measurements):
         if k == 10:
-            backend._smoother = Failing()
+            backend._smoother = Failing(backend._smoother)
         out.append(
             backend.add_frame(
                 int(stamps[k]),
                 None if k == 0 else m.relative_pose,
                 m.residuals,
                 m.inlier_count,
-                None,
+                scenario.imu.between(int(stamps[k - 1] if k else stamps[0] - 10**8), int(stamps[k]))
+                if imu
+                else None,
             )
         )
     assert "restarted" in out[10].message
     assert all(o.status is FrameStatus.OK for o in out[11:])
     truth = scenario.body_poses @ BODY_FROM_CAMERA
     assert _aligned_ate(_poses(out), truth) < 0.05
+    # The frames the failed graph held are still finished, once each, with their last estimate.
+    final = [pose for estimate in out for pose in estimate.final_poses] + list(backend.flush())
+    assert [stamp for stamp, _ in final] == [int(stamp) for stamp in stamps]
 
 
 def test_bench_backend_simulated_part_writes_its_tables(tmp_path, capsys):

@@ -240,12 +240,12 @@ def test_euroc_standstill_stays_still(euroc_v101_micro: Path) -> None:
 
 @pytest.mark.slow
 def test_rendered_broken_frames_fused_with_the_imu_beats_the_front_end(tmp_path: Path) -> None:
-    """Rendered flights, 20 % broken frames (black, blurred, shuffled), simulated IMU."""
+    """Rendered 8 m flights, 20 % broken frames (black, blurred, shuffled), simulated IMU."""
     from estimator.commands.run import run_sequence
     from estimator.evaluation import evaluate_trajectory
     from estimator.synthetic import SynthOptions, synthesize
 
-    ate = {refine: {"frontend_pose": [], "pose": []} for refine in (False, True)}
+    ate = {refine: {"frontend_pose": [], "pose": [], "smoothed": []} for refine in (False, True)}
     for seed in (0, 1, 2):
         options = SynthOptions(frames=80, length_m=8.0, seed=seed, broken_fraction=0.2)
         sequence = open_sequence(synthesize(tmp_path / str(seed), options).root)
@@ -259,16 +259,16 @@ def test_rendered_broken_frames_fused_with_the_imu_beats_the_front_end(tmp_path:
                     sequence.rig.left.T_BS,
                 ).metrics  # fmt: skip
                 values.append(metrics["ate_rmse_m"])
-    # With the isotropic front end the gyro clearly helps (measured -32 %, -20 %, -38 %).
-    fused, frontend = np.array(ate[False]["pose"]), np.array(ate[False]["frontend_pose"])
-    assert np.all(fused < frontend), ate
-    assert fused.sum() < 0.8 * frontend.sum(), ate  # measured: 0.72
-    # The refined front end (the default) is 2-3x better on its own and leaves the gyro less
-    # to add (measured +5 %, -1 %, -24 %): the fused result must stay as good, and beat the
-    # isotropic one.
-    refined, refined_frontend = np.array(ate[True]["pose"]), np.array(ate[True]["frontend_pose"])
-    assert np.all(refined < 1.1 * refined_frontend), ate
-    assert refined.sum() < 0.7 * frontend.sum() and refined.sum() < fused.sum(), ate  # 0.59
+    # Gyro + accelerometer: at least 30 % below the front end on every seed, with either front
+    # end (measured: refined -61 / -84 / -55 %, isotropic -50 / -61 / -53 %).
+    for refine, errors in ate.items():
+        fused, frontend = np.array(errors["pose"]), np.array(errors["frontend_pose"])
+        assert np.all(fused < 0.7 * frontend), (refine, ate)
+        # The smoother's final estimates revise the online answers with later frames
+        # (measured 5-49 % lower).
+        assert np.sum(errors["smoothed"]) < np.sum(errors["pose"]), (refine, ate)
+    # The refined front end (the default) gives the better fused trajectory (measured 0.41x).
+    assert np.sum(ate[True]["pose"]) < 0.7 * np.sum(ate[False]["pose"]), ate
 
 
 # ----------------------------------------------------------------------------- input handling

@@ -780,8 +780,8 @@ class FusionBackend:
             if read:
                 try:
                     frame.body_pose = self._pose_estimate(frame.index)
-                except RuntimeError:
-                    pass  # already gone: keep the latest estimate read
+                except (IndexError, RuntimeError):  # GTSAM: unknown key / numerical failure
+                    pass  # keep the latest estimate read
             self._final_poses.append((frame.timestamp_ns, frame.body_pose @ self.body_from_camera))
 
     def _inertial_factor(
