@@ -97,7 +97,7 @@ class BackendConfig(_Section):
     use_imu: bool = True
     # Solver: a fixed-lag smoother keeps the per-frame cost flat; "isam2" keeps all history.
     smoother: Literal["fixed-lag", "isam2"] = "fixed-lag"
-    smoother_lag_s: float = Field(1.0, gt=0)
+    smoother_lag_s: float = Field(0.5, gt=0)
     # iSAM2 relinearizes a variable when its update exceeds these (per component).
     relinearize_rotation_rad: float = Field(0.02, gt=0)
     relinearize_translation_m: float = Field(0.05, gt=0)

@@ -12,7 +12,10 @@ from scipy.spatial.transform import Rotation
 from estimator.backend import FusedEstimate, FusionBackend
 from estimator.backend.noise import fit_covariance, relative_pose_sigmas
 from estimator.backend.scenario import (
+    CAMERA_MOUNT,
+    PERFECT_IMU,
     FrontendMeasurement,
+    aligned_ate,
     chain,
     simulate_frontend,
     smooth_trajectory,
@@ -22,11 +25,7 @@ from estimator.config import BackendConfig
 from estimator.geometry import invert_pose, kabsch, make_pose, rotation_angle_deg
 from estimator.types import FrameStatus, ImuBatch, ImuNoise
 
-# A camera mounted like EuRoC's cam0: rotated ~90 deg about z and offset by a few cm.
-BODY_FROM_CAMERA = make_pose(
-    Rotation.from_euler("xyz", [0.02, -0.01, 1.55]).as_matrix(), [-0.02, -0.06, 0.01]
-)
-PERFECT_IMU = ImuNoise(gyro_noise_density=0.0, gyro_random_walk=0.0, accel_noise_density=0.0)
+BODY_FROM_CAMERA = CAMERA_MOUNT
 
 
 def _run(
@@ -65,12 +64,6 @@ def _perfect_measurements(poses: np.ndarray) -> list[FrontendMeasurement]:
     return [FrontendMeasurement(np.eye(4), None, 0, "first")] + [
         FrontendMeasurement(r, residuals, 150, "good") for r in relative
     ]
-
-
-def _aligned_ate(estimate: np.ndarray, truth: np.ndarray) -> float:
-    rotation, translation = kabsch(estimate[:, :3, 3], truth[:, :3, 3])
-    moved = estimate[:, :3, 3] @ rotation.T + translation
-    return float(np.sqrt(np.mean(np.sum((moved - truth[:, :3, 3]) ** 2, axis=1))))
 
 
 def _relative_to_first(poses: np.ndarray) -> np.ndarray:
@@ -147,15 +140,15 @@ def test_one_grossly_wrong_relative_pose_does_not_tear_the_trajectory():
         measurements,
         BackendConfig(outlier_gate_chi2=None, motion_prior="always", robust_kernel="none"),
     )
-    robust_ate = _aligned_ate(_poses(robust), truth)
-    plain_ate = _aligned_ate(_poses(plain), truth)
+    robust_ate = aligned_ate(_poses(robust), truth)
+    plain_ate = aligned_ate(_poses(plain), truth)
     assert robust_ate < 0.05, robust_ate
     assert plain_ate > 3 * robust_ate, (plain_ate, robust_ate)
     # With the gate (default) the frame is rejected outright and reported as degraded.
     gated = _run(scenario, measurements, BackendConfig())
     assert gated[40].status is FrameStatus.DEGRADED
     assert "rejected" in gated[40].message
-    assert _aligned_ate(_poses(gated), truth) < 0.05
+    assert aligned_ate(_poses(gated), truth) < 0.05
 
 
 def test_frames_without_vision_advance_with_the_imu():
@@ -285,9 +278,9 @@ def test_twenty_percent_broken_frames_fused_beats_front_end_by_30_percent():
     )
     truth = scenario.body_poses @ BODY_FROM_CAMERA
     out = _run(scenario, measurements, BackendConfig())
-    fused = _aligned_ate(_poses(out), truth)
+    fused = aligned_ate(_poses(out), truth)
     relative = [m.relative_pose for m in measurements]
-    frontend = min(_aligned_ate(chain(relative, hold=h), truth) for h in (True, False))
+    frontend = min(aligned_ate(chain(relative, hold=h), truth) for h in (True, False))
     assert not any(o.status is FrameStatus.LOST for o in out)
     assert fused < 0.7 * frontend, (fused, frontend)
 
@@ -372,7 +365,7 @@ def test_a_numerical_failure_inside_gtsam_restarts_the_graph_instead_of_crashing
     assert "restarted" in out[10].message
     assert all(o.status is FrameStatus.OK for o in out[11:])
     truth = scenario.body_poses @ BODY_FROM_CAMERA
-    assert _aligned_ate(_poses(out), truth) < 0.05
+    assert aligned_ate(_poses(out), truth) < 0.05
     # The frames the failed graph held are still finished, once each, with their last estimate.
     final = [pose for estimate in out for pose in estimate.final_poses] + list(backend.flush())
     assert [stamp for stamp, _ in final] == [int(stamp) for stamp in stamps]
@@ -492,8 +485,8 @@ def test_full_fit_covariance_lets_the_gyro_correct_the_translation_too():
                 inlier_points=points if with_points else None,
             )
             poses.append(out.pose)
-        ate[with_points] = _aligned_ate(np.stack(poses), camera)
-    frontend = _aligned_ate(chain([np.eye(4)] + [fit[0] for fit in fits], hold=True), camera)
+        ate[with_points] = aligned_ate(np.stack(poses), camera)
+    frontend = aligned_ate(chain([np.eye(4)] + [fit[0] for fit in fits], hold=True), camera)
     assert ate[True] < 0.5 * frontend, (ate, frontend)
     assert ate[True] < 0.6 * ate[False], (ate, frontend)
 

@@ -55,6 +55,7 @@ from estimator.backend.imu import (
     rotation_params,
 )
 from estimator.backend.inertial import (
+    InertialTerms,
     inertial_factor,
     inertial_factor_sigma,
     predict_position,
@@ -279,9 +280,10 @@ class FusionBackend:
         )
         thresholds.insert(("x", np.array([rotation] * 3 + [translation] * 3)))
         thresholds.insert(("b", np.full(3, self.config.relinearize_bias)))
-        # Gravity and accelerometer bias (m/s^2); the inertial factor is linear in both.
-        thresholds.insert(("g", np.full(3, 0.01)))
-        thresholds.insert(("a", np.full(3, 0.01)))
+        # Gravity and accelerometer bias: the inertial factor is linear in both, so its
+        # linearisation is exact at any point and a change of theirs never needs one.
+        thresholds.insert(("g", np.full(3, np.inf)))
+        thresholds.insert(("a", np.full(3, np.inf)))
         params.setRelinearizeThreshold(thresholds)
         # QR: the bias random walk (~4e-6 rad/s per frame) against a 0.05 rad/s prior is too
         # ill-conditioned for Cholesky when no gyro factor ties the biases to the poses.
@@ -801,25 +803,21 @@ class FusionBackend:
         if not self._in_window(current - 2, first_frame.timestamp_ns, timestamp_ns):
             return None
         assert self._imu_noise is not None
+        terms = InertialTerms.of(previous_frame.delta, delta)
         sigma = max(
-            inertial_factor_sigma(previous_frame.delta, delta, self._imu_noise.accel_noise_density),
+            inertial_factor_sigma(terms, self._imu_noise.accel_noise_density),
             self.config.inertial_min_sigma_mps,
         )
         factor = inertial_factor(
             (_pose_key(current - 2), _pose_key(current - 1), _pose_key(current)),
             _GRAVITY_KEY,
             _ACCEL_BIAS_KEY,
-            previous_frame.delta,
-            delta,
+            terms,
             sigma,
         )
+        first_pose = self._pose_estimate(current - 2)
         predicted = predict_position(
-            previous_frame.delta,
-            delta,
-            self._pose_estimate(current - 2),
-            self._body_pose,
-            self._gravity,
-            self._accel_bias,
+            terms, first_pose, self._body_pose, self._gravity, self._accel_bias
         )
         return factor, predicted
 

@@ -24,6 +24,8 @@ factors that use g estimate it, so no information is used twice. What the factor
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import gtsam
 import numpy as np
 
@@ -31,6 +33,7 @@ from estimator.backend.imu import SpecificForceDelta
 from estimator.geometry import skew
 
 __all__ = [
+    "InertialTerms",
     "inertial_factor",
     "inertial_factor_sigma",
     "predict_position",
@@ -38,16 +41,31 @@ __all__ = [
 ]
 
 
-def _imu_terms(first: SpecificForceDelta, second: SpecificForceDelta):
-    dt1, dt2 = first.duration_s, second.duration_s
-    a1 = first.delta_velocity - first.delta_position / dt1
-    a2 = second.delta_position / dt2
-    return dt1, dt2, a1, a2, 0.5 * (dt1 + dt2)
+@dataclass(frozen=True)
+class InertialTerms:
+    """What the error needs from two consecutive intervals, computed once per factor."""
+
+    dt1: float
+    dt2: float
+    a1: np.ndarray  # dv1 - dp1 / dt1
+    a2: np.ndarray  # dp2 / dt2
+    c: float  # (dt1 + dt2) / 2
+
+    @staticmethod
+    def of(first: SpecificForceDelta, second: SpecificForceDelta) -> InertialTerms:
+        """From the specific force preintegrated over frames 0 -> 1 and 1 -> 2."""
+        dt1, dt2 = first.duration_s, second.duration_s
+        return InertialTerms(
+            dt1,
+            dt2,
+            first.delta_velocity - first.delta_position / dt1,
+            second.delta_position / dt2,
+            0.5 * (dt1 + dt2),
+        )
 
 
 def velocity_change_error(
-    first: SpecificForceDelta,
-    second: SpecificForceDelta,
+    terms: InertialTerms,
     pose0: np.ndarray,
     pose1: np.ndarray,
     pose2: np.ndarray,
@@ -57,26 +75,31 @@ def velocity_change_error(
     """Error (3,) in m/s and its Jacobians: 3x6 per body pose (4x4, world), 3x3 for g and b.
 
     Pose3 tangent = [rotation, translation], right perturbation: p' = p + R dv and
-    R' = R Exp(w), so d(R a)/dw = -R [a]x.
+    R' = R Exp(w), so d(R a)/dw = -R [a]x. Written for speed: GTSAM linearises every inertial
+    factor of the window again on each frame.
     """
-    dt1, dt2, a1, a2, c = _imu_terms(first, second)
-    r0, p0 = pose0[:3, :3], pose0[:3, 3]
-    r1, p1 = pose1[:3, :3], pose1[:3, 3]
-    r2, p2 = pose2[:3, :3], pose2[:3, 3]
-    a1 = a1 - 0.5 * dt1 * accel_bias
-    a2 = a2 - 0.5 * dt2 * accel_bias
-    error = (p2 - p1) / dt2 - (p1 - p0) / dt1 - r0 @ a1 - r1 @ a2 - gravity * c
-    d0 = np.hstack([r0 @ skew(a1), r0 / dt1])
-    d1 = np.hstack([r1 @ skew(a2), -r1 * (1.0 / dt1 + 1.0 / dt2)])
-    d2 = np.hstack([np.zeros((3, 3)), r2 / dt2])
-    d_gravity = -c * np.eye(3)
-    d_bias = 0.5 * (dt1 * r0 + dt2 * r1)
-    return error, (d0, d1, d2, d_gravity, d_bias)
+    dt1, dt2 = terms.dt1, terms.dt2
+    r0, r1, r2 = pose0[:3, :3], pose1[:3, :3], pose2[:3, :3]
+    a1 = terms.a1 - (0.5 * dt1) * accel_bias
+    a2 = terms.a2 - (0.5 * dt2) * accel_bias
+    error = (
+        (pose2[:3, 3] - pose1[:3, 3]) / dt2
+        - (pose1[:3, 3] - pose0[:3, 3]) / dt1
+        - r0 @ a1
+        - r1 @ a2
+        - terms.c * gravity
+    )
+    d0, d1, d2 = np.empty((3, 6)), np.empty((3, 6)), np.zeros((3, 6))
+    d0[:, :3] = r0 @ skew(a1)
+    d0[:, 3:] = r0 / dt1
+    d1[:, :3] = r1 @ skew(a2)
+    d1[:, 3:] = r1 * -(1.0 / dt1 + 1.0 / dt2)
+    d2[:, 3:] = r2 / dt2
+    return error, (d0, d1, d2, -terms.c * np.eye(3), (0.5 * dt1) * r0 + (0.5 * dt2) * r1)
 
 
 def predict_position(
-    first: SpecificForceDelta,
-    second: SpecificForceDelta,
+    terms: InertialTerms,
     pose0: np.ndarray,
     pose1: np.ndarray,
     gravity: np.ndarray,
@@ -84,26 +107,23 @@ def predict_position(
 ) -> np.ndarray:
     """Position of frame 2 (world) that zeroes the error: the IMU's extrapolation."""
     pose2 = np.eye(4)  # the error is linear in p2 with slope I / dt2
-    error, _ = velocity_change_error(first, second, pose0, pose1, pose2, gravity, accel_bias)
-    return -error * second.duration_s
+    error, _ = velocity_change_error(terms, pose0, pose1, pose2, gravity, accel_bias)
+    return -error * terms.dt2
 
 
-def inertial_factor_sigma(
-    first: SpecificForceDelta, second: SpecificForceDelta, accel_noise_density: float
-) -> float:
+def inertial_factor_sigma(terms: InertialTerms, accel_noise_density: float) -> float:
     """Per-axis sigma (m/s) of the error from white accelerometer noise of density q.
 
     It enters dv1 - dp1/dt1 with variance q^2 dt1 / 3 and dp2/dt2 with q^2 dt2 / 3.
     """
-    return float(accel_noise_density * np.sqrt((first.duration_s + second.duration_s) / 3.0))
+    return float(accel_noise_density * np.sqrt((terms.dt1 + terms.dt2) / 3.0))
 
 
 def inertial_factor(
     pose_keys: tuple[int, int, int],
     gravity_key: int,
     bias_key: int,
-    first: SpecificForceDelta,
-    second: SpecificForceDelta,
+    terms: InertialTerms,
     sigma: float,
 ) -> gtsam.CustomFactor:
     """Factor on three consecutive Pose3 frames, world gravity and accelerometer bias."""
@@ -114,8 +134,7 @@ def inertial_factor(
     ) -> np.ndarray:
         k0, k1, k2, kg, kb = factor.keys()
         error, derivatives = velocity_change_error(
-            first,
-            second,
+            terms,
             values.atPose3(k0).matrix(),
             values.atPose3(k1).matrix(),
             values.atPose3(k2).matrix(),

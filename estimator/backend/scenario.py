@@ -17,10 +17,27 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from estimator.backend.imu import GRAVITY
-from estimator.geometry import invert_pose, make_pose
+from estimator.geometry import invert_pose, kabsch, make_pose
 from estimator.types import ImuBatch, ImuNoise
 
-__all__ = ["FrontendMeasurement", "Scenario", "chain", "simulate_frontend", "smooth_trajectory"]
+__all__ = [
+    "CAMERA_MOUNT",
+    "PERFECT_IMU",
+    "FrontendMeasurement",
+    "Scenario",
+    "aligned_ate",
+    "chain",
+    "simulate_frontend",
+    "smooth_trajectory",
+]
+
+# A camera mounted like EuRoC's cam0: rotated ~90 deg about z and offset by a few cm
+# (body_from_camera, slightly off the axes so that no term of the extrinsic vanishes).
+CAMERA_MOUNT = make_pose(
+    Rotation.from_euler("xyz", [0.02, -0.01, 1.55]).as_matrix(), [-0.02, -0.06, 0.01]
+)
+# Noise-free IMU (use with ``initial_bias=(0, 0, 0)`` for an exact one).
+PERFECT_IMU = ImuNoise(gyro_noise_density=0.0, gyro_random_walk=0.0, accel_noise_density=0.0)
 
 # Sum-of-sines trajectory: amplitude (m or rad), angular frequency (rad/s), phase (rad).
 _POSITION = np.array(
@@ -189,3 +206,10 @@ def chain(relative_poses: list[np.ndarray | None], hold: bool = True) -> np.ndar
         last = relative
         poses.append(poses[-1] @ relative)
     return np.stack(poses)
+
+
+def aligned_ate(estimate: np.ndarray, truth: np.ndarray) -> float:
+    """Translation RMSE (m) of (N, 4, 4) poses after the best rigid alignment of positions."""
+    rotation, translation = kabsch(estimate[:, :3, 3], truth[:, :3, 3])
+    moved = estimate[:, :3, 3] @ rotation.T + translation
+    return float(np.sqrt(np.mean(np.sum((moved - truth[:, :3, 3]) ** 2, axis=1))))

@@ -29,9 +29,15 @@ import numpy as np
 
 from estimator.backend import FusionBackend
 from estimator.backend.imu import preintegrate_gyro, rotation_params
-from estimator.backend.scenario import Scenario, chain, simulate_frontend, smooth_trajectory
+from estimator.backend.scenario import (
+    Scenario,
+    aligned_ate,
+    chain,
+    simulate_frontend,
+    smooth_trajectory,
+)
 from estimator.config import BackendConfig
-from estimator.geometry import kabsch, make_pose, rotation_angle_deg
+from estimator.geometry import make_pose, rotation_angle_deg
 from estimator.types import ImuNoise
 
 __all__ = ["add_arguments", "run"]
@@ -97,13 +103,6 @@ def _seed_list(text: str) -> list[int]:
     if not seeds:
         raise argparse.ArgumentTypeError(f"seeds must look like 0-9 or 0,3,5, got {text!r}")
     return seeds
-
-
-def _ate(estimate: np.ndarray, truth: np.ndarray) -> float:
-    """Translation RMSE after the best rigid alignment of the positions."""
-    rotation, translation = kabsch(estimate[:, :3, 3], truth[:, :3, 3])
-    moved = estimate[:, :3, 3] @ rotation.T + translation
-    return float(np.sqrt(np.mean(np.sum((moved - truth[:, :3, 3]) ** 2, axis=1))))
 
 
 def _ms_stats(seconds: np.ndarray) -> dict[str, float]:
@@ -268,14 +267,15 @@ def bench_simulated(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
         )
         relative = [m.relative_pose for m in measurements]
         case: dict[str, Any] = {
-            "front end, hold on failure": {"ate_m": _ate(chain(relative, hold=True), truth)},
+            "front end, hold on failure": {"ate_m": aligned_ate(chain(relative, hold=True), truth)},
             "front end, constant velocity on failure": {
-                "ate_m": _ate(chain(relative, hold=False), truth)
+                "ate_m": aligned_ate(chain(relative, hold=False), truth)
             },
         }
         for name, config, imu in runs:
             poses, seconds, statuses = _drive(scenario, measurements, config, imu)
-            case[name] = {"ate_m": _ate(poses, truth), "statuses": statuses, **_ms_stats(seconds)}
+            ate = aligned_ate(poses, truth)
+            case[name] = {"ate_m": ate, "statuses": statuses, **_ms_stats(seconds)}
         if broken > 0.0:
             # Full-history iSAM2 on the first frames only: enough to show its cost growing.
             count = min(args.isam2_frames, args.frames)
@@ -289,7 +289,7 @@ def bench_simulated(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
                 short, measurements[:count], BackendConfig(smoother="isam2"), True
             )
             case[f"iSAM2 full history, IMU (first {count} frames)"] = {
-                "ate_m": _ate(poses, truth[:count]),
+                "ate_m": aligned_ate(poses, truth[:count]),
                 "statuses": statuses,
                 **_ms_stats(seconds),
             }
@@ -298,7 +298,7 @@ def bench_simulated(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             count = min(args.isam2_frames, args.frames)
             # The short run is compared with the front end over the same frames.
             case_short = min(
-                _ate(chain(relative[:count], hold=h), truth[:count]) for h in (True, False)
+                aligned_ate(chain(relative[:count], hold=h), truth[:count]) for h in (True, False)
             )
         else:
             case_short = best_frontend
