@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class _Section(BaseModel):
@@ -97,7 +97,12 @@ class BackendConfig(_Section):
     use_imu: bool = True
     # Solver: a fixed-lag smoother keeps the per-frame cost flat; "isam2" keeps all history.
     smoother: Literal["fixed-lag", "isam2"] = "fixed-lag"
-    smoother_lag_s: float = Field(0.5, gt=0)
+    # Window of the fixed-lag smoother (s): old frames leave it in blocks of
+    # ``marginalize_block_s`` (cheaper than one by one), so each stays between lag and
+    # lag + block. Frames up to lag - block old are always in it: that must cover two frame
+    # intervals (the inertial factor ties three consecutive frames), 0.2 s by default.
+    smoother_lag_s: float = Field(0.4, gt=0)
+    marginalize_block_s: float = Field(0.2, ge=0)
     # iSAM2 relinearizes a variable when its update exceeds these (per component).
     relinearize_rotation_rad: float = Field(0.02, gt=0)
     relinearize_translation_m: float = Field(0.05, gt=0)
@@ -144,6 +149,11 @@ class BackendConfig(_Section):
     gravity_prior_sigma: float = Field(1.0, gt=0)
     accel_bias_prior_sigma: float = Field(0.1, gt=0)
     inertial_min_sigma_mps: float = Field(3e-3, gt=0)
+    # Longest frame interval the inertial factor spans (s): the specific force is integrated
+    # with the gyro bias of the moment, an error that grows with the square of the interval
+    # (10 mrad/s over 1.5 s tilts gravity into 0.2 m of position); longer gaps fall back to
+    # the constant-velocity prior.
+    inertial_max_interval_s: float = Field(0.25, gt=0)
     # Static initialisation (backend/rest.py): while the IMU (and vision, when it sees) shows
     # the platform at rest at start-up, the gyro bias starts from the mean gyro before the
     # first frame and consecutive frames are tied by a zero-motion factor.
@@ -154,6 +164,15 @@ class BackendConfig(_Section):
     zero_motion_sigma_m: float = Field(1e-4, gt=0)
     # 16 numbers, row-major T_BS of the left camera; overrides the calibration when given.
     body_from_camera: list[float] | None = Field(None, min_length=16, max_length=16)
+
+    @model_validator(mode="after")
+    def _block_inside_lag(self) -> BackendConfig:
+        if self.marginalize_block_s >= self.smoother_lag_s:
+            raise ValueError(
+                f"marginalize_block_s ({self.marginalize_block_s}) must be shorter than "
+                f"smoother_lag_s ({self.smoother_lag_s})"
+            )
+        return self
 
 
 class SwarmvoConfig(_Section):

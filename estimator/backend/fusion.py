@@ -37,6 +37,7 @@ IMU (or without accelerometer data with the first frame) the world is the first 
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 
@@ -85,9 +86,8 @@ _FREE_ROTATION_SIGMA = 10.0
 # A relative pose within this squared Mahalanobis distance of the identity (6 DOF, 99.9 %)
 # agrees with a standstill.
 _STILL_CHI2 = 22.46
-# Frame gaps at least this fraction of the smoother lag restamp the previous frame's keys (a
-# margin below 1 so that float rounding of the stamps cannot marginalise them).
-_KEEP_ALIVE_FRACTION = 0.9
+# A key is used by new factors only if its smoother stamp is this far inside the window.
+_STAMP_MARGIN_S = 1e-6
 
 
 def _pose_key(index: int) -> int:
@@ -136,6 +136,10 @@ class _OpenFrame:
     body_pose: np.ndarray = field(default_factory=lambda: np.eye(4))  # latest estimate
 
 
+_EYE3 = np.eye(3)
+_BOTTOM_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
 def _check_pose(name: str, pose: np.ndarray) -> np.ndarray:
     pose = np.asarray(pose, dtype=float)
     if pose.shape != (4, 4):
@@ -143,9 +147,10 @@ def _check_pose(name: str, pose: np.ndarray) -> np.ndarray:
     if not np.all(np.isfinite(pose)):
         raise ValueError(f"{name} contains NaN or inf")
     rotation = pose[:3, :3]
-    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-5) or np.linalg.det(rotation) < 0:
+    # Plain max-abs tests (np.allclose costs ~15 us each, on every frame).
+    if np.abs(rotation @ rotation.T - _EYE3).max() > 1e-5 or np.linalg.det(rotation) < 0:
         raise ValueError(f"{name} does not have a proper rotation block")
-    if not np.allclose(pose[3], [0.0, 0.0, 0.0, 1.0]):
+    if np.abs(pose[3] - _BOTTOM_ROW).max() > 1e-5:
         raise ValueError(f"{name} bottom row must be [0, 0, 0, 1]")
     return pose
 
@@ -311,10 +316,22 @@ class FusionBackend:
             for _ in range(self.config.extra_iterations):
                 self._smoother.update()
             return
-        stamp = (self._last_ns - self._start_ns) * 1e-9
+        stamp = self._stamp(self._last_ns)
         self._smoother.update(factors, values, dict.fromkeys([*keys, *keep], stamp))
         for _ in range(self.config.extra_iterations):
             self._smoother.update()
+
+    def _stamp(self, timestamp_ns: int) -> float:
+        """Smoother time of a frame's keys: seconds since the first frame, rounded down to
+        ``marginalize_block_s``.
+
+        GTSAM's fixed-lag smoother drops the keys stamped more than the lag before the newest
+        one; each such marginalisation linearises again the factors around the dropped frames,
+        so rounding the stamps down makes frames leave in blocks, at about the cost of one.
+        """
+        seconds = (timestamp_ns - self._start_ns) * 1e-9
+        block = self.config.marginalize_block_s
+        return math.floor(seconds / block) * block if block > 0 else seconds
 
     def _pose_estimate(self, index: int) -> np.ndarray:
         return self._smoother.calculateEstimatePose3(_pose_key(index)).matrix()
@@ -515,8 +532,9 @@ class FusionBackend:
         spread[3:, 3:] += np.eye(3) * self.config.cv_translation_sigma_m**2 * widen
         return float(error @ np.linalg.solve(spread, error))
 
-    def _in_window(self, index: int, index_ns: int | None, timestamp_ns: int) -> bool:
-        """Whether frame ``index`` has a variable that survives the update at ``timestamp_ns``.
+    def _in_window(self, index: int, cutoff: float) -> bool:
+        """Whether frame ``index`` has a variable that survives an update dropping the keys
+        stamped before ``cutoff`` (the same comparison GTSAM makes, with a small margin).
 
         A reference that would be marginalised is not kept alive by restamping it: with its
         neighbours already gone, GTSAM's fixed-lag smoother fails to marginalise it later
@@ -525,11 +543,11 @@ class FusionBackend:
         """
         if isinstance(self._smoother, gtsam.ISAM2):
             return bool(self._smoother.valueExists(_pose_key(index)))
-        if index_ns is None:
-            return False
-        age = (timestamp_ns - int(index_ns)) * 1e-9
-        return age < _KEEP_ALIVE_FRACTION * self.config.smoother_lag_s and bool(
-            self._smoother.getISAM2().valueExists(_pose_key(index))
+        frame = self._open.get(index)
+        return (
+            frame is not None
+            and frame.stamp_s > cutoff + _STAMP_MARGIN_S
+            and bool(self._smoother.getISAM2().valueExists(_pose_key(index)))
         )
 
     def _reference_index(self, reference_ns: int | None) -> int | None:
@@ -548,6 +566,8 @@ class FusionBackend:
     ) -> FusedEstimate:
         previous, current = self._index, self._index + 1
         dt = (timestamp_ns - self._last_ns) * 1e-9
+        stamp = self._stamp(timestamp_ns)
+        cutoff = stamp - self.config.smoother_lag_s  # keys stamped before it are dropped now
         factors = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         keys = [_pose_key(current)]
@@ -582,7 +602,7 @@ class FusionBackend:
             keys.append(_bias_key(current))
 
         motion = self._motion_prior(dt)
-        inertial = self._inertial_factor(current, delta, timestamp_ns)
+        inertial = self._inertial_factor(current, delta, cutoff)
 
         # Prediction (initial guess and outlier gate): gyro rotation (else constant velocity)
         # with the IMU's translation (else constant velocity).
@@ -611,7 +631,7 @@ class FusionBackend:
             # estimates: for the gate and the initial guess (and as the factor itself when the
             # reference has already left the window).
             body_motion = body_measured
-            live = reference == previous or self._in_window(reference, reference_ns, timestamp_ns)
+            live = reference == previous or self._in_window(reference, cutoff)
             if reference != previous:
                 reference_pose = (
                     self._pose_estimate(reference) if live else self._frames[int(reference_ns)][1]
@@ -683,17 +703,15 @@ class FusionBackend:
         values.insert(_pose_key(current), gtsam.Pose3(nearest_rigid(self._body_pose @ guess)))
 
         # The previous frame's keys would be marginalised by this update when the gap exceeds
-        # the lag (its estimate is needed just below); within the lag they keep their stamps.
-        if dt >= _KEEP_ALIVE_FRACTION * self.config.smoother_lag_s:
+        # the lag (its estimate is needed just below): restamped, it stays in the window.
+        if self._open[previous].stamp_s <= cutoff + _STAMP_MARGIN_S:
             keep += [_pose_key(previous)] + ([_bias_key(previous)] if self.use_imu else [])
+            self._open[previous].stamp_s = stamp
         if self._use_accel:
             keep += [_GRAVITY_KEY, _ACCEL_BIAS_KEY]
         self._last_ns = timestamp_ns
         self._index = current
-        stamp = (timestamp_ns - self._start_ns) * 1e-9
-        if _pose_key(previous) in keep:  # restamped below: the previous frame stays open
-            self._open[previous].stamp_s = stamp
-        self._finish_before(stamp - self.config.smoother_lag_s)
+        self._finish_before(cutoff)
         try:
             self._update(factors, values, keys, tuple(keep))
             previous_pose = self._pose_estimate(previous)
@@ -733,7 +751,7 @@ class FusionBackend:
         self._open[self._index] = _OpenFrame(
             self._index,
             self._last_ns,
-            (self._last_ns - self._start_ns) * 1e-9,
+            self._stamp(self._last_ns),
             accepted,
             delta,
             self._body_pose.copy(),
@@ -787,12 +805,12 @@ class FusionBackend:
             self._final_poses.append((frame.timestamp_ns, frame.body_pose @ self.body_from_camera))
 
     def _inertial_factor(
-        self, current: int, delta: SpecificForceDelta | None, timestamp_ns: int
+        self, current: int, delta: SpecificForceDelta | None, cutoff: float
     ) -> tuple[gtsam.CustomFactor, np.ndarray] | None:
         """The inertial factor on (X_k-2, X_k-1, X_k) and the position it predicts for X_k.
 
-        None without accelerometer data for either interval, or when X_k-2 is about to leave
-        the smoother (after a gap longer than the lag).
+        None without accelerometer data for either interval, when either interval is longer
+        than ``inertial_max_interval_s``, or when X_k-2 is about to leave the smoother.
         """
         if delta is None or current < 2:
             return None
@@ -800,7 +818,10 @@ class FusionBackend:
         previous_frame = self._open.get(current - 1)
         if first_frame is None or previous_frame is None or previous_frame.delta is None:
             return None
-        if not self._in_window(current - 2, first_frame.timestamp_ns, timestamp_ns):
+        longest = max(previous_frame.delta.duration_s, delta.duration_s)
+        if longest > self.config.inertial_max_interval_s:
+            return None
+        if not self._in_window(current - 2, cutoff):
             return None
         assert self._imu_noise is not None
         terms = InertialTerms.of(previous_frame.delta, delta)
