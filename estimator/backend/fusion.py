@@ -131,7 +131,6 @@ class _OpenFrame:
     index: int
     timestamp_ns: int
     stamp_s: float  # smoother time of its keys
-    accepted: bool  # vision measured it (the origin counts)
     delta: SpecificForceDelta | None  # accelerometer over the interval ending here
     body_pose: np.ndarray = field(default_factory=lambda: np.eye(4))  # latest estimate
 
@@ -734,16 +733,13 @@ class FusionBackend:
                 notes.insert(0, "no vision, no gyro: pose from the constant-velocity prior")
         self._previous_motion = invert_pose(previous_pose) @ self._pose_estimate(current)
         self._previous_dt = dt
-        return self._estimate(
-            status, "; ".join(notes), self._previous_motion.copy(), accepted, delta
-        )
+        return self._estimate(status, "; ".join(notes), self._previous_motion.copy(), delta)
 
     def _estimate(
         self,
         status: FrameStatus,
         message: str,
         motion: np.ndarray | None = None,
-        accepted: bool = True,
         delta: SpecificForceDelta | None = None,
     ) -> FusedEstimate:
         self._body_pose = self._pose_estimate(self._index)
@@ -752,7 +748,6 @@ class FusionBackend:
             self._index,
             self._last_ns,
             self._stamp(self._last_ns),
-            accepted,
             delta,
             self._body_pose.copy(),
         )
