@@ -23,7 +23,7 @@ import tempfile
 import time
 from collections import Counter
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -39,6 +39,9 @@ from estimator.backend.scenario import (
 from estimator.config import BackendConfig
 from estimator.geometry import make_pose, rotation_angle_deg
 from estimator.types import ImuNoise
+
+if TYPE_CHECKING:
+    from estimator.commands.run import RunResult
 
 __all__ = ["add_arguments", "run"]
 
@@ -343,18 +346,44 @@ def bench_simulated(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
 # ----------------------------------------------------------------------------- 3. pipeline
 
 
-def _pipeline_runs(name: str, path: Path, seed: int) -> tuple[dict[str, Any], list[list[str]]]:
+# Whole-pipeline runs of this benchmark, by (sequence folder, seed, IMU): the default rendered
+# seed appears both in the detailed table and in the per-seed one, and runs only once.
+_Runs = dict[tuple[Path, int, bool], "RunResult"]
+
+
+def _pipeline_run(runs: _Runs, path: Path, seed: int, imu: bool) -> RunResult:
+    """``RunResult`` of the default pipeline (pso-robust, back end on) on ``path``."""
     from estimator.commands.run import build_config, run_sequence
     from estimator.datasets import open_sequence
+
+    key = (path, seed, imu)
+    if key not in runs:
+        config = build_config("pso-robust", seed, imu=imu, backend=True)
+        runs[key] = run_sequence(open_sequence(path), config, use_imu=imu)
+    return runs[key]
+
+
+def _metrics(run: RunResult, which: str) -> dict[str, Any]:
+    """Trajectory metrics of one kind of pose of a run (see ``RunResult.poses``)."""
     from estimator.evaluation import evaluate_trajectory
 
-    sequence = open_sequence(path)
+    sequence = run.sequence
+    return evaluate_trajectory(
+        run.timestamps_ns, run.poses(which), sequence.ground_truth, sequence.rig.left.T_BS
+    ).metrics
+
+
+def _status_text(statuses: dict[str, int]) -> str:
+    return ", ".join(f"{k} {v}" for k, v in sorted(statuses.items()))
+
+
+def _pipeline_runs(
+    runs: _Runs, name: str, path: Path, seed: int
+) -> tuple[dict[str, Any], list[list[str]]]:
     result: dict[str, Any] = {}
     rows = []
     for imu in (True, False):
-        config = build_config("pso-robust", seed, imu=imu, backend=True)
-        run = run_sequence(sequence, config, use_imu=imu)
-        stamps = run.timestamps_ns
+        run = _pipeline_run(runs, path, seed, imu)
         fuse = np.array([r.timings_s.get("fuse", np.nan) for r in run.reports])
         statuses = dict(Counter(str(r.status) for r in run.reports))
         rejected = sum("rejected" in r.message for r in run.reports)
@@ -363,9 +392,7 @@ def _pipeline_runs(name: str, path: Path, seed: int) -> tuple[dict[str, Any], li
         if imu:
             variants.insert(0, ("front end only", "frontend_pose"))
         for label, which in variants:
-            metrics = evaluate_trajectory(
-                stamps, run.poses(which), sequence.ground_truth, sequence.rig.left.T_BS
-            ).metrics
+            metrics = _metrics(run, which)
             entry = {
                 "ate_rmse_m": metrics["ate_rmse_m"],
                 "final_drift_m": metrics["final_drift_m"],
@@ -386,9 +413,7 @@ def _pipeline_runs(name: str, path: Path, seed: int) -> tuple[dict[str, Any], li
                     f"{entry['ate_rmse_m']:.4f}",
                     f"{entry['final_drift_m']:.4f}",
                     f"{entry['final_rot_drift_deg']:.3f}",
-                    ", ".join(f"{k} {v}" for k, v in sorted(statuses.items()))
-                    if which != "frontend_pose"
-                    else "-",
+                    _status_text(statuses) if which != "frontend_pose" else "-",
                     f"{entry['fuse_p50_ms']:.1f} / {entry['fuse_max_ms']:.1f}"
                     if which != "frontend_pose"
                     else "-",
@@ -416,23 +441,16 @@ def _rendered(args: argparse.Namespace, seed: int) -> Path:
     return rendered
 
 
-def _seed_rows(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+def _seed_rows(args: argparse.Namespace, runs: _Runs) -> tuple[dict[str, Any], str]:
     """Front end vs fused (online and smoothed) ATE of the whole pipeline, one rendered seed
     per row, with IMU; the change is against the front end's ATE (target: -30 % or better)."""
-    from estimator.commands.run import build_config, run_sequence
-    from estimator.datasets import open_sequence
-    from estimator.evaluation import evaluate_trajectory
-
     result: dict[str, Any] = {}
     rows = []
     changes: dict[str, list[float]] = {"pose": [], "smoothed": []}
     for seed in args.seeds:
-        sequence = open_sequence(_rendered(args, seed))
-        run = run_sequence(sequence, build_config("pso-robust", seed, imu=True, backend=True))
+        run = _pipeline_run(runs, _rendered(args, seed), seed, imu=True)
         ate = {
-            which: evaluate_trajectory(
-                run.timestamps_ns, run.poses(which), sequence.ground_truth, sequence.rig.left.T_BS
-            ).metrics["ate_rmse_m"]
+            which: _metrics(run, which)["ate_rmse_m"]
             for which in ("frontend_pose", "pose", "smoothed")
         }
         statuses = dict(Counter(str(r.status) for r in run.reports))
@@ -448,7 +466,7 @@ def _seed_rows(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
                 f"{change['pose']:+.1f} %",
                 f"{1e3 * ate['smoothed']:.2f}",
                 f"{change['smoothed']:+.1f} %",
-                ", ".join(f"{k} {v}" for k, v in sorted(statuses.items())),
+                _status_text(statuses),
             ]
         )
     for which, label in (("pose", "online"), ("smoothed", "smoothed")):
@@ -487,8 +505,9 @@ def bench_pipeline(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
         datasets["EuRoC V1_01 micro"] = args.euroc_micro
     result: dict[str, Any] = {}
     rows: list[list[str]] = []
+    runs: _Runs = {}
     for name, path in datasets.items():
-        result[name], new_rows = _pipeline_runs(name, path, args.seed)
+        result[name], new_rows = _pipeline_runs(runs, name, path, args.seed)
         rows += new_rows
     table = _table(
         "Whole pipeline (Odometry, pso-robust): front end only vs fused",
@@ -504,7 +523,7 @@ def bench_pipeline(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
         rows,
     )
     if args.seeds:
-        result["seeds"], seed_table = _seed_rows(args)
+        result["seeds"], seed_table = _seed_rows(args, runs)
         table += "\n" + seed_table
     return result, table
 
