@@ -1,14 +1,20 @@
 """``swarmvo`` command line: a thin dispatcher over one module per sub-command.
 
-Each module named in ``COMMANDS`` provides ``add_arguments(parser)`` and ``run(args) -> int``;
-it is imported only when its command runs, so ``swarmvo --help`` stays fast.
+Each module named in ``COMMANDS`` provides ``add_arguments(parser)`` and ``run(args) -> int``.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+from importlib.metadata import PackageNotFoundError, version
+
+DESCRIPTION = (
+    "Stereo visual odometry: stereo frame pairs (and IMU samples) in, the robot's pose out. "
+    "Run it over a recorded sequence, render test sequences, benchmark it, or serve it."
+)
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -16,11 +22,20 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("estimator.commands.serve", "run the HTTP/WebSocket odometry service"),
     "run": ("estimator.commands.run", "run the odometry over a EuRoC/KITTI sequence"),
     "synth": ("estimator.commands.synth", "render a stereo + IMU sequence with ground truth"),
+    "config": ("estimator.commands.config", "print the configuration (defaults or a file) as YAML"),
 }
 
 
+def package_version() -> str:
+    try:
+        return version("swarmvo")
+    except PackageNotFoundError:  # running from a source tree that was never installed
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="swarmvo", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="swarmvo", description=DESCRIPTION)
+    parser.add_argument("--version", action="version", version=f"swarmvo {package_version()}")
     subparsers = parser.add_subparsers(dest="command", required=True)
     for name, (module_name, help_text) in COMMANDS.items():
         sub = subparsers.add_parser(name, help=help_text)
@@ -37,6 +52,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError, NotADirectoryError) as error:
         print(f"swarmvo {args.command}: error: {error}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the reader went away (`swarmvo config | head`): not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":

@@ -6,9 +6,10 @@ pass around (the service accepts JSON overrides of it).
 
 from __future__ import annotations
 
+import difflib
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 
 class _Section(BaseModel):
@@ -182,3 +183,34 @@ class SwarmvoConfig(_Section):
     registration: RegistrationConfig = Field(default_factory=RegistrationConfig)
     frontend: FrontendConfig = Field(default_factory=FrontendConfig)
     backend: BackendConfig = Field(default_factory=BackendConfig)
+
+
+def explain_validation_error(error: ValidationError, model: type[BaseModel] = SwarmvoConfig) -> str:
+    """One plain line per problem, with a "did you mean" for a mistyped key.
+
+    Pydantic's own message is several lines with a documentation URL for each error: accurate,
+    but hard to read in a terminal or an HTTP answer.
+    """
+    problems = []
+    for item in error.errors(include_url=False):
+        location = [str(part) for part in item["loc"]]
+        where = ".".join(location) or "configuration"
+        if item["type"] == "extra_forbidden":
+            known = _field_names_at(model, location[:-1])
+            close = difflib.get_close_matches(location[-1], known, n=1)
+            hint = f" (did you mean {'.'.join([*location[:-1], close[0]])}?)" if close else ""
+            problems.append(f"{where}: unknown key{hint}")
+        else:
+            problems.append(f"{where}: {item['msg']}")
+    return "; ".join(problems)
+
+
+def _field_names_at(model: type[BaseModel], path: list[str]) -> list[str]:
+    """Field names of the (nested) section at ``path``; empty when the path leaves the models."""
+    for name in path:
+        field = model.model_fields.get(name)
+        annotation = field.annotation if field is not None else None
+        if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
+            return []
+        model = annotation
+    return list(model.model_fields)

@@ -24,7 +24,7 @@ import yaml
 from pydantic import ValidationError
 from tqdm import tqdm
 
-from estimator.config import SwarmvoConfig
+from estimator.config import SwarmvoConfig, explain_validation_error
 from estimator.datasets import Sequence, open_sequence
 from estimator.evaluation import TrajectoryEvaluation, evaluate_trajectory
 from estimator.types import FrameReport, FrameStatus
@@ -76,7 +76,8 @@ def load_config(path: Path) -> SwarmvoConfig:
     try:
         return SwarmvoConfig.model_validate(data or {})
     except ValidationError as error:
-        raise ValueError(f"{path}: invalid configuration: {error}") from error
+        problems = explain_validation_error(error)
+        raise ValueError(f"{path}: invalid configuration: {problems}") from None
 
 
 @dataclass
@@ -252,6 +253,8 @@ def write_outputs(result: RunResult, out: Path) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.imu and args.backend is False:
+        raise ValueError("--imu needs the back end (the IMU is fused there); drop --no-backend")
     base = load_config(args.config) if args.config is not None else None
     sequence = open_sequence(args.dataset, args.format)
     config = build_config(args.estimator, args.seed, args.imu, args.backend, base)
