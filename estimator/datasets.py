@@ -156,10 +156,14 @@ class Sequence:
         return self.imu.between(start_ns, end_ns)
 
 
+class UnreadableImageError(ValueError):
+    """A frame's image file is missing or cannot be decoded (one bad file, not a bad dataset)."""
+
+
 def _read_image(path: Path) -> np.ndarray:
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise ValueError(f"cannot read image {path} (missing or not an image)")
+        raise UnreadableImageError(f"cannot read image {path} (missing or not an image)")
     return image
 
 

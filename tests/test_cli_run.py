@@ -212,3 +212,22 @@ def test_config_file_is_applied_and_flags_override_it(rendered, tmp_path, capsys
     config.write_text('{"registration": {"method": "simplex"}}')
     assert main(base) == 2
     assert "invalid configuration" in capsys.readouterr().err
+
+
+def test_a_corrupt_image_is_skipped_with_one_warning_unless_strict(rendered, tmp_path, capsys):
+    copy = tmp_path / "corrupt"
+    shutil.copytree(rendered, copy)
+    broken = sorted((copy / "mav0" / "cam1" / "data").glob("*.png"))[2]
+    broken.write_bytes(b"not a png")
+    out = tmp_path / "out"
+    args = ["run", str(copy), "--limit", "6", "--quiet", "--estimator", "svd", "--no-backend"]
+    assert main([*args, "--out", str(out)]) == 0
+    error = capsys.readouterr().err
+    assert error.count("frame 2 skipped") == 1 and "Traceback" not in error
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert (metrics["frames"], metrics["frames_skipped"]) == (5, 1)
+    rows = [row for row in (out / "trajectory.tum").read_text().splitlines() if row[:1] != "#"]
+    assert len(rows) == 5
+    assert main([*args, "--out", str(tmp_path / "strict"), "--strict"]) == 2
+    assert "cannot read image" in capsys.readouterr().err
+    assert not (tmp_path / "strict" / "trajectory.tum").exists()

@@ -14,6 +14,7 @@ import argparse
 import json
 import math
 import time
+import warnings
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,7 +26,7 @@ from pydantic import ValidationError
 from tqdm import tqdm
 
 from estimator.config import SwarmvoConfig, explain_validation_error
-from estimator.datasets import Sequence, open_sequence
+from estimator.datasets import Sequence, UnreadableImageError, open_sequence
 from estimator.evaluation import TrajectoryEvaluation, evaluate_trajectory
 from estimator.types import FrameReport, FrameStatus
 
@@ -62,6 +63,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="fuse in the GTSAM back end (default: yes); --no-backend = front end only",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--strict",
+        action="store_true",
+        help="stop at a missing or corrupt image (default: skip the frame with a warning)",
+    )
 
 
 def load_config(path: Path) -> SwarmvoConfig:
@@ -88,6 +94,8 @@ class RunResult:
     wall_time_s: float
     # Final smoothed pose per frame timestamp (back end only; see FrameReport.final_poses).
     smoothed: dict[int, np.ndarray] = field(default_factory=dict)
+    # Timestamps of the frames skipped because an image could not be read.
+    skipped_ns: list[int] = field(default_factory=list)
 
     @property
     def timestamps_ns(self) -> np.ndarray:
@@ -129,11 +137,13 @@ def run_sequence(
     limit: int | None = None,
     use_imu: bool = True,
     progress: bool = False,
+    strict: bool = False,
 ) -> RunResult:
     """Feed every frame (and the IMU samples since the previous frame) through ``Odometry``.
 
     The first frame gets the samples of ``FIRST_FRAME_IMU_WINDOW_NS`` before it, so that the
-    back end can level its world with gravity.
+    back end can level its world with gravity. A frame whose image cannot be read is skipped
+    with a warning (its IMU samples go to the next frame) unless ``strict``.
     """
     from estimator.odometry import Odometry  # the pipeline loads only when a run starts
 
@@ -145,10 +155,18 @@ def run_sequence(
         sequence.rig, config, imu_noise=sequence.imu_noise if imu_available else None
     )
     reports: list[FrameReport] = []
+    skipped_ns: list[int] = []
     previous_ns: int | None = None
     start = time.perf_counter()
     for index in tqdm(range(count), desc=sequence.name, unit="frame", disable=not progress):
-        frame = sequence.load(index)
+        try:
+            frame = sequence.load(index)
+        except UnreadableImageError as error:
+            if strict:
+                raise
+            warnings.warn(f"frame {index} skipped: {error}", stacklevel=1)
+            skipped_ns.append(sequence.frames[index].timestamp_ns)
+            continue
         imu = None
         if imu_available:
             start_ns = (
@@ -161,7 +179,8 @@ def run_sequence(
         previous_ns = frame.timestamp_ns
     smoothed = dict(pose for report in reports for pose in report.final_poses)
     smoothed.update(odometry.finish())
-    return RunResult(sequence, config, reports, time.perf_counter() - start, smoothed)
+    elapsed = time.perf_counter() - start
+    return RunResult(sequence, config, reports, elapsed, smoothed, skipped_ns)
 
 
 def _finite(value: Any) -> Any:
@@ -196,6 +215,7 @@ def summarize(
             and result.sequence.imu is not None
         ),
         "frames": len(reports),
+        "frames_skipped": len(result.skipped_ns),
         "frames_failed": len(reports) - statuses.get(str(FrameStatus.OK), 0),
         "status_counts": dict(statuses),
         "inliers_median": float(np.median([r.inliers for r in reports[1:]] or [0])),
@@ -259,11 +279,18 @@ def run(args: argparse.Namespace) -> int:
     sequence = open_sequence(args.dataset, args.format)
     config = build_config(args.estimator, args.seed, args.imu, args.backend, base)
     result = run_sequence(
-        sequence, config, args.limit, config.backend.use_imu, progress=not args.quiet
+        sequence,
+        config,
+        args.limit,
+        config.backend.use_imu,
+        progress=not args.quiet,
+        strict=args.strict,
     )
     out = args.out if args.out is not None else Path("runs") / sequence.name
     summary = write_outputs(result, out)
     line = f"{summary['frames']} frames, {summary['frames_failed']} failed"
+    if summary["frames_skipped"]:
+        line += f", {summary['frames_skipped']} skipped (unreadable images)"
     if "ate_rmse_m" in summary:
         line += (
             f"; ATE {summary['ate_rmse_m']:.4f} m, RPE {summary['rpe_trans_rmse_m']:.4f} m / "
