@@ -23,6 +23,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -36,6 +37,9 @@ from estimator.registration import RegistrationResult, register
 from estimator.stereo import StereoMatcher, StereoPoints, point_covariances
 from estimator.temporal import Correspondences, match_temporal
 from estimator.types import FrameReport, FrameStatus, ImuBatch, ImuNoise, StereoFrame
+
+if TYPE_CHECKING:
+    from estimator.backend import FusedEstimate
 
 __all__ = ["Odometry", "frame_seed", "to_grey8"]
 
@@ -130,6 +134,7 @@ class Odometry:
         self._motion = np.eye(4)  # last frame-to-frame motion (rectified), constant velocity
         self._failures = 0  # consecutive frames without a vision estimate
         self._final_poses: tuple[tuple[int, np.ndarray], ...] = ()  # from the back end
+        self._fused: FusedEstimate | None = None  # the back end's latest answer
 
     def _make_backend(self, imu_noise: ImuNoise | None):
         try:
@@ -184,7 +189,8 @@ class Odometry:
                     frame, imu, frontend_pose, relative_pose, estimate, status, message
                 )
             self._update_reference(points, left, frontend_pose, estimate, frame.timestamp_ns)
-        result, pairs = estimate.result, estimate.pairs
+        result, pairs, fused = estimate.result, estimate.pairs, self._fused
+        measured = estimate.reference_from_current is not None and estimate.reference is not None
         return FrameReport(
             index=self._index,
             timestamp_ns=int(frame.timestamp_ns),
@@ -198,6 +204,11 @@ class Odometry:
             timings_s=timings,
             message=message,
             final_poses=self._final_poses,
+            measurement_covariance=self._report_covariance(estimate) if measured else None,
+            reference_timestamp_ns=estimate.reference.timestamp_ns if measured else None,
+            body_covariance=fused.body_covariance if fused is not None else None,
+            body_motion=fused.body_motion if fused is not None else None,
+            body_motion_covariance=fused.body_motion_covariance if fused is not None else None,
         )
 
     def finish(self) -> tuple[tuple[int, np.ndarray], ...]:
@@ -402,6 +413,7 @@ class Odometry:
             inlier_points=points,
             covariance=covariance,
         )
+        self._fused = fused
         if first:
             self._world_from_backend = self._pose @ invert_pose(fused.pose)
             if self._initial_pose is None:
@@ -422,6 +434,17 @@ class Odometry:
         adjoint = np.zeros((6, 6))
         adjoint[:3, :3] = adjoint[3:, 3:] = rotation
         return adjoint @ estimate.covariance @ adjoint.T
+
+    def _report_covariance(self, estimate: _Estimate) -> np.ndarray:
+        """Covariance of the measured T_ref_cur as the back end weighs it: the refinement's,
+        else the rigid fit's from the inlier points, scaled and floored by ``config.backend``."""
+        from estimator.backend.noise import fit_covariance, measured_covariance
+
+        covariance = self._measurement_covariance(estimate)
+        if covariance is not None:
+            return measured_covariance(covariance, self.config.backend)
+        points, residuals = self._inlier_points(estimate), self._inlier_residuals(estimate)
+        return fit_covariance(points, residuals, self.config.backend)
 
     def _reference_from_current(self, estimate: _Estimate) -> np.ndarray:
         """T_ref_cur of the original left camera (the estimate is in rectified frames)."""

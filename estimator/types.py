@@ -81,3 +81,14 @@ class FrameReport:
     # Earlier frames the back end's smoother has finished with at this frame, each once:
     # (timestamp_ns, left camera pose) with its final, smoothed estimate.
     final_poses: tuple[tuple[int, np.ndarray], ...] = ()
+    # Uncertainty, for the odometry message (``estimator.odometry_msg``). Covariances are 6x6 in
+    # GTSAM's tangent order (rotation, translation), right perturbation:
+    # the front end's T_ref_cur (left camera frame) against the frame stamped
+    # ``reference_timestamp_ns``, calibrated as the back end uses it (None when it failed);
+    measurement_covariance: np.ndarray | None = None
+    reference_timestamp_ns: int | None = None
+    # with the back end, the marginals of the fused body (IMU) pose and of the body motion
+    # T_prev_cur from the previous frame, with that motion as estimated now.
+    body_covariance: np.ndarray | None = None
+    body_motion: np.ndarray | None = None
+    body_motion_covariance: np.ndarray | None = None

@@ -63,6 +63,7 @@ from estimator.backend.inertial import (
 )
 from estimator.backend.noise import (
     fit_covariance,
+    measured_covariance,
     pose_noise,
     relative_pose_sigmas,
     robust,
@@ -122,6 +123,10 @@ class FusedEstimate:
     # With the accelerometer: world gravity (m/s^2) and accelerometer bias, current estimates.
     gravity: np.ndarray | None = None
     accel_bias: np.ndarray | None = None
+    # Marginal covariances (GTSAM tangent: rotation then translation, right perturbation in
+    # the body frame) of ``body_pose`` and of ``body_motion``, from the smoother's Bayes tree.
+    body_covariance: np.ndarray | None = None
+    body_motion_covariance: np.ndarray | None = None
 
 
 @dataclass
@@ -259,7 +264,7 @@ class FusionBackend:
         else:
             relative_pose = _check_pose("relative_pose", relative_pose)
             if covariance is not None:
-                covariance = _measured_covariance(covariance, self.config)
+                covariance = measured_covariance(covariance, self.config)
             elif inlier_points is not None and len(inlier_points) > 0:
                 covariance = fit_covariance(inlier_points, inlier_residuals, self.config)
             else:
@@ -761,6 +766,7 @@ class FusionBackend:
                 self._smoother.calculateEstimateVector(_ACCEL_BIAS_KEY)
             )
         final_poses, self._final_poses = tuple(self._final_poses), []
+        covariance, motion_covariance = self._marginals(motion)
         return FusedEstimate(
             pose=self._body_pose @ self.body_from_camera,
             body_pose=self._body_pose.copy(),
@@ -771,7 +777,39 @@ class FusionBackend:
             final_poses=final_poses,
             gravity=self._gravity.copy() if self._use_accel else None,
             accel_bias=self._accel_bias.copy() if self._use_accel else None,
+            body_covariance=covariance,
+            body_motion_covariance=motion_covariance,
         )
+
+    def _marginals(
+        self, motion: np.ndarray | None
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Covariance of the newest pose and of the motion from the previous one.
+
+        The motion M = X_prev^-1 X_cur has the right-perturbation error
+        xi = xi_cur - Ad(M^-1) xi_prev, so its covariance needs the joint marginal of both.
+        None where GTSAM cannot give it (a restarted graph without the previous frame).
+        """
+        smoother = self._smoother
+        isam = smoother if isinstance(smoother, gtsam.ISAM2) else smoother.getISAM2()
+        current = _pose_key(self._index)
+        try:
+            if motion is None or not isam.valueExists(_pose_key(self._index - 1)):
+                return np.asarray(isam.marginalCovariance(current)), None
+            previous = _pose_key(self._index - 1)
+            joint = isam.jointMarginalCovariance(gtsam.KeyVector([previous, current]))
+        except RuntimeError:  # numerical failure inside GTSAM
+            return None, None
+        jacobian = np.hstack([-gtsam.Pose3(invert_pose(motion)).AdjointMap(), np.eye(6)])
+        blocks = np.block(
+            [
+                [joint.at(previous, previous), joint.at(previous, current)],
+                [joint.at(current, previous), joint.at(current, current)],
+            ]
+        )
+        motion_covariance = jacobian @ blocks @ jacobian.T
+        motion_covariance = 0.5 * (motion_covariance + motion_covariance.T)
+        return np.asarray(joint.at(current, current)), motion_covariance
 
     # ------------------------------------------------------------------ smoothed output
 
@@ -843,13 +881,3 @@ class FusionBackend:
         self._frames[timestamp_ns] = (index, body_pose)
         while self._frames and next(iter(self._frames.values()))[0] < self._oldest_reference:
             self._frames.popitem(last=False)
-
-
-def _measured_covariance(covariance: np.ndarray, config: BackendConfig) -> np.ndarray:
-    """A front-end covariance checked, symmetrised and floored like the fitted ones."""
-    covariance = np.asarray(covariance, dtype=float)
-    if covariance.shape != (6, 6) or not np.all(np.isfinite(covariance)):
-        raise ValueError("covariance must be a finite 6x6 matrix")
-    floor = [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
-    covariance = config.fit_covariance_scale**2 * covariance + np.diag(floor)
-    return 0.5 * (covariance + covariance.T)

@@ -22,7 +22,14 @@ import numpy as np
 from estimator.config import BackendConfig
 from estimator.geometry import skew
 
-__all__ = ["fit_covariance", "pose_noise", "relative_pose_sigmas", "robust", "sigma_covariance"]
+__all__ = [
+    "fit_covariance",
+    "measured_covariance",
+    "pose_noise",
+    "relative_pose_sigmas",
+    "robust",
+    "sigma_covariance",
+]
 
 
 def relative_pose_sigmas(
@@ -80,6 +87,16 @@ def fit_covariance(
     )
     floor = [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
     covariance = config.fit_covariance_scale**2 * np.linalg.inv(information) + np.diag(floor)
+    return 0.5 * (covariance + covariance.T)
+
+
+def measured_covariance(covariance: np.ndarray, config: BackendConfig) -> np.ndarray:
+    """A front-end covariance checked, symmetrised and floored like the fitted ones."""
+    covariance = np.asarray(covariance, dtype=float)
+    if covariance.shape != (6, 6) or not np.all(np.isfinite(covariance)):
+        raise ValueError("covariance must be a finite 6x6 matrix")
+    floor = [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
+    covariance = config.fit_covariance_scale**2 * covariance + np.diag(floor)
     return 0.5 * (covariance + covariance.T)
 
 

@@ -1,0 +1,282 @@
+"""The odometry answer in the robotics convention (REP 105, nav_msgs/Odometry).
+
+Per frame: the pose of ``base_link`` in ``odom`` with its 6x6 covariance, the twist of
+``base_link`` in its own axes with its 6x6 covariance, and the status.
+
+* ``base_link`` is the body (IMU) frame of the rig (``T_BS`` of the left camera; on a rig
+  without an IMU, such as KITTI, that is the left camera itself).
+* ``odom`` is one rule, whatever the flags: the first body pose, rotated so that z points up
+  (roll and pitch from the mean accelerometer reading of the IMU samples given with the first
+  frame, yaw = 0) when there are such samples, else the first body pose as it is.
+* Covariances follow ROS: the pose's in (x, y, z, rotation about the odom X, Y, Z axes), the
+  twist's in (vx, vy, vz, wx, wy, wz) of ``base_link``. With the back end they are its
+  marginals; without it they are chained from the front end's measurement covariances along
+  the keyframes (each keyframe-to-keyframe measurement is independent, so their transported sum
+  is the drift). Frames without a measurement add the back end's constant-velocity noise. Every
+  covariance is floored by the smallest fit sigmas (``backend.fit_min_*``): never zero, never NaN.
+
+``OdometryBuilder`` turns the pipeline's ``FrameReport`` stream into these messages; it must
+see every frame in order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from estimator.config import BackendConfig
+from estimator.geometry import invert_pose, make_pose, matrix_to_quat, quat_to_matrix
+from estimator.types import FrameReport, FrameStatus
+
+__all__ = ["BASE_FRAME", "ODOM_FRAME", "OdometryBuilder", "OdometryMessage", "odom_rotation"]
+
+ODOM_FRAME = "odom"
+BASE_FRAME = "base_link"
+# Variance of the twist of the first frame (nothing is known about its motion yet).
+_UNKNOWN_TWIST_VARIANCE = 1e2
+
+
+@dataclass(frozen=True)
+class OdometryMessage:
+    """One frame's odometry: nav_msgs/Odometry fields plus status and the left-camera pose."""
+
+    stamp_ns: int
+    frame_id: str
+    child_frame_id: str
+    pose: np.ndarray  # (4, 4) child in odom
+    pose_covariance: np.ndarray  # (6, 6) x y z, rotation about odom X Y Z
+    linear_velocity: np.ndarray  # (3,) m/s in the child frame
+    angular_velocity: np.ndarray  # (3,) rad/s in the child frame
+    twist_covariance: np.ndarray  # (6, 6) vx vy vz wx wy wz
+    status: FrameStatus
+    camera_pose: np.ndarray  # (4, 4) left camera in odom
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form, laid out like nav_msgs/Odometry (quaternion x, y, z, w)."""
+        w, x, y, z = matrix_to_quat(self.pose[:3, :3])
+        position = self.pose[:3, 3]
+        return {
+            "header": {"stamp_ns": int(self.stamp_ns), "frame_id": self.frame_id},
+            "child_frame_id": self.child_frame_id,
+            "pose": {
+                "pose": {
+                    "position": _xyz(position),
+                    "orientation": {"x": x, "y": y, "z": z, "w": w},
+                },
+                "covariance": [float(v) for v in self.pose_covariance.ravel()],
+            },
+            "twist": {
+                "twist": {
+                    "linear": _xyz(self.linear_velocity),
+                    "angular": _xyz(self.angular_velocity),
+                },
+                "covariance": [float(v) for v in self.twist_covariance.ravel()],
+            },
+            "status": str(self.status),
+            "camera_pose": [float(v) for v in self.camera_pose.ravel()],
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> OdometryMessage:
+        """Inverse of :meth:`to_dict`."""
+        pose = data["pose"]["pose"]
+        q = pose["orientation"]
+        twist = data["twist"]["twist"]
+        return cls(
+            stamp_ns=int(data["header"]["stamp_ns"]),
+            frame_id=str(data["header"]["frame_id"]),
+            child_frame_id=str(data["child_frame_id"]),
+            pose=make_pose(
+                quat_to_matrix(np.array([q["w"], q["x"], q["y"], q["z"]], dtype=float)),
+                _vector(pose["position"]),
+            ),
+            pose_covariance=np.asarray(data["pose"]["covariance"], dtype=float).reshape(6, 6),
+            linear_velocity=_vector(twist["linear"]),
+            angular_velocity=_vector(twist["angular"]),
+            twist_covariance=np.asarray(data["twist"]["covariance"], dtype=float).reshape(6, 6),
+            status=FrameStatus(data["status"]),
+            camera_pose=np.asarray(data["camera_pose"], dtype=float).reshape(4, 4),
+        )
+
+
+def _xyz(vector: np.ndarray) -> dict[str, float]:
+    return {"x": float(vector[0]), "y": float(vector[1]), "z": float(vector[2])}
+
+
+def _vector(data: dict[str, float]) -> np.ndarray:
+    return np.array([data["x"], data["y"], data["z"]], dtype=float)
+
+
+def odom_rotation(first_accel: np.ndarray | None) -> np.ndarray:
+    """Rotation of the odom frame from the first body frame: levelled with gravity when the
+    first frame came with accelerometer samples that see it, else the identity."""
+    from estimator.backend.imu import gravity_aligned_rotation
+
+    if first_accel is None or len(first_accel) == 0:
+        return np.eye(3)
+    try:
+        return gravity_aligned_rotation(first_accel)
+    except ValueError:  # moving too hard to see gravity: no levelling
+        return np.eye(3)
+
+
+def _adjoint(pose: np.ndarray) -> np.ndarray:
+    """SE(3) adjoint in GTSAM's tangent order (rotation, translation)."""
+    return np.asarray(gtsam.Pose3(pose).AdjointMap())
+
+
+def _transport(covariance: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Covariance of a right perturbation re-expressed after ``pose``: Ad(pose^-1) C Ad^T."""
+    adjoint = _adjoint(invert_pose(pose))
+    return adjoint @ covariance @ adjoint.T
+
+
+@dataclass
+class _Chained:
+    """A frame's front-end pose and covariance (left camera tangent) along the keyframe chain."""
+
+    pose: np.ndarray
+    covariance: np.ndarray
+    measurement: np.ndarray | None  # its own T_ref_cur covariance
+    reference_ns: int | None
+
+
+class OdometryBuilder:
+    """FrameReports in, OdometryMessages out (module doc for the frames and covariances)."""
+
+    def __init__(
+        self,
+        body_from_camera: np.ndarray,
+        config: BackendConfig | None = None,
+        first_accel: np.ndarray | None = None,
+    ) -> None:
+        config = config if config is not None else BackendConfig()
+        self.body_from_camera = np.asarray(body_from_camera, dtype=float)
+        self.camera_from_body = invert_pose(self.body_from_camera)
+        self._camera_to_body = _adjoint(self.body_from_camera)
+        self._level = odom_rotation(first_accel)
+        self._floor = np.diag(
+            [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
+        )
+        self._coast = np.diag(
+            [config.cv_rotation_sigma_rad**2] * 3 + [config.cv_translation_sigma_m**2] * 3
+        )
+        self._odom_from_world: np.ndarray | None = None
+        self._chain: dict[int, _Chained] = {}
+        self._previous_ns: int | None = None
+
+    def build(self, report: FrameReport) -> OdometryMessage:
+        """The message of the next frame (frames must come in order, none skipped)."""
+        body_pose = report.pose @ self.camera_from_body  # body in the pipeline's world
+        if self._odom_from_world is None:
+            self._odom_from_world = make_pose(self._level, np.zeros(3)) @ invert_pose(body_pose)
+        chained = self._chain_frontend(report)
+        pose_covariance = report.body_covariance
+        if pose_covariance is None or not np.isfinite(pose_covariance).all():
+            pose_covariance = self._to_body(chained.covariance)
+        motion, motion_covariance, dt = self._motion(report, chained)
+        odom_pose = self._odom_from_world @ body_pose
+        self._previous_ns = report.timestamp_ns
+        return OdometryMessage(
+            stamp_ns=report.timestamp_ns,
+            frame_id=ODOM_FRAME,
+            child_frame_id=BASE_FRAME,
+            pose=odom_pose,
+            pose_covariance=_pose_covariance_ros(pose_covariance + self._floor, odom_pose),
+            linear_velocity=motion[3:] / dt,
+            angular_velocity=motion[:3] / dt,
+            twist_covariance=_swap_blocks(motion_covariance + self._floor) / dt**2,
+            status=report.status,
+            camera_pose=self._odom_from_world @ report.pose,
+        )
+
+    # ------------------------------------------------------------------ covariances
+
+    def _to_body(self, camera_covariance: np.ndarray) -> np.ndarray:
+        """Left-camera tangent -> body tangent: T_BS T Exp(xi) T_SB = (..) Exp(Ad(T_BS) xi)."""
+        return self._camera_to_body @ camera_covariance @ self._camera_to_body.T
+
+    def _chain_frontend(self, report: FrameReport) -> _Chained:
+        """Front-end pose covariance: the reference's, transported, plus the measurement's."""
+        pose = report.frontend_pose
+        reference = self._chain.get(report.reference_timestamp_ns or -1)
+        measurement = report.measurement_covariance
+        if self._previous_ns is None:
+            chained = _Chained(pose, np.zeros((6, 6)), None, None)
+        elif measurement is not None and reference is not None:
+            motion = invert_pose(reference.pose) @ pose
+            covariance = _transport(reference.covariance, motion) + measurement
+            chained = _Chained(pose, covariance, measurement, report.reference_timestamp_ns)
+        else:  # no measurement: the previous pose, moved on at constant velocity
+            previous = self._chain[self._previous_ns]
+            motion = invert_pose(previous.pose) @ pose
+            covariance = _transport(previous.covariance, motion) + self._coast
+            chained = _Chained(pose, covariance, None, None)
+        self._chain[report.timestamp_ns] = chained
+        self._forget(report)
+        return chained
+
+    def _forget(self, report: FrameReport) -> None:
+        """Keep the previous frame and those a later frame may still be measured against (a
+        front end's references only move forward)."""
+        oldest = report.reference_timestamp_ns
+        if oldest is None:
+            oldest = self._previous_ns if self._previous_ns is not None else report.timestamp_ns
+        keep = min(oldest, self._previous_ns or report.timestamp_ns)
+        for stamp in [stamp for stamp in self._chain if stamp < keep]:
+            del self._chain[stamp]
+
+    def _motion(
+        self, report: FrameReport, chained: _Chained
+    ) -> tuple[np.ndarray, np.ndarray, float]:
+        """Body motion since the previous frame as a tangent vector, its covariance and dt."""
+        if self._previous_ns is None:
+            unknown = np.eye(6) * _UNKNOWN_TWIST_VARIANCE
+            return np.zeros(6), unknown, 1.0
+        dt = (report.timestamp_ns - self._previous_ns) * 1e-9
+        if report.body_motion is not None and report.body_motion_covariance is not None:
+            motion, covariance = report.body_motion, report.body_motion_covariance
+        else:
+            camera_motion = report.relative_pose
+            motion = self.body_from_camera @ camera_motion @ self.camera_from_body
+            covariance = self._to_body(self._frontend_motion_covariance(chained, camera_motion))
+        if not np.isfinite(covariance).all():
+            covariance = self._to_body(self._coast)
+        return np.asarray(gtsam.Pose3.Logmap(gtsam.Pose3(motion))), covariance, dt
+
+    def _frontend_motion_covariance(
+        self, chained: _Chained, camera_motion: np.ndarray
+    ) -> np.ndarray:
+        """Covariance of T_prev_cur from the measurements of both frames.
+
+        Measured against the previous frame it is the measurement's; both measured against the
+        same keyframe, T_prev_cur = T_ref_prev^-1 T_ref_cur adds the previous one's.
+        """
+        assert self._previous_ns is not None
+        previous = self._chain[self._previous_ns]
+        if chained.measurement is None:
+            return self._coast
+        if chained.reference_ns == self._previous_ns or previous.measurement is None:
+            return chained.measurement
+        return chained.measurement + _transport(previous.measurement, camera_motion)
+
+
+def _swap_blocks(covariance: np.ndarray) -> np.ndarray:
+    """GTSAM order (rotation, translation) -> ROS order (translation, rotation)."""
+    order = [3, 4, 5, 0, 1, 2]
+    return covariance[np.ix_(order, order)]
+
+
+def _pose_covariance_ros(covariance: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Body-frame right perturbation (rotation phi, translation rho) -> ROS pose covariance.
+
+    T Exp(phi, rho) moves the position by R rho and turns the orientation by R phi about the
+    odom axes, so the covariance is rotated into odom axes block by block.
+    """
+    rotation = np.zeros((6, 6))
+    rotation[:3, :3] = rotation[3:, 3:] = pose[:3, :3]
+    ros = rotation @ _swap_blocks(covariance) @ rotation.T
+    return 0.5 * (ros + ros.T)
