@@ -1,0 +1,110 @@
+"""Calibration for a bag: EuRoC ``sensor.yaml`` files, a Kalibr camchain, or the plain rig form.
+
+A bag carries images but no camera model the pipeline can use, so ``swarmvo run BAG`` takes
+``--calibration`` pointing to one of:
+
+* a EuRoC/ASL folder (``mav0`` or the folder holding it) with ``cam0/sensor.yaml`` and
+  ``cam1/sensor.yaml``, and ``imu0/sensor.yaml`` for the IMU noise when present;
+* a Kalibr camchain YAML (``cam0``/``cam1`` with ``intrinsics``, ``distortion_coeffs``,
+  ``distortion_model``, ``resolution``, ``T_cam_imu`` and/or ``T_cn_cnm1``, and ``rostopic``,
+  which also names the image topics);
+* the rig's own JSON/YAML form (``StereoRig.to_dict``, as the service takes it).
+
+Without an IMU noise file the IMU gets the default noise model (``ImuNoise()``, the ADIS16448
+of the EuRoC MAV).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from estimator.calibration import CameraModel, StereoRig, load_euroc_rig, load_rig
+from estimator.datasets import euroc_root, read_euroc_imu_noise, read_opencv_yaml
+from estimator.geometry import invert_pose
+from estimator.types import ImuNoise
+
+__all__ = ["BagCalibration", "load_bag_calibration", "load_kalibr_rig"]
+
+# Kalibr distortion model names -> the project's.
+_KALIBR_MODELS = {"radtan": "radtan", "equidistant": "equidistant", "none": "none"}
+
+
+@dataclass(frozen=True)
+class BagCalibration:
+    rig: StereoRig
+    imu_noise: ImuNoise
+    left_topic: str | None = None  # from a Kalibr camchain's ``rostopic``
+    right_topic: str | None = None
+
+
+def load_bag_calibration(path: Path) -> BagCalibration:
+    """The calibration at ``path`` (module doc for the accepted forms)."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"calibration not found: {path}")
+    if path.is_dir():
+        mav0 = euroc_root(path)
+        if mav0 is None:
+            raise ValueError(f"{path}: no EuRoC cam0/ and cam1/ folders with sensor.yaml")
+        rig = load_euroc_rig(mav0 / "cam0" / "sensor.yaml", mav0 / "cam1" / "sensor.yaml")
+        noise_file = mav0 / "imu0" / "sensor.yaml"
+        noise = read_euroc_imu_noise(noise_file) if noise_file.is_file() else ImuNoise()
+        return BagCalibration(rig, noise)
+    if path.suffix.lower() != ".json":
+        data = read_opencv_yaml(path)
+        if "cam0" in data and "cam1" in data:
+            rig, topics = load_kalibr_rig(path)
+            return BagCalibration(rig, ImuNoise(), *topics)
+    return BagCalibration(load_rig(path), ImuNoise())
+
+
+def load_kalibr_rig(path: Path) -> tuple[StereoRig, tuple[str | None, str | None]]:
+    """Stereo rig (cam0 = left) and the image topics from a Kalibr camchain YAML.
+
+    Kalibr gives ``T_cam_imu`` (IMU -> camera), so T_BS = T_cam_imu^-1; a camera without it
+    is placed through ``T_cn_cnm1`` (previous camera -> this one), and a chain without any IMU
+    puts the body at cam0.
+    """
+    data = read_opencv_yaml(path)
+    cameras: list[CameraModel] = []
+    topics: list[str | None] = []
+    camera_from_body = np.eye(4)
+    for name in ("cam0", "cam1"):
+        entry = data.get(name)
+        if not isinstance(entry, dict):
+            raise ValueError(f"{path}: no {name} section")
+        try:
+            if "T_cam_imu" in entry:
+                camera_from_body = np.asarray(entry["T_cam_imu"], dtype=float)
+            elif name != "cam0":
+                camera_from_body = np.asarray(entry["T_cn_cnm1"], dtype=float) @ camera_from_body
+            if entry.get("camera_model", "pinhole") != "pinhole":
+                raise ValueError(f"unsupported camera_model {entry['camera_model']!r}")
+            model = str(entry.get("distortion_model", "none"))
+            if model not in _KALIBR_MODELS:
+                raise ValueError(f"unsupported distortion_model {model!r}")
+            width, height = entry["resolution"]
+            fu, fv, cu, cv = entry["intrinsics"]
+            cameras.append(
+                CameraModel(
+                    width=width,
+                    height=height,
+                    fx=fu,
+                    fy=fv,
+                    cx=cu,
+                    cy=cv,
+                    distortion_model=_KALIBR_MODELS[model],  # type: ignore[arg-type]
+                    distortion=tuple(entry.get("distortion_coeffs", ())),
+                    T_BS=invert_pose(camera_from_body.reshape(4, 4)),
+                )
+            )
+        except (KeyError, TypeError) as error:
+            raise ValueError(f"{path}: malformed Kalibr {name} ({error!r})") from error
+        except ValueError as error:
+            raise ValueError(f"{path}: {name}: {error}") from error
+        topic = entry.get("rostopic")
+        topics.append(str(topic) if topic else None)
+    return StereoRig(left=cameras[0], right=cameras[1]), (topics[0], topics[1])
