@@ -151,6 +151,8 @@ class BagSequence(Sequence):
         for position, frame in self._stream:
             self._next = position + 1
             if position == index:
+                if self._next == len(self.frames):
+                    self.close()
                 return frame
         raise ValueError(f"{self.root}: frame {index} vanished from the bag while reading it")
 
@@ -185,8 +187,6 @@ class BagSequence(Sequence):
                 while wanted in ready:
                     yield wanted, ready.pop(wanted)
                     wanted += 1
-                if wanted == len(self.frames):
-                    return  # the last pair: close the bag now
 
 
 @contextmanager

@@ -5,7 +5,11 @@ when the frame arrived, or the front end's without the back end), with the back 
 ``trajectory_smoothed.tum`` (each frame's final estimate once the fixed-lag smoother has
 finished with it), ``metrics.json`` (accuracy against ground truth when the dataset has it:
 ``fused``, ``smoothed`` and ``frontend`` sections; failures, per-stage median times) and
-``trajectory.png`` into ``--out``.
+``trajectory.png`` into ``--out``, and the odometry in the robotics convention
+(``estimator.odometry_msg``): ``odometry.jsonl`` (one nav_msgs/Odometry-like JSON object per
+frame) and ``odometry.tum`` (base_link in odom). ``DATASET`` may also be a ROS 1 ``.bag`` or a
+ROS 2 bag folder (``--calibration`` and the topic flags; ``estimator.rosbag_io``), and
+``--export-bag`` writes the result as a bag (``estimator.rosbag_write``).
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ import warnings
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
@@ -30,6 +34,9 @@ from estimator.datasets import Sequence, UnreadableImageError, open_sequence
 from estimator.evaluation import TrajectoryEvaluation, evaluate_trajectory
 from estimator.types import FrameReport, FrameStatus
 
+if TYPE_CHECKING:
+    from estimator.odometry_msg import OdometryMessage
+
 ESTIMATORS = ("pso-robust", "pso", "msac", "svd")
 # IMU samples fed with the first frame: those of this window before it, from which the back end
 # gravity-aligns its world (the API replay client sends the same window).
@@ -37,7 +44,11 @@ FIRST_FRAME_IMU_WINDOW_NS = 100_000_000
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("dataset", type=Path, help="EuRoC (folder with mav0) or KITTI sequence")
+    parser.add_argument(
+        "dataset",
+        type=Path,
+        help="EuRoC (folder with mav0) or KITTI sequence, or a ROS 1 .bag / ROS 2 bag folder",
+    )
     parser.add_argument("--format", choices=("euroc", "kitti"), help="default: detected")
     parser.add_argument(
         "--config",
@@ -68,6 +79,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="stop at a missing or corrupt image (default: skip the frame with a warning)",
     )
+    bags = parser.add_argument_group("ROS bags")
+    bags.add_argument(
+        "--calibration",
+        type=Path,
+        help="for a bag: EuRoC folder (cam0/cam1 sensor.yaml), Kalibr camchain YAML or rig file",
+    )
+    bags.add_argument("--left-topic", help="left images (default: guessed)")
+    bags.add_argument("--right-topic", help="right images (default: guessed)")
+    bags.add_argument("--imu-topic", help="sensor_msgs/Imu (default: the bag's only one)")
+    bags.add_argument(
+        "--export-bag",
+        type=Path,
+        help="also write the result as a bag: PATH.bag = ROS 1, else a ROS 2 folder",
+    )
+    bags.add_argument("--export-storage", choices=("sqlite3", "mcap"), default="sqlite3")
 
 
 def load_config(path: Path) -> SwarmvoConfig:
@@ -251,6 +277,35 @@ def summarize(
     return _finite(summary), evaluations
 
 
+def odometry_messages(result: RunResult) -> list[OdometryMessage]:
+    """The run's answers as odometry messages; odom is levelled with the IMU samples before
+    the first frame whenever the sequence has them (whatever the flags)."""
+    from estimator.odometry_msg import OdometryBuilder
+
+    first_ns = result.reports[0].timestamp_ns
+    first_imu = result.sequence.imu_between(first_ns - FIRST_FRAME_IMU_WINDOW_NS, first_ns)
+    builder = OdometryBuilder(result.sequence.rig.left.T_BS, result.config.backend, first_imu.accel)
+    return [builder.build(report) for report in result.reports]
+
+
+def write_odometry(
+    result: RunResult, out: Path, export_bag: Path | None = None, storage: str = "sqlite3"
+) -> None:
+    """odometry.jsonl and odometry.tum, and the bag when asked for."""
+    from estimator.trajectory_io import write_tum
+
+    messages = odometry_messages(result)
+    with (out / "odometry.jsonl").open("w") as handle:
+        for message in messages:
+            handle.write(json.dumps(message.to_dict()) + "\n")
+    write_tum(out / "odometry.tum", result.timestamps_ns, np.array([m.pose for m in messages]))
+    if export_bag is not None:
+        from estimator.rosbag_write import write_odometry_bag
+
+        camera = zip(result.timestamps_ns.tolist(), result.poses("pose"), strict=True)
+        write_odometry_bag(export_bag, messages, camera, storage)  # type: ignore[arg-type]
+
+
 def write_outputs(result: RunResult, out: Path) -> dict[str, Any]:
     from estimator.plots import plot_run
     from estimator.trajectory_io import write_tum
@@ -272,22 +327,46 @@ def write_outputs(result: RunResult, out: Path) -> dict[str, Any]:
     return summary
 
 
+def open_input(args: argparse.Namespace) -> Sequence:
+    """The dataset folder, or a bag with its calibration and topics."""
+    from estimator.rosbag_io import is_bag
+
+    if not is_bag(args.dataset):
+        return open_sequence(args.dataset, args.format)
+    from estimator.bag_calibration import load_bag_calibration
+    from estimator.rosbag_io import open_bag
+
+    if args.calibration is None:
+        raise ValueError(
+            "a bag needs --calibration: a EuRoC folder with cam0/cam1 sensor.yaml, a Kalibr "
+            "camchain YAML or a rig JSON/YAML"
+        )
+    calibration = load_bag_calibration(args.calibration)
+    return open_bag(args.dataset, calibration, args.left_topic, args.right_topic, args.imu_topic)
+
+
 def run(args: argparse.Namespace) -> int:
     if args.imu and args.backend is False:
         raise ValueError("--imu needs the back end (the IMU is fused there); drop --no-backend")
     base = load_config(args.config) if args.config is not None else None
-    sequence = open_sequence(args.dataset, args.format)
+    if args.export_bag is not None and args.export_bag.exists():
+        raise ValueError(f"{args.export_bag} exists already; choose a new bag path")
+    sequence = open_input(args)
     config = build_config(args.estimator, args.seed, args.imu, args.backend, base)
-    result = run_sequence(
-        sequence,
-        config,
-        args.limit,
-        config.backend.use_imu,
-        progress=not args.quiet,
-        strict=args.strict,
-    )
+    try:
+        result = run_sequence(
+            sequence,
+            config,
+            args.limit,
+            config.backend.use_imu,
+            progress=not args.quiet,
+            strict=args.strict,
+        )
+    finally:
+        getattr(sequence, "close", lambda: None)()  # a bag stops streaming
     out = args.out if args.out is not None else Path("runs") / sequence.name
     summary = write_outputs(result, out)
+    write_odometry(result, out, args.export_bag, args.export_storage)
     line = f"{summary['frames']} frames, {summary['frames_failed']} failed"
     if summary["frames_skipped"]:
         line += f", {summary['frames_skipped']} skipped (unreadable images)"
@@ -300,5 +379,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"{line}\nwrote {out / 'trajectory.tum'}, {out / 'metrics.json'}, {out / 'trajectory.png'}"
         + (f", {out / 'trajectory_smoothed.tum'}" if config.backend.enabled else "")
+        + f", {out / 'odometry.jsonl'}, {out / 'odometry.tum'}"
+        + (f", {args.export_bag}" if args.export_bag is not None else "")
     )
     return 0
