@@ -11,6 +11,7 @@ BENCHMARKS: dict[str, str] = {
     "frontend": "estimator.bench.frontend",
     "odometry": "estimator.bench.odometry",
     "backend": "estimator.bench.backend",
+    "consistency": "estimator.bench.consistency",
 }
 
 

@@ -1,0 +1,116 @@
+"""``swarmvo bench consistency``: are the odometry covariances right? NEES over 1 s windows.
+
+Runs rendered loops (``--seeds``, rendered once into ``--data``) and the real EuRoC MH_01
+clip through the pipeline in three modes (fused with the IMU, back end without IMU, front end
+only), turns the answers into odometry messages and computes the NEES of the base_link motion
+over consecutive 1 s windows (``estimator.consistency``) with both covariance readings
+(``pose``, ``twist``). A consistent covariance gives a mean NEES per degree of freedom of 1;
+the target is [0.5, 2]. Writes ``consistency.json`` and ``consistency.md`` (the table) under
+``--out``; ``scale`` is the factor on the reported standard deviations that would make the
+mean exactly 1 (sqrt of the mean per DOF).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import tempfile
+import warnings
+from pathlib import Path
+from typing import Any
+
+from estimator.commands.run import build_config, odometry_messages, run_sequence
+from estimator.consistency import relative_nees
+from estimator.datasets import open_sequence
+from estimator.synthetic import SynthOptions, synthesize
+
+__all__ = ["add_arguments", "run"]
+
+DEFAULT_EUROC = Path(__file__).resolve().parents[2].parent / "shared/data/euroc_mh01_moving"
+MODES = {"fused": (True, True), "backend-no-imu": (True, False), "frontend": (False, False)}
+TARGET = (0.5, 2.0)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/consistency"))
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--frames", type=int, default=200)
+    parser.add_argument("--length-m", type=float, default=20.0, help="rendered body path [m]")
+    parser.add_argument("--window-s", type=float, default=1.0)
+    parser.add_argument("--euroc", type=Path, default=DEFAULT_EUROC, help="skipped if absent")
+    parser.add_argument(
+        "--data",
+        type=Path,
+        default=Path(tempfile.gettempdir()) / "swarmvo-bench",
+        help="where the rendered loops are written once and reused",
+    )
+
+
+def _sequences(args: argparse.Namespace) -> dict[str, Path]:
+    paths: dict[str, Path] = {}
+    for seed in args.seeds:
+        root = args.data / f"rendered_{args.frames}f_{args.length_m:g}m_seed{seed}"
+        if not (root / "mav0").is_dir():
+            synthesize(root, SynthOptions(frames=args.frames, length_m=args.length_m, seed=seed))
+        paths[f"rendered seed {seed}"] = root
+    if (args.euroc / "mav0").is_dir():
+        paths["euroc_mh01_moving"] = args.euroc
+    else:
+        print(f"skipping the real clip: no EuRoC data at {args.euroc}")
+    return paths
+
+
+def _evaluate(path: Path, window_s: float) -> dict[str, dict[str, Any]]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # unpaired camera rows are expected in EuRoC
+        sequence = open_sequence(path)
+    assert sequence.ground_truth is not None
+    rows: dict[str, dict[str, Any]] = {}
+    for mode, (backend, imu) in MODES.items():
+        config = build_config(backend=backend, imu=imu)
+        messages = odometry_messages(run_sequence(sequence, config, use_imu=imu))
+        for source in ("pose", "twist"):
+            result = relative_nees(messages, sequence.ground_truth, window_s, source)
+            rows[f"{mode} {source}"] = result.summary()
+    return rows
+
+
+def _cell(summary: dict[str, Any]) -> str:
+    if not summary.get("windows"):
+        return "- (0)"
+    per_dof = summary["mean_nees_per_dof"]
+    verdict = "ok" if TARGET[0] <= per_dof <= TARGET[1] else "MISS"
+    return (
+        f"{per_dof:.2f} (rot {summary['rotation_per_dof']:.2f}, trans "
+        f"{summary['translation_per_dof']:.2f}; scale {math.sqrt(per_dof):.2f}) {verdict}"
+    )
+
+
+def _table(results: dict[str, dict[str, dict[str, Any]]], window_s: float) -> str:
+    names = list(results)
+    lines = [
+        f"Mean NEES per DOF of the base_link motion over {window_s:g} s windows "
+        f"(target {TARGET[0]}-{TARGET[1]}); windows per sequence: "
+        + ", ".join(f"{n} {next(iter(results[n].values()))['windows']}" for n in names),
+        "",
+        "| mode / covariance | " + " | ".join(names) + " |",
+        "|" + "---|" * (len(names) + 1),
+    ]
+    for row in next(iter(results.values())):
+        lines.append(f"| {row} | " + " | ".join(_cell(results[n][row]) for n in names) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def run(args: argparse.Namespace) -> int:
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    results = {}
+    for name, path in _sequences(args).items():
+        results[name] = _evaluate(path, args.window_s)
+        print(f"{name}: done", flush=True)
+    table = _table(results, args.window_s)
+    print("\n" + table)
+    (out / "consistency.md").write_text(table)
+    (out / "consistency.json").write_text(json.dumps(results, indent=2) + "\n")
+    return 0

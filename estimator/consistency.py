@@ -1,0 +1,125 @@
+"""Can a filter trust the reported covariances? NEES of the relative motion over windows.
+
+For windows [t_i, t_j] of ``window_s`` seconds (consecutive, not overlapping), the estimated
+motion of base_link E = P_i^-1 P_j (odometry poses) is compared with the true one
+G = Q_i^-1 Q_j (ground-truth body poses): the error xi = Log(G^-1 E) (GTSAM tangent: rotation,
+translation, in base_link at t_j) and its covariance C give NEES = xi^T C^-1 xi, which is
+chi-square with 6 degrees of freedom when the covariances are right: mean 6.
+
+Two readings of "the covariance of the relative motion" from what a message carries:
+
+* ``pose``: odometry error accumulates like a random walk (independent increments, as the
+  keyframe-to-keyframe measurements are), so C = P_j - Ad(E^-1) P_i Ad(E^-1)^T from the two
+  pose covariances; directions where that difference is not positive (roll and pitch held by
+  gravity) get the sum P_j + Ad P_i Ad^T instead, the bound for independent ends;
+* ``twist``: the twist covariances integrated over the window as independent increments,
+  C = sum_k Ad_k (dt_k^2 Sigma_k) Ad_k^T, the way a filter fusing the twist uses them.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from typing import Literal
+
+import gtsam
+import numpy as np
+
+from estimator.datasets import GroundTruth
+from estimator.geometry import invert_pose
+from estimator.odometry_msg import OdometryMessage
+
+__all__ = ["NeesResult", "body_pose_covariance", "relative_nees"]
+
+CovarianceSource = Literal["pose", "twist"]
+DOF = 6
+_ROS_TO_GTSAM = [3, 4, 5, 0, 1, 2]  # (x y z roll pitch yaw) -> (rotation, translation)
+
+
+@dataclass(frozen=True)
+class NeesResult:
+    values: np.ndarray  # (W,) one NEES per window
+    rotation: np.ndarray  # (W,) NEES of the rotation block alone (3 DOF)
+    translation: np.ndarray  # (W,) of the translation block alone (3 DOF)
+
+    @property
+    def windows(self) -> int:
+        return len(self.values)
+
+    def summary(self) -> dict[str, float | int]:
+        """Means per DOF (1 = consistent) and the window count."""
+        if not self.windows:
+            return {"windows": 0}
+        return {
+            "windows": self.windows,
+            "mean_nees": float(np.mean(self.values)),
+            "mean_nees_per_dof": float(np.mean(self.values) / DOF),
+            "rotation_per_dof": float(np.mean(self.rotation) / 3),
+            "translation_per_dof": float(np.mean(self.translation) / 3),
+        }
+
+
+def _adjoint(pose: np.ndarray) -> np.ndarray:
+    return np.asarray(gtsam.Pose3(pose).AdjointMap())
+
+
+def body_pose_covariance(message: OdometryMessage) -> np.ndarray:
+    """The message's pose covariance back in the body-frame tangent (rotation, translation)."""
+    rotation = np.zeros((6, 6))
+    rotation[:3, :3] = rotation[3:, 3:] = message.pose[:3, :3]
+    body = rotation.T @ message.pose_covariance @ rotation
+    return body[np.ix_(_ROS_TO_GTSAM, _ROS_TO_GTSAM)]
+
+
+def _pose_window_covariance(first: OdometryMessage, last: OdometryMessage) -> np.ndarray:
+    motion = invert_pose(first.pose) @ last.pose
+    adjoint = _adjoint(invert_pose(motion))
+    moved = adjoint @ body_pose_covariance(first) @ adjoint.T
+    later = body_pose_covariance(last)
+    values, vectors = np.linalg.eigh(later - moved)
+    sums = np.einsum("ij,jk,ki->i", vectors.T, later + moved, vectors)
+    # Growing directions: the increment; the others: independent ends.
+    variances = np.where(values > 0, values, sums)
+    return (vectors * variances) @ vectors.T
+
+
+def _twist_window_covariance(window: list[OdometryMessage]) -> np.ndarray:
+    covariance = np.zeros((6, 6))
+    for previous, message in itertools.pairwise(window):
+        dt = (message.stamp_ns - previous.stamp_ns) * 1e-9
+        step = message.twist_covariance[np.ix_(_ROS_TO_GTSAM, _ROS_TO_GTSAM)] * dt**2
+        motion = invert_pose(previous.pose) @ message.pose
+        adjoint = _adjoint(invert_pose(motion))  # carry the sum so far into this frame
+        covariance = adjoint @ covariance @ adjoint.T + step
+    return covariance
+
+
+def relative_nees(
+    messages: list[OdometryMessage],
+    ground_truth: GroundTruth,
+    window_s: float = 1.0,
+    source: CovarianceSource = "pose",
+) -> NeesResult:
+    """NEES of the base_link motion over consecutive windows of ``window_s`` (module doc)."""
+    stamps = np.array([m.stamp_ns for m in messages], dtype=np.int64)
+    inside = ground_truth.covers(stamps)
+    values, rotation, translation = [], [], []
+    start = int(np.argmax(inside)) if inside.any() else len(messages)
+    while start < len(messages):
+        end = int(np.searchsorted(stamps, stamps[start] + round(window_s * 1e9)))
+        if end >= len(messages) or not inside[end]:
+            break
+        first, last = messages[start], messages[end]
+        truth = ground_truth.interpolate(np.array([first.stamp_ns, last.stamp_ns]))
+        estimated = invert_pose(first.pose) @ last.pose
+        actual = invert_pose(truth[0]) @ truth[1]
+        error = np.asarray(gtsam.Pose3.Logmap(gtsam.Pose3(invert_pose(actual) @ estimated)))
+        if source == "pose":
+            covariance = _pose_window_covariance(first, last)
+        else:
+            covariance = _twist_window_covariance(messages[start : end + 1])
+        values.append(float(error @ np.linalg.solve(covariance, error)))
+        rotation.append(float(error[:3] @ np.linalg.solve(covariance[:3, :3], error[:3])))
+        translation.append(float(error[3:] @ np.linalg.solve(covariance[3:, 3:], error[3:])))
+        start = end
+    return NeesResult(np.array(values), np.array(rotation), np.array(translation))
