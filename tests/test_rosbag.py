@@ -1,0 +1,219 @@
+"""ROS bags in and out: bags written from the real EuRoC clip give the folder's trajectory."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from estimator.bag_calibration import load_bag_calibration, load_kalibr_rig
+from estimator.calibration import load_euroc_rig
+from estimator.cli import main
+from estimator.datasets import open_sequence
+from estimator.geometry import invert_pose
+from estimator.odometry import to_grey8
+from estimator.rosbag_io import open_bag
+from estimator.rosbag_write import (
+    CAMERA_POSE_TOPIC,
+    ODOMETRY_TOPIC,
+    _BagWriter,
+    read_pose_topic,
+    write_stereo_bag,
+)
+from estimator.trajectory_io import read_tum
+
+pytestmark = pytest.mark.euroc
+FRAMES = 20
+
+
+def _sequence(path: Path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # EuRoC's unpaired camera rows
+        return open_sequence(path)
+
+
+@pytest.fixture(scope="module")
+def folder_run(euroc_mh01_moving, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("folder") / "out"
+    args = ["run", str(euroc_mh01_moving), "--limit", str(FRAMES), "--out", str(out), "--quiet"]
+    assert main(args) == 0
+    return out
+
+
+def _run_bag(bag: Path, calibration: Path, out: Path, *extra: str) -> int:
+    return main(
+        ["run", str(bag), "--calibration", str(calibration), "--out", str(out), "--quiet", *extra]
+    )
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("name", "encoding", "storage"),
+    [("clip.bag", "mono8", "sqlite3"), ("clip_ros2", "mono16", "sqlite3")],
+)
+def test_bag_gives_the_folder_trajectory_and_exports_it(
+    euroc_mh01_moving, folder_run, tmp_path, name, encoding, storage
+):
+    bag = tmp_path / name
+    write_stereo_bag(bag, _sequence(euroc_mh01_moving), FRAMES, encoding, storage)
+    out, exported = (
+        tmp_path / "out",
+        tmp_path / ("export.bag" if name.endswith(".bag") else "export"),
+    )
+    assert _run_bag(bag, euroc_mh01_moving, out, "--export-bag", str(exported)) == 0
+    for file in ("trajectory.tum", "trajectory_smoothed.tum", "odometry.tum"):
+        stamps, poses = read_tum(out / file)
+        folder_stamps, folder_poses = read_tum(folder_run / file)
+        assert np.array_equal(stamps, folder_stamps) and len(stamps) == FRAMES
+        assert np.abs(poses[:, :3, 3] - folder_poses[:, :3, 3]).max() <= 1e-9, file
+    lines = (out / "odometry.jsonl").read_text().splitlines()
+    assert lines == (folder_run / "odometry.jsonl").read_text().splitlines()
+    # The exported bag read back: Odometry = odometry.tum, PoseStamped = trajectory.tum.
+    for topic, file in ((ODOMETRY_TOPIC, "odometry.tum"), (CAMERA_POSE_TOPIC, "trajectory.tum")):
+        stamps, poses = read_pose_topic(exported, topic)
+        tum_stamps, tum_poses = read_tum(out / file)
+        assert np.array_equal(stamps, tum_stamps)
+        assert np.abs(poses - tum_poses).max() < 1e-12, topic
+    first = json.loads(lines[0])
+    assert first["header"]["frame_id"] == "odom" and first["child_frame_id"] == "base_link"
+
+
+def test_kalibr_camchain_gives_the_euroc_rig_and_topics(euroc_mh01_moving, tmp_path):
+    mav0 = euroc_mh01_moving / "mav0"
+    rig = load_euroc_rig(mav0 / "cam0" / "sensor.yaml", mav0 / "cam1" / "sensor.yaml")
+    chain = {}
+    for index, camera in enumerate((rig.left, rig.right)):
+        chain[f"cam{index}"] = {
+            "camera_model": "pinhole",
+            "intrinsics": [camera.fx, camera.fy, camera.cx, camera.cy],
+            "distortion_model": "radtan",
+            "distortion_coeffs": list(camera.distortion),
+            "resolution": [camera.width, camera.height],
+            "T_cam_imu": invert_pose(camera.T_BS).tolist(),
+            "rostopic": f"/cam{index}/image_raw",
+        }
+    path = tmp_path / "camchain.yaml"
+    path.write_text(yaml.safe_dump(chain))
+    kalibr, topics = load_kalibr_rig(path)
+    assert topics == ("/cam0/image_raw", "/cam1/image_raw")
+    for ours, theirs in ((kalibr.left, rig.left), (kalibr.right, rig.right)):
+        assert np.allclose(ours.T_BS, theirs.T_BS, atol=1e-12)
+        assert ours.K.tolist() == theirs.K.tolist()
+    calibration = load_bag_calibration(path)
+    assert calibration.left_topic == "/cam0/image_raw"
+    # cam1 placed through T_cn_cnm1 instead of its own T_cam_imu: the same rig.
+    del chain["cam1"]["T_cam_imu"]
+    chain["cam1"]["T_cn_cnm1"] = (invert_pose(rig.right.T_BS) @ rig.left.T_BS).tolist()
+    path.write_text(yaml.safe_dump(chain))
+    assert np.allclose(load_kalibr_rig(path)[0].right.T_BS, rig.right.T_BS, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+@pytest.fixture(scope="module")
+def small_bag(euroc_mh01_moving, tmp_path_factory) -> Path:
+    bag = tmp_path_factory.mktemp("small") / "small.bag"
+    write_stereo_bag(bag, _sequence(euroc_mh01_moving), 3)
+    return bag
+
+
+def _write_images(path: Path, topics_and_stamps, encoding: str = "mono8") -> None:
+    image = np.zeros((480, 752), dtype=np.uint8)
+    with _BagWriter(path) as writer:
+        for topic, stamp in topics_and_stamps:
+            message = writer.type("sensor_msgs/msg/Image")(
+                header=writer.header(stamp, "cam"),
+                height=480,
+                width=752,
+                encoding=encoding,
+                is_bigendian=0,
+                step=752,
+                data=image.ravel(),
+            )
+            writer.write(topic, "sensor_msgs/msg/Image", stamp, message)
+
+
+def _one_error_line(capsys, code: int, *expected: str) -> None:
+    error = capsys.readouterr().err
+    assert code == 2
+    lines = [line for line in error.splitlines() if line.startswith("swarmvo run: error:")]
+    assert len(lines) == 1 and "Traceback" not in error, error
+    for text in expected:
+        assert text in lines[0], lines[0]
+
+
+def test_bad_bags_give_one_error_line(euroc_mh01_moving, small_bag, tmp_path, capsys):
+    out = tmp_path / "out"
+    code = _run_bag(small_bag, euroc_mh01_moving, out, "--left-topic", "/missing")
+    _one_error_line(capsys, code, "/missing", "not in the bag", "/cam0/image_raw")
+    code = main(["run", str(small_bag), "--out", str(out), "--quiet"])
+    _one_error_line(capsys, code, "--calibration")
+    # Truncated file.
+    truncated = tmp_path / "truncated.bag"
+    truncated.write_bytes(small_bag.read_bytes()[: small_bag.stat().st_size // 2])
+    _one_error_line(capsys, _run_bag(truncated, euroc_mh01_moving, out), "truncated.bag")
+    # Left and right stamps that never match.
+    mismatched = tmp_path / "mismatched.bag"
+    _write_images(
+        mismatched,
+        [
+            ("/left", 10**9),
+            ("/right", 10**9 + 1000),
+            ("/left", 2 * 10**9),
+            ("/right", 2 * 10**9 + 1000),
+        ],
+    )
+    _one_error_line(
+        capsys, _run_bag(mismatched, euroc_mh01_moving, out), "no left/right image pair"
+    )
+    # Ambiguous topics: names that do not tell left from right.
+    ambiguous = tmp_path / "ambiguous"
+    _write_images(ambiguous, [("/a/image", 10**9), ("/b/image", 10**9)])
+    _one_error_line(capsys, _run_bag(ambiguous, euroc_mh01_moving, out), "/a/image", "/b/image")
+    # An encoding the reader does not know.
+    unknown = tmp_path / "unknown.bag"
+    _write_images(
+        unknown,
+        [(t, s) for s in (10**9, 2 * 10**9) for t in ("/left", "/right")],
+        encoding="yuv422",
+    )
+    _one_error_line(capsys, _run_bag(unknown, euroc_mh01_moving, out), "yuv422")
+
+
+@pytest.mark.parametrize(
+    ("name", "encoding", "storage"),
+    [("c.bag", "bgr8", "sqlite3"), ("c_mcap", "png", "mcap"), ("c_mcap16", "mono16", "mcap")],
+)
+def test_every_encoding_and_storage_decodes_to_the_folder_pixels(
+    euroc_mh01_moving, tmp_path, name, encoding, storage
+):
+    """Equal pixels, stamps and IMU: the pipeline then gives the folder's trajectory."""
+    sequence = _sequence(euroc_mh01_moving)
+    write_stereo_bag(tmp_path / name, sequence, 3, encoding, storage)
+    bag = open_bag(tmp_path / name, load_bag_calibration(euroc_mh01_moving))
+    for index in range(3):
+        frame, expected = bag.load(index), sequence.load(index)
+        assert frame.timestamp_ns == expected.timestamp_ns
+        for ours, theirs in ((frame.left, expected.left), (frame.right, expected.right)):
+            assert np.array_equal(to_grey8(ours), theirs)
+    assert bag.imu is not None
+    reference = sequence.imu_between(bag.imu.timestamps_ns[0] - 1, bag.imu.timestamps_ns[-1])
+    assert np.array_equal(bag.imu.gyro, reference.gyro)
+    assert np.array_equal(bag.imu.accel, reference.accel)
+
+
+def test_streaming_restarts_and_closes(euroc_mh01_moving, small_bag):
+    bag = open_bag(small_bag, load_bag_calibration(euroc_mh01_moving))
+    sequence = _sequence(euroc_mh01_moving)
+    assert bag.topics is not None and bag.topics.imu == "/imu0" and len(bag) == 3
+    for index in (0, 2, 1, 2):  # out of order: the stream starts again
+        frame = bag.load(index)
+        assert np.array_equal(frame.left, sequence.load(index).left)
+    bag.close()
+    with pytest.raises(IndexError):
+        bag.load(3)
