@@ -1,0 +1,134 @@
+"""Odometry messages (odom / base_link, covariances, twist) and their NEES on a rendered run."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from estimator.backend.imu import gravity_aligned_rotation
+from estimator.commands.run import (
+    FIRST_FRAME_IMU_WINDOW_NS,
+    build_config,
+    odometry_messages,
+    run_sequence,
+)
+from estimator.consistency import relative_nees
+from estimator.datasets import open_sequence
+from estimator.odometry_msg import OdometryMessage
+from estimator.synthetic import SynthOptions, synthesize
+
+MODES = {"fused": (True, True), "frontend": (False, False)}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """A 2.2 s rendered flight (0.25 s at rest first), fused and front end only."""
+    root = tmp_path_factory.mktemp("flight")
+    synthesize(root, SynthOptions(frames=40, length_m=3.4, seed=3, standstill_s=0.25))
+    sequence = open_sequence(root)
+    results = {}
+    for mode, (backend, imu) in MODES.items():
+        result = run_sequence(sequence, build_config(backend=backend, imu=imu), use_imu=imu)
+        results[mode] = (result, odometry_messages(result))
+    return sequence, results
+
+
+def _positive_definite(matrix: np.ndarray) -> bool:
+    return bool(
+        np.isfinite(matrix).all()
+        and np.allclose(matrix, matrix.T, atol=1e-15)
+        and np.linalg.eigvalsh(matrix).min() > 0
+    )
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", list(MODES))
+def test_every_message_has_frames_and_proper_covariances(runs, mode):
+    _, results = runs
+    result, messages = results[mode]
+    assert len(messages) == len(result.reports)
+    for report, message in zip(result.reports, messages, strict=True):
+        assert (message.frame_id, message.child_frame_id) == ("odom", "base_link")
+        assert message.stamp_ns == report.timestamp_ns and message.status == report.status
+        assert _positive_definite(message.pose_covariance)
+        assert _positive_definite(message.twist_covariance)
+    # Odometry drifts: the position uncertainty at the end exceeds the one after 1 s.
+    variance = [np.trace(m.pose_covariance[:3, :3]) for m in messages]
+    assert variance[-1] > variance[20] > variance[0]
+
+
+@pytest.mark.slow
+def test_odom_frame_is_one_rule_whatever_the_flags(runs):
+    sequence, results = runs
+    first_ns = sequence.timestamps_ns[0]
+    accel = sequence.imu_between(first_ns - FIRST_FRAME_IMU_WINDOW_NS, first_ns).accel
+    level = gravity_aligned_rotation(accel)
+    for mode, (_, messages) in results.items():
+        first = messages[0].pose
+        assert np.allclose(first[:3, :3], level, atol=1e-9), mode
+        assert np.allclose(first[:3, 3], 0.0, atol=1e-9), mode
+    # At rest, levelled odom has z up: the body's view of up agrees with the ground truth.
+    truth = sequence.ground_truth.interpolate(np.array([first_ns]))[0]
+    up_truth = truth[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    up_odom = level.T @ np.array([0.0, 0.0, 1.0])
+    assert np.degrees(np.arccos(np.clip(up_truth @ up_odom, -1, 1))) < 1.0
+    # The camera pose in odom is base_link's moved by T_BS.
+    message = results["fused"][1][-1]
+    assert np.allclose(message.camera_pose, message.pose @ sequence.rig.left.T_BS, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_twist_follows_the_true_body_velocity(runs):
+    sequence, results = runs
+    truth = sequence.ground_truth
+    for mode, (_, messages) in results.items():
+        errors, speeds = [], []
+        for message in messages[10:]:
+            row = int(np.searchsorted(truth.timestamps_ns, message.stamp_ns))
+            assert truth.timestamps_ns[row] == message.stamp_ns
+            body_velocity = truth.poses[row, :3, :3].T @ truth.velocities[row]
+            errors.append(np.linalg.norm(message.linear_velocity - body_velocity))
+            speeds.append(np.linalg.norm(body_velocity))
+        # The twist is the mean velocity over the last frame interval: close, not equal.
+        assert np.median(errors) < 0.1 * np.median(speeds), mode
+
+
+@pytest.mark.slow
+def test_nees_on_a_short_rendered_flight_is_plausible(runs):
+    sequence, results = runs
+    for mode in ("fused", "frontend"):
+        nees = relative_nees(results[mode][1], sequence.ground_truth, 1.0, "pose")
+        assert nees.windows == 2
+        # Two 6-DOF windows: the mean per DOF of a consistent estimate lies in
+        # [0.15, 3] with 99.9 % probability (chi-square with 12 DOF, over 12).
+        assert 0.15 <= nees.summary()["mean_nees_per_dof"] <= 3.0, mode
+
+
+def test_message_json_round_trip_is_exact():
+    rng = np.random.default_rng(0)
+    from scipy.spatial.transform import Rotation
+
+    from estimator.geometry import make_pose
+
+    pose = make_pose(Rotation.random(random_state=1).as_matrix(), rng.normal(size=3))
+    covariance = np.cov(rng.normal(size=(6, 20)))
+    message = OdometryMessage(
+        stamp_ns=1_403_636_584_763_555_584,
+        frame_id="odom",
+        child_frame_id="base_link",
+        pose=pose,
+        pose_covariance=covariance,
+        linear_velocity=rng.normal(size=3),
+        angular_velocity=rng.normal(size=3),
+        twist_covariance=covariance * 2,
+        status="degraded",
+        camera_pose=pose,
+    )
+    data = json.loads(json.dumps(message.to_dict()))
+    again = OdometryMessage.from_dict(data)
+    assert again.stamp_ns == message.stamp_ns and again.status == "degraded"
+    assert np.allclose(again.pose, pose, atol=1e-12)
+    assert np.array_equal(again.pose_covariance, covariance)
+    assert data["pose"]["covariance"][7] == covariance[1, 1]  # row-major, as ROS
