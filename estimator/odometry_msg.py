@@ -152,7 +152,10 @@ class OdometryBuilder:
         body_from_camera: np.ndarray,
         config: BackendConfig | None = None,
         first_accel: np.ndarray | None = None,
+        odom_from_world: np.ndarray | None = None,
     ) -> None:
+        """``odom_from_world`` fixes the odom frame instead of the first report (a pipeline
+        resumed from a stored pose continues in the odom frame it had)."""
         config = config if config is not None else BackendConfig()
         self.body_from_camera = np.asarray(body_from_camera, dtype=float)
         self.camera_from_body = invert_pose(self.body_from_camera)
@@ -164,7 +167,7 @@ class OdometryBuilder:
         self._coast = np.diag(
             [config.cv_rotation_sigma_rad**2] * 3 + [config.cv_translation_sigma_m**2] * 3
         )
-        self._odom_from_world: np.ndarray | None = None
+        self._odom_from_world = odom_from_world
         self._chain: dict[int, _Chained] = {}
         self._previous_ns: int | None = None
 

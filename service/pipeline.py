@@ -129,13 +129,52 @@ class EstimatorFactory:
         from estimator.odometry import Odometry
 
         noise = None if prepared.imu_noise is None else ImuNoise(**prepared.imu_noise)
-        return Odometry(
-            StereoRig.from_dict(prepared.calibration),
-            config=SwarmvoConfig.model_validate(prepared.config),
+        rig = StereoRig.from_dict(prepared.calibration)
+        config = SwarmvoConfig.model_validate(prepared.config)
+        odometry = Odometry(
+            rig,
+            config=config,
             imu_noise=noise,
             initial_pose=initial_pose,
             first_index=first_index,
         )
+        return OdometryAnswers(odometry, rig.left.T_BS, config, resumed=initial_pose is not None)
+
+
+class OdometryAnswers:
+    """``Odometry`` plus the odometry message of each frame (``estimator.odometry_msg``).
+
+    The odom frame follows the library's rule from the session's first frame and its IMU
+    samples. A pipeline resumed from a stored pose continues in the world of the stored poses:
+    odom is that world with the back end (its world is the levelled, or without IMU the plain,
+    first body pose) and the first body pose (T_BS from the first left camera) without it; the
+    covariance chain starts again at the resumed pose.
+    """
+
+    def __init__(self, odometry: Any, body_from_camera: np.ndarray, config: Any,
+                 resumed: bool) -> None:
+        self.odometry = odometry
+        self._body_from_camera = body_from_camera
+        self._backend = config.backend
+        self._odom_from_world = None
+        if resumed:
+            self._odom_from_world = np.eye(4) if config.backend.enabled else body_from_camera
+        self._builder: Any = None
+        self.last_odometry: dict[str, Any] | None = None
+
+    def process(self, frame: StereoFrame, imu: ImuBatch | None = None) -> FrameReport:
+        from estimator.odometry_msg import OdometryBuilder
+
+        report = self.odometry.process(frame, imu)
+        if self._builder is None:
+            self._builder = OdometryBuilder(
+                self._body_from_camera,
+                self._backend,
+                first_accel=imu.accel if imu is not None else None,
+                odom_from_world=self._odom_from_world,
+            )
+        self.last_odometry = self._builder.build(report).to_dict()
+        return report
 
 
 def _synthetic_run(factory: EstimatorFactory, frames: int = 4) -> None:

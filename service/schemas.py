@@ -96,6 +96,64 @@ def _matrix(flat: list[float]) -> Matrix4:
     return [flat[0:4], flat[4:8], flat[8:12], flat[12:16]]
 
 
+class Header(BaseModel):
+    stamp_ns: int = Field(description="frame timestamp, ns (ROS: sec = ns // 1e9, nanosec)")
+    frame_id: str = Field(description="'odom'")
+
+
+class Point(BaseModel):
+    x: float
+    y: float
+    z: float
+
+
+class Quaternion(BaseModel):
+    x: float
+    y: float
+    z: float
+    w: float
+
+
+class PoseInOdom(BaseModel):
+    position: Point = Field(description="base_link origin in odom, m")
+    orientation: Quaternion = Field(description="base_link orientation in odom")
+
+
+class PoseWithCovariance(BaseModel):
+    pose: PoseInOdom
+    covariance: list[float] = Field(
+        min_length=36, max_length=36,
+        description="6x6 row-major: x, y, z, rotation about odom X, Y, Z (m^2, rad^2)",
+    )
+
+
+class Twist(BaseModel):
+    linear: Point = Field(description="m/s in base_link")
+    angular: Point = Field(description="rad/s in base_link")
+
+
+class TwistWithCovariance(BaseModel):
+    twist: Twist
+    covariance: list[float] = Field(
+        min_length=36, max_length=36, description="6x6 row-major: vx, vy, vz, wx, wy, wz"
+    )
+
+
+class OdometryOut(BaseModel):
+    """nav_msgs/Odometry of one frame: base_link (the body/IMU frame, the left camera on a rig
+    without T_BS) in odom (the first body pose, levelled with gravity when IMU samples came
+    with the first frame); covariances never zero (docs/robot-integration.md)."""
+
+    header: Header
+    child_frame_id: str = Field(description="'base_link'")
+    pose: PoseWithCovariance
+    twist: TwistWithCovariance
+    status: Literal["ok", "degraded", "lost"]
+    camera_pose: list[float] = Field(
+        min_length=16, max_length=16, description="left camera in odom, 4x4 row-major"
+    )
+
+
 class PoseOut(BaseModel):
     """One answered frame; poses are 4x4 left-camera-to-world, row-major."""
 
@@ -115,9 +173,18 @@ class PoseOut(BaseModel):
     message: str
     resumed: bool = Field(description="the estimator restarted from the last stored pose")
     imu_samples: int = Field(0, description="IMU samples used for this frame")
+    odometry: OdometryOut | None = Field(
+        None, description="the frame in the robotics convention (live answers only)"
+    )
 
     @classmethod
-    def of(cls, session_id: str, record: PoseRecord, imu_samples: int = 0) -> PoseOut:
+    def of(
+        cls,
+        session_id: str,
+        record: PoseRecord,
+        imu_samples: int = 0,
+        odometry: dict[str, Any] | None = None,
+    ) -> PoseOut:
         return cls(
             session_id=session_id,
             index=record.frame_index,
@@ -133,6 +200,7 @@ class PoseOut(BaseModel):
             message=record.message,
             resumed=record.resumed,
             imu_samples=imu_samples,
+            odometry=OdometryOut.model_validate(odometry) if odometry is not None else None,
         )
 
 

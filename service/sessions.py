@@ -17,6 +17,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -83,6 +84,7 @@ class FrameResult:
     session_id: str
     record: PoseRecord
     imu_samples: int
+    odometry: dict[str, Any] | None = None  # the frame's odometry message (not stored)
 
 
 @dataclass
@@ -365,6 +367,7 @@ class SessionWorker:
         return FrameResult(
             self.session_id, replace(record, timings=timings),
             0 if take.batch is None else len(take.batch.timestamps_ns),
+            outcome.odometry,
         )
 
     async def close(self, reason: str, drain_seconds: float = 0.0) -> None:

@@ -83,6 +83,7 @@ class FrameOutcome:
     timings: dict[str, float]
     created: bool
     worker_pid: int
+    odometry: dict[str, Any] | None = None  # OdometryMessage.to_dict() of this frame
 
 
 @dataclass(frozen=True)
@@ -169,6 +170,7 @@ def compute_frame(
         timings=timings,
         created=created,
         worker_pid=os.getpid(),
+        odometry=getattr(pipeline, "last_odometry", None),
     )
 
 

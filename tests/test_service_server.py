@@ -141,6 +141,16 @@ def _offline(dataset: Path, limit: int) -> tuple[np.ndarray, np.ndarray, np.ndar
     return result.timestamps_ns, result.poses("pose"), result.poses("frontend_pose")
 
 
+def _offline_odometry(dataset: Path, limit: int) -> list[dict]:
+    """The offline run's odometry messages, in the JSON form the service answers with."""
+    from estimator.commands.run import build_config, odometry_messages, run_sequence
+    from estimator.datasets import open_sequence
+
+    config = build_config("pso-robust", SEED, True, True)
+    result = run_sequence(open_sequence(dataset), config, limit=limit)
+    return [message.to_dict() for message in odometry_messages(result)]
+
+
 def _stored(url: str, session_id: str) -> list[Pose]:
     with Client(url, KEY) as client:
         poses = client.trajectory(session_id)
@@ -154,6 +164,7 @@ def test_http_and_websocket_replay_equal_the_offline_run(
     server: Server, euroc_v101_micro: Path, tmp_path: Path
 ) -> None:
     times, offline, offline_frontend = _offline(euroc_v101_micro, FRAMES)
+    odometry = _offline_odometry(euroc_v101_micro, FRAMES)
     for use_ws in (False, True):
         result = replay(
             server.url,
@@ -175,6 +186,17 @@ def test_http_and_websocket_replay_equal_the_offline_run(
         stored = _stored(server.url, result.session.id)
         assert [p.pose.tolist() for p in stored] == [p.pose.tolist() for p in result.poses]
         assert all(p.imu_samples > 0 for p in result.poses[1:])  # EuRoC IMU went through
+        # The odometry message of each answer is the offline one (odom, covariances, twist).
+        for answered, expected in zip(result.poses, odometry, strict=True):
+            assert answered.odometry is not None
+            assert answered.odometry["header"] == expected["header"]
+            np.testing.assert_allclose(
+                answered.odometry["pose"]["covariance"], expected["pose"]["covariance"],
+                rtol=1e-6, atol=1e-15,
+            )
+            np.testing.assert_allclose(
+                answered.odometry["camera_pose"], expected["camera_pose"], rtol=0, atol=1e-9
+            )
     # The TUM export reads back as the offline trajectory too.
     from estimator.trajectory_io import read_tum
 

@@ -32,6 +32,10 @@ def _replay(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_tum(out / "trajectory.tum", result.timestamps_ns, result.matrices)
+    odometry = [pose.odometry for pose in result.poses if pose.odometry is not None]
+    if odometry:
+        with (out / "odometry.jsonl").open("w") as handle:
+            handle.writelines(json.dumps(message) + "\n" for message in odometry)
     statuses: dict[str, int] = {}
     for pose in result.poses:
         statuses[pose.status] = statuses.get(pose.status, 0) + 1
@@ -57,7 +61,8 @@ def _replay(args: argparse.Namespace) -> int:
         print(f"{key:>20}: {value}")
     for event in result.rejected[:5]:
         print(f"rejected {event.timestamp_ns}: HTTP {event.status} {event.detail}", file=sys.stderr)
-    print(f"wrote {out / 'trajectory.tum'} and {out / 'replay.json'}")
+    also = f", {out / 'odometry.jsonl'}" if odometry else ""
+    print(f"wrote {out / 'trajectory.tum'}{also} and {out / 'replay.json'}")
     return 0
 
 

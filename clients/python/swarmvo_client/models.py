@@ -58,6 +58,10 @@ class Pose:
     message: str
     resumed: bool
     imu_samples: int = 0
+    # The frame in the robotics convention (nav_msgs/Odometry layout: header, child_frame_id,
+    # pose.pose/covariance, twist.twist/covariance, status, camera_pose); None when the server
+    # did not send it (stored trajectories).
+    odometry: dict[str, Any] | None = None
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> Pose:
@@ -76,6 +80,7 @@ class Pose:
             message=data.get("message", ""),
             resumed=bool(data.get("resumed", False)),
             imu_samples=int(data.get("imu_samples", 0)),
+            odometry=data.get("odometry"),
         )
 
 
