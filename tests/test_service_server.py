@@ -612,3 +612,37 @@ def test_client_cli_replay_writes_the_acknowledged_trajectory(
         == 2
     )
     assert "HTTP 401" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@pytest.mark.euroc
+def test_client_replays_a_bag_as_the_offline_run(
+    server: Server, euroc_v101_micro: Path, tmp_path: Path
+) -> None:
+    """A ROS 1 bag (16-bit images) from the real clip, replayed over the WebSocket."""
+    import warnings
+
+    from swarmvo_client.cli import main as client_main
+
+    from estimator.datasets import open_sequence
+    from estimator.rosbag_write import write_stereo_bag
+
+    frames = 10
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the clip's unpaired camera rows
+        sequence = open_sequence(euroc_v101_micro)
+    bag = tmp_path / "clip.bag"
+    write_stereo_bag(bag, sequence, frames, "mono16")
+    times, offline, _ = _offline(euroc_v101_micro, frames)
+    out = tmp_path / "replay"
+    code = client_main(
+        ["replay", str(bag), "--url", server.url, "--api-key", KEY, "--ws", "--seed", str(SEED),
+         "--calibration", str(euroc_v101_micro), "--out", str(out), "--quiet"]
+    )
+    assert code == 0
+    from estimator.trajectory_io import read_tum
+
+    replay_times, poses = read_tum(out / "trajectory.tum")
+    assert replay_times.tolist() == times.tolist()
+    np.testing.assert_allclose(poses, offline, rtol=0, atol=1e-9)
+    assert len((out / "odometry.jsonl").read_text().splitlines()) == frames

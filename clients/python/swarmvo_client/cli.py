@@ -28,6 +28,12 @@ def _replay(args: argparse.Namespace) -> int:
         config=config,
         progress=not args.quiet,
         session_id=args.session,
+        bag={
+            "calibration": args.calibration,
+            "left_topic": args.left_topic,
+            "right_topic": args.right_topic,
+            "imu_topic": args.imu_topic,
+        },
     )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -69,8 +75,12 @@ def _replay(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="swarmvo-client", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
-    sub = commands.add_parser("replay", help="replay a EuRoC or KITTI folder against a server")
-    sub.add_argument("dataset", type=Path, help="EuRoC folder (with mav0) or KITTI sequence")
+    sub = commands.add_parser(
+        "replay", help="replay a EuRoC or KITTI folder or a ROS bag against a server"
+    )
+    sub.add_argument(
+        "dataset", type=Path, help="EuRoC folder (with mav0), KITTI sequence or ROS 1/2 bag"
+    )
     sub.add_argument("--url", default="http://127.0.0.1:8000", help="server base URL")
     sub.add_argument(
         "--api-key", default=os.environ.get("SWARMVO_API_KEY"),
@@ -83,6 +93,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_argument("--session", help="continue this session instead of creating one")
     sub.add_argument("--out", default="replay-output", help="folder for trajectory.tum")
     sub.add_argument("--quiet", action="store_true", help="no progress bar")
+    bag = sub.add_argument_group("ROS bags (needs the swarmvo package)")
+    bag.add_argument("--calibration", type=Path, help="EuRoC folder, Kalibr camchain or rig")
+    bag.add_argument("--left-topic", help="left images (default: guessed)")
+    bag.add_argument("--right-topic", help="right images (default: guessed)")
+    bag.add_argument("--imu-topic", help="sensor_msgs/Imu (default: the bag's only one)")
     sub.set_defaults(handler=_replay)
     return parser
 

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import struct
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -29,7 +30,7 @@ class FrameFiles:
 
 @dataclass
 class LocalSequence:
-    kind: Literal["euroc", "kitti"]
+    kind: Literal["euroc", "kitti", "bag"]
     root: Path
     frames: list[FrameFiles]
     calibration_files: dict[str, Path]
@@ -40,6 +41,16 @@ class LocalSequence:
     gt_positions: np.ndarray | None = None
     gt_rotations: np.ndarray | None = None  # (N, 3, 3) when the ground truth has attitude
     notes: list[str] = field(default_factory=list)
+    # A bag: encoded (left, right) of frame i, and the session body (calibration, imu_noise).
+    frame_source: Callable[[int], tuple[bytes, bytes]] | None = None
+    session: dict[str, Any] | None = None
+
+    def frame_bytes(self, index: int) -> tuple[bytes, bytes]:
+        """The encoded left and right images of frame ``index``, as they are sent."""
+        if self.frame_source is not None:
+            return self.frame_source(index)
+        files = self.frames[index]
+        return files.left.read_bytes(), files.right.read_bytes()
 
 
 def quat_to_matrix(wxyz: np.ndarray) -> np.ndarray:

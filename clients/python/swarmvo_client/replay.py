@@ -46,6 +46,11 @@ def create_session_for(
     client: Client, sequence: LocalSequence, config: dict[str, Any] | None, name: str = ""
 ) -> Session:
     """A session from the dataset's own calibration files, uploaded as they are."""
+    if sequence.session is not None:  # a bag: the calibration it was opened with
+        return client.create_session(
+            sequence.session["calibration"], config, sequence.session["imu_noise"],
+            name or sequence.root.name,
+        )
     files = sequence.calibration_files
     if not name:
         name = sequence.root.parent.name if sequence.kind == "euroc" else sequence.root.name
@@ -88,13 +93,13 @@ def replay_http(
     began = time.perf_counter()
     for index in tqdm(_frame_indices(sequence, start, limit), disable=not progress,
                       unit="frame", desc="replay (HTTP)"):
-        files = sequence.frames[index]
+        left, right = sequence.frame_bytes(index)
         result.poses.append(
             client.send_frame(
                 session.id,
-                files.timestamp_ns,
-                files.left.read_bytes(),
-                files.right.read_bytes(),
+                sequence.frames[index].timestamp_ns,
+                left,
+                right,
                 frame_imu(sequence, index),
             )
         )
@@ -129,12 +134,9 @@ async def replay_ws(
                         await asyncio.sleep(delay)
                 else:
                     await in_flight.acquire()
-                files = sequence.frames[index]
+                left, right = sequence.frame_bytes(index)
                 await connection.send_frame(
-                    files.timestamp_ns,
-                    files.left.read_bytes(),
-                    files.right.read_bytes(),
-                    frame_imu(sequence, index),
+                    sequence.frames[index].timestamp_ns, left, right, frame_imu(sequence, index)
                 )
 
         producer = asyncio.create_task(produce())
@@ -168,12 +170,22 @@ def replay(
     config: dict[str, Any] | None = None,
     progress: bool = True,
     session_id: str | None = None,
+    bag: dict[str, Any] | None = None,
 ) -> ReplayResult:
     """Create a session from the dataset (or continue ``session_id``) and replay its frames.
 
     Continuing a session starts with the first frame newer than its last stored timestamp.
+    A ROS bag needs ``bag={"calibration": path, "left_topic": ..., ...}`` (``bags.py``).
     """
-    sequence = open_local_sequence(dataset)
+    from swarmvo_client.bags import is_bag, open_local_bag
+
+    if is_bag(Path(dataset)):
+        options = dict(bag or {})
+        if options.get("calibration") is None:
+            raise ValueError("replaying a bag needs --calibration (EuRoC folder, Kalibr or rig)")
+        sequence = open_local_bag(Path(dataset), **options)
+    else:
+        sequence = open_local_sequence(dataset)
     with Client(url, api_key) as client:
         if session_id is None:
             session = create_session_for(client, sequence, config)
