@@ -555,7 +555,9 @@ def create_app(
             if error.kind in ("timestamp_order", "queue_full"):
                 metrics.errors.labels(error.kind).inc()
             raise _frame_error(error) from error
-        return PoseOut.of(result.session_id, result.record, result.imu_samples, result.odometry)
+        return PoseOut.of(
+            result.session_id, result.record, result.imu_samples, result.odometry, result.smoothed
+        )
 
     @app.post(
         "/v1/sessions/{session_id}/imu", response_model=ImuBatchOut, tags=["frames"],
@@ -861,7 +863,8 @@ class StreamConnection:
             try:
                 result = await asyncio.shield(future)
                 payload = {"type": "pose", **PoseOut.of(
-                    result.session_id, result.record, result.imu_samples, result.odometry
+                    result.session_id, result.record, result.imu_samples, result.odometry,
+                    result.smoothed,
                 ).model_dump(mode="json")}
             except FrameDropped as error:
                 payload = {"type": "dropped", "timestamp_ns": timestamp, "detail": error.detail}

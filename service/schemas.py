@@ -154,6 +154,11 @@ class OdometryOut(BaseModel):
     )
 
 
+class SmoothedPose(BaseModel):
+    timestamp_ns: int
+    pose: Matrix4 = Field(description="final smoothed left camera in world, row-major")
+
+
 class PoseOut(BaseModel):
     """One answered frame; poses are 4x4 left-camera-to-world, row-major."""
 
@@ -176,6 +181,11 @@ class PoseOut(BaseModel):
     odometry: OdometryOut | None = Field(
         None, description="the frame in the robotics convention (live answers only)"
     )
+    smoothed: list[SmoothedPose] = Field(
+        default_factory=list,
+        description="earlier frames the back end's smoother finished with at this frame, each "
+        "once, with their final estimate (live answers only)",
+    )
 
     @classmethod
     def of(
@@ -184,6 +194,7 @@ class PoseOut(BaseModel):
         record: PoseRecord,
         imu_samples: int = 0,
         odometry: dict[str, Any] | None = None,
+        smoothed: list[tuple[int, list[float]]] | None = None,
     ) -> PoseOut:
         return cls(
             session_id=session_id,
@@ -201,6 +212,10 @@ class PoseOut(BaseModel):
             resumed=record.resumed,
             imu_samples=imu_samples,
             odometry=OdometryOut.model_validate(odometry) if odometry is not None else None,
+            smoothed=[
+                SmoothedPose(timestamp_ns=stamp, pose=_matrix(pose))
+                for stamp, pose in smoothed or ()
+            ],
         )
 
 

@@ -85,6 +85,7 @@ class FrameResult:
     record: PoseRecord
     imu_samples: int
     odometry: dict[str, Any] | None = None  # the frame's odometry message (not stored)
+    smoothed: list[tuple[int, list[float]]] = field(default_factory=list)  # finalised poses
 
 
 @dataclass
@@ -368,6 +369,7 @@ class SessionWorker:
             self.session_id, replace(record, timings=timings),
             0 if take.batch is None else len(take.batch.timestamps_ns),
             outcome.odometry,
+            outcome.smoothed,
         )
 
     async def close(self, reason: str, drain_seconds: float = 0.0) -> None:

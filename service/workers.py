@@ -84,6 +84,8 @@ class FrameOutcome:
     created: bool
     worker_pid: int
     odometry: dict[str, Any] | None = None  # OdometryMessage.to_dict() of this frame
+    # Earlier frames the back end finished with at this frame: (timestamp_ns, flat 4x4 pose).
+    smoothed: list[tuple[int, list[float]]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -171,6 +173,7 @@ def compute_frame(
         created=created,
         worker_pid=os.getpid(),
         odometry=getattr(pipeline, "last_odometry", None),
+        smoothed=[(int(stamp), _flat(pose)) for stamp, pose in report.final_poses],
     )
 
 

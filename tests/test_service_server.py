@@ -141,14 +141,14 @@ def _offline(dataset: Path, limit: int) -> tuple[np.ndarray, np.ndarray, np.ndar
     return result.timestamps_ns, result.poses("pose"), result.poses("frontend_pose")
 
 
-def _offline_odometry(dataset: Path, limit: int) -> list[dict]:
-    """The offline run's odometry messages, in the JSON form the service answers with."""
+def _offline_odometry(dataset: Path, limit: int) -> tuple[list[dict], dict[int, np.ndarray]]:
+    """The offline run's odometry messages (as the service answers them) and smoothed poses."""
     from estimator.commands.run import build_config, odometry_messages, run_sequence
     from estimator.datasets import open_sequence
 
     config = build_config("pso-robust", SEED, True, True)
     result = run_sequence(open_sequence(dataset), config, limit=limit)
-    return [message.to_dict() for message in odometry_messages(result)]
+    return [message.to_dict() for message in odometry_messages(result)], result.smoothed
 
 
 def _stored(url: str, session_id: str) -> list[Pose]:
@@ -164,7 +164,7 @@ def test_http_and_websocket_replay_equal_the_offline_run(
     server: Server, euroc_v101_micro: Path, tmp_path: Path
 ) -> None:
     times, offline, offline_frontend = _offline(euroc_v101_micro, FRAMES)
-    odometry = _offline_odometry(euroc_v101_micro, FRAMES)
+    odometry, smoothed = _offline_odometry(euroc_v101_micro, FRAMES)
     for use_ws in (False, True):
         result = replay(
             server.url,
@@ -197,6 +197,11 @@ def test_http_and_websocket_replay_equal_the_offline_run(
             np.testing.assert_allclose(
                 answered.odometry["camera_pose"], expected["camera_pose"], rtol=0, atol=1e-9
             )
+        # The smoother's final estimates arrive online, each frame once, as offline.
+        finished = [item for pose in result.poses for item in pose.smoothed]
+        assert len({stamp for stamp, _ in finished}) == len(finished) > FRAMES // 2
+        for stamp, pose in finished:
+            np.testing.assert_allclose(pose, smoothed[stamp], rtol=0, atol=1e-9)
     # The TUM export reads back as the offline trajectory too.
     from estimator.trajectory_io import read_tum
 

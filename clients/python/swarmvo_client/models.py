@@ -62,6 +62,9 @@ class Pose:
     # pose.pose/covariance, twist.twist/covariance, status, camera_pose); None when the server
     # did not send it (stored trajectories).
     odometry: dict[str, Any] | None = None
+    # Earlier frames the server's smoother finished with at this frame: (timestamp_ns, 4x4
+    # final left-camera pose), each frame once.
+    smoothed: tuple[tuple[int, np.ndarray], ...] = ()
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> Pose:
@@ -81,6 +84,10 @@ class Pose:
             resumed=bool(data.get("resumed", False)),
             imu_samples=int(data.get("imu_samples", 0)),
             odometry=data.get("odometry"),
+            smoothed=tuple(
+                (int(item["timestamp_ns"]), np.array(item["pose"], dtype=float))
+                for item in data.get("smoothed", ())
+            ),
         )
 
 
