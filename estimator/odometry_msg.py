@@ -170,6 +170,7 @@ class OdometryBuilder:
         self._odom_from_world = odom_from_world
         self._chain: dict[int, _Chained] = {}
         self._previous_ns: int | None = None
+        self._latest_reference_ns: int | None = None
 
     def build(self, report: FrameReport) -> OdometryMessage:
         """The message of the next frame (frames must come in order, none skipped)."""
@@ -205,7 +206,8 @@ class OdometryBuilder:
     def _chain_frontend(self, report: FrameReport) -> _Chained:
         """Front-end pose covariance: the reference's, transported, plus the measurement's."""
         pose = report.frontend_pose
-        reference = self._chain.get(report.reference_timestamp_ns or -1)
+        reference_ns = report.reference_timestamp_ns
+        reference = self._chain.get(reference_ns) if reference_ns is not None else None
         measurement = report.measurement_covariance
         if self._previous_ns is None:
             chained = _Chained(pose, np.zeros((6, 6)), None, None)
@@ -223,12 +225,13 @@ class OdometryBuilder:
         return chained
 
     def _forget(self, report: FrameReport) -> None:
-        """Keep the previous frame and those a later frame may still be measured against (a
-        front end's references only move forward)."""
-        oldest = report.reference_timestamp_ns
-        if oldest is None:
-            oldest = self._previous_ns if self._previous_ns is not None else report.timestamp_ns
-        keep = min(oldest, self._previous_ns or report.timestamp_ns)
+        """Keep this frame and those a later frame may still be measured against: none older
+        than the latest reference, since a front end's references only move forward."""
+        if report.reference_timestamp_ns is not None:
+            self._latest_reference_ns = report.reference_timestamp_ns
+        keep = report.timestamp_ns
+        if self._latest_reference_ns is not None:
+            keep = min(keep, self._latest_reference_ns)
         for stamp in [stamp for stamp in self._chain if stamp < keep]:
             del self._chain[stamp]
 
