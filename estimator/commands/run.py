@@ -332,6 +332,8 @@ def open_input(args: argparse.Namespace) -> Sequence:
     from estimator.rosbag_io import is_bag
 
     if not is_bag(args.dataset):
+        if args.calibration is not None:
+            raise ValueError("--calibration is for bags; a dataset folder has its own")
         return open_sequence(args.dataset, args.format)
     from estimator.bag_calibration import load_bag_calibration
     from estimator.rosbag_io import open_bag
