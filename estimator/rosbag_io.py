@@ -26,7 +26,7 @@ import numpy as np
 from rosbags.highlevel import AnyReader, AnyReaderError
 
 from estimator.bag_calibration import BagCalibration
-from estimator.datasets import FrameRecord, Sequence
+from estimator.datasets import FrameRecord, Sequence, UnreadableImageError
 from estimator.types import ImuBatch, StereoFrame
 
 __all__ = ["BagSequence", "BagTopics", "decode_image", "is_bag", "open_bag"]
@@ -68,13 +68,17 @@ def _stamp_ns(message: object) -> int:
 
 
 def decode_image(message: object, msgtype: str, topic: str) -> np.ndarray:
-    """Pixels of a sensor_msgs/Image or CompressedImage (grey stays grey, colour as BGR)."""
+    """Pixels of a sensor_msgs/Image or CompressedImage (grey stays grey, colour as BGR).
+
+    An unknown encoding is a ValueError (the topic is unusable); one image whose data cannot be
+    decoded is an ``UnreadableImageError`` (the run skips that frame, as for a broken file).
+    """
     if msgtype == COMPRESSED_TYPE:
         data = np.frombuffer(bytes(message.data), dtype=np.uint8)  # type: ignore[attr-defined]
         image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if len(data) else None
         if image is None:
             fmt = message.format  # type: ignore[attr-defined]
-            raise ValueError(f"{topic}: cannot decode a compressed image (format {fmt!r})")
+            raise UnreadableImageError(f"{topic}: cannot decode a compressed image ({fmt!r})")
         return image
     encoding = str(message.encoding)  # type: ignore[attr-defined]
     if encoding not in _ENCODINGS:
@@ -87,7 +91,7 @@ def decode_image(message: object, msgtype: str, topic: str) -> np.ndarray:
     item = np.dtype(dtype).itemsize
     raw = np.asarray(message.data, dtype=np.uint8)  # type: ignore[attr-defined]
     if step < width * channels * item or raw.size < step * height:
-        raise ValueError(
+        raise UnreadableImageError(
             f"{topic}: image data of {raw.size} bytes does not hold {width}x{height} "
             f"{encoding} with row step {step}"
         )
@@ -140,7 +144,9 @@ class BagSequence(Sequence):
     """A Sequence whose images are decoded from the bag as the run streams through it."""
 
     topics: BagTopics | None = None
-    _stream: Iterator[tuple[int, StereoFrame]] | None = field(default=None, repr=False)
+    _stream: Iterator[tuple[int, StereoFrame | UnreadableImageError]] | None = field(
+        default=None, repr=False
+    )
     _next: int = 0
 
     def load(self, index: int) -> StereoFrame:
@@ -153,6 +159,8 @@ class BagSequence(Sequence):
             if position == index:
                 if self._next == len(self.frames):
                     self.close()
+                if isinstance(frame, UnreadableImageError):
+                    raise frame
                 return frame
         raise ValueError(f"{self.root}: frame {index} vanished from the bag while reading it")
 
@@ -162,12 +170,12 @@ class BagSequence(Sequence):
             self._stream.close()  # type: ignore[attr-defined]
             self._stream = None
 
-    def _pairs(self) -> Iterator[tuple[int, StereoFrame]]:
-        """(frame index, stereo pair) in time order, one pass over the bag."""
+    def _pairs(self) -> Iterator[tuple[int, StereoFrame | UnreadableImageError]]:
+        """(frame index, stereo pair or why it cannot be read) in time order, one pass."""
         assert self.topics is not None
         position = {frame.timestamp_ns: i for i, frame in enumerate(self.frames)}
-        pending: dict[int, dict[str, np.ndarray]] = {}
-        ready: dict[int, StereoFrame] = {}
+        pending: dict[int, dict[str, np.ndarray | UnreadableImageError]] = {}
+        ready: dict[int, StereoFrame | UnreadableImageError] = {}
         wanted = 0
         side_of = {self.topics.left: "left", self.topics.right: "right"}
         with _reader(self.root) as reader:
@@ -178,12 +186,18 @@ class BagSequence(Sequence):
                 if stamp not in position:
                     continue
                 sides = pending.setdefault(stamp, {})
-                sides[side_of[connection.topic]] = decode_image(
-                    message, connection.msgtype, connection.topic
-                )
+                try:
+                    image = decode_image(message, connection.msgtype, connection.topic)
+                except UnreadableImageError as error:
+                    image = error
+                sides[side_of[connection.topic]] = image
                 if len(sides) == 2:
                     del pending[stamp]
-                    ready[position[stamp]] = StereoFrame(stamp, sides["left"], sides["right"])
+                    left, right = sides["left"], sides["right"]
+                    broken = next(
+                        (s for s in (left, right) if isinstance(s, UnreadableImageError)), None
+                    )
+                    ready[position[stamp]] = broken or StereoFrame(stamp, left, right)
                 while wanted in ready:
                     yield wanted, ready.pop(wanted)
                     wanted += 1

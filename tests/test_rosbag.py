@@ -217,3 +217,30 @@ def test_streaming_restarts_and_closes(euroc_mh01_moving, small_bag):
     bag.close()
     with pytest.raises(IndexError):
         bag.load(3)
+
+
+def test_one_corrupt_compressed_image_skips_its_frame(euroc_mh01_moving, tmp_path, capsys):
+    import cv2
+
+    sequence = _sequence(euroc_mh01_moving)
+    bag = tmp_path / "corrupt.bag"
+    with _BagWriter(bag) as writer:
+        for index in range(4):
+            frame = sequence.load(index)
+            for topic, image in (("/cam0/image_raw", frame.left), ("/cam1/image_raw", frame.right)):
+                data = cv2.imencode(".png", image)[1].ravel()
+                if index == 1 and topic == "/cam0/image_raw":
+                    data = data[:100]  # cut short: not decodable
+                message = writer.type("sensor_msgs/msg/CompressedImage")(
+                    header=writer.header(frame.timestamp_ns, "cam"), format="png", data=data
+                )
+                writer.write(topic, "sensor_msgs/msg/CompressedImage", frame.timestamp_ns, message)
+    out = tmp_path / "out"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert _run_bag(bag, euroc_mh01_moving, out, "--no-backend") == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == 3 and metrics["frames_skipped"] == 1
+    assert len((out / "odometry.jsonl").read_text().splitlines()) == 3
+    code = _run_bag(bag, euroc_mh01_moving, tmp_path / "strict", "--strict")
+    _one_error_line(capsys, code, "cannot decode a compressed image")
