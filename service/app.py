@@ -46,6 +46,8 @@ from service.schemas import (
     SessionCreate,
     SessionList,
     SessionOut,
+    SmoothedOut,
+    SmoothedPose,
     TrajectoryOut,
 )
 from service.sessions import FrameDropped, FrameRejected, ImuSamples, SessionManager
@@ -613,6 +615,44 @@ def create_app(
             headers={
                 "content-disposition": f'attachment; filename="{session_id}.{format}.txt"'
             },
+        )
+
+    @app.get(
+        "/v1/sessions/{session_id}/smoothed", tags=["sessions"], responses=_ERRORS,
+        response_model=SmoothedOut,
+    )
+    def get_smoothed(
+        session_id: str,
+        owner: Owner,
+        state: State,
+        format: Annotated[Literal["tum", "json"], Query()] = "json",
+    ) -> Response:
+        """The smoother's final poses handed out so far by the live session (left camera in
+        world; each frame once, the newest 20000): the smoothed twin of ``/trajectory``. Not
+        stored: empty for a session that is not live in this server."""
+        _lookup(state, session_id, owner)
+        worker = state.manager.workers.get(session_id)
+        smoothed = list(worker.smoothed) if worker is not None else []
+        if format == "json":
+            body = SmoothedOut(
+                session_id=session_id,
+                poses=[SmoothedPose(timestamp_ns=t, pose=[p[0:4], p[4:8], p[8:12], p[12:16]])
+                       for t, p in smoothed],
+            )
+            return JSONResponse(body.model_dump(mode="json"))
+        from estimator.trajectory_io import write_tum
+
+        with tempfile.TemporaryDirectory(prefix="swarmvo-export-") as folder:
+            path = Path(folder) / "smoothed.tum"
+            write_tum(
+                path,
+                np.array([t for t, _ in smoothed], dtype=np.int64),
+                np.array([p for _, p in smoothed], dtype=float).reshape(-1, 4, 4),
+            )
+            text = path.read_text()
+        name = f"{session_id}.smoothed.tum.txt"
+        return PlainTextResponse(
+            text, headers={"content-disposition": f'attachment; filename="{name}"'}
         )
 
     # -- streaming

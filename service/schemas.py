@@ -219,6 +219,13 @@ class PoseOut(BaseModel):
         )
 
 
+class SmoothedOut(BaseModel):
+    """The back end's final estimates so far (live sessions; not stored)."""
+
+    session_id: str
+    poses: list[SmoothedPose]
+
+
 class TrajectoryOut(BaseModel):
     session_id: str
     poses: list[PoseOut]

@@ -13,7 +13,7 @@ import contextlib
 import logging
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -38,6 +38,8 @@ from service.workers import (
 )
 
 logger = logging.getLogger("swarmvo.service")
+# Smoothed poses a live session keeps for GET .../smoothed (the newest; they are not stored).
+SMOOTHED_KEEP = 20_000
 
 
 class FrameRejected(Exception):
@@ -139,6 +141,8 @@ class SessionWorker:
         self._imu_lock = threading.Lock()
         self._imu: list[ImuSamples] = []
         self._imu_count = 0
+        # Final smoothed poses handed out so far: (timestamp_ns, flat 4x4), oldest first.
+        self.smoothed: deque[tuple[int, list[float]]] = deque(maxlen=SMOOTHED_KEEP)
         self._task = asyncio.get_running_loop().create_task(self._consume())
 
     # -- producer side (event loop)
@@ -362,6 +366,7 @@ class SessionWorker:
         timings["total"] = done - job.received
         self.next_index += 1
         self.last_processed_ns = job.timestamp_ns
+        self.smoothed.extend(outcome.smoothed)
         for stage, seconds in timings.items():
             self.metrics.stage_latency.labels(stage).observe(seconds)
         self.metrics.frames.labels(record.status).inc()

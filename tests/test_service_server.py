@@ -202,6 +202,10 @@ def test_http_and_websocket_replay_equal_the_offline_run(
         assert len({stamp for stamp, _ in finished}) == len(finished) > FRAMES // 2
         for stamp, pose in finished:
             np.testing.assert_allclose(pose, smoothed[stamp], rtol=0, atol=1e-9)
+        with Client(server.url, KEY) as client:
+            queried = client.smoothed(result.session.id)
+        assert [stamp for stamp, _ in queried] == [stamp for stamp, _ in finished]
+        assert all(np.array_equal(a, b) for (_, a), (_, b) in zip(queried, finished, strict=True))
     # The TUM export reads back as the offline trajectory too.
     from estimator.trajectory_io import read_tum
 

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import httpx
+import numpy as np
 
 from swarmvo_client.errors import error_for
 from swarmvo_client.models import ImuData, Pose, Session
@@ -175,6 +176,14 @@ class Client:
             "GET", f"/v1/sessions/{session_id}/trajectory", params={"format": format}
         )
         return _trajectory(response, format)
+
+    def smoothed(self, session_id: str) -> list[tuple[int, np.ndarray]]:
+        """The back end's final poses so far (live session): (timestamp_ns, 4x4 left camera)."""
+        response = self._request("GET", f"/v1/sessions/{session_id}/smoothed")
+        return [
+            (int(item["timestamp_ns"]), np.array(item["pose"], dtype=float))
+            for item in response.json()["poses"]
+        ]
 
 
 class AsyncClient:
