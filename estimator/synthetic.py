@@ -23,6 +23,7 @@ import math
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Literal, get_args
 
 import cv2
 import numpy as np
@@ -31,11 +32,16 @@ from scipy.optimize import brentq
 from estimator.geometry import invert_pose, make_pose, matrix_to_quat, transform_points
 from estimator.types import ImuNoise
 
+if TYPE_CHECKING:
+    from estimator.synthetic_driving import DrivingTrajectory
+
 __all__ = [
     "BROKEN_KINDS",
     "CAMERA",
+    "KITTI_CAMERA",
     "LoopTrajectory",
     "Plane",
+    "SimCamera",
     "SynthOptions",
     "SyntheticSequence",
     "TrajectoryState",
@@ -47,13 +53,36 @@ __all__ = [
     "synthesize",
 ]
 
+Scenario = Literal["flight", "driving"]
+Layout = Literal["euroc", "kitti"]
 GRAVITY = np.array([0.0, 0.0, -9.81])  # world z up
 MIP_LEVELS = 5
 BROKEN_KINDS = ("black", "blur", "shuffled")
 BROKEN_FILE = "broken_frames.csv"
 
+
+@dataclass(frozen=True)
+class SimCamera:
+    """An ideal (undistorted, exactly rectified) stereo pair: pinhole, right camera at +x."""
+
+    width: int
+    height: int
+    f: float
+    cx: float
+    cy: float
+    baseline: float
+
+    def __getitem__(self, key: str) -> float:
+        return getattr(self, key)
+
+    def matrix(self) -> np.ndarray:
+        return np.array([[self.f, 0.0, self.cx], [0.0, self.f, self.cy], [0.0, 0.0, 1.0]])
+
+
 # EuRoC-like stereo camera, but ideal (undistorted) and exactly rectified.
-CAMERA = {"width": 752, "height": 480, "f": 458.0, "cx": 367.0, "cy": 248.0, "baseline": 0.11}
+CAMERA = SimCamera(width=752, height=480, f=458.0, cx=367.0, cy=248.0, baseline=0.11)
+# KITTI-like (sequence 00 grey cameras): 1241x376, 718.856 px, 0.54 m baseline.
+KITTI_CAMERA = SimCamera(width=1241, height=376, f=718.856, cx=607.1928, cy=185.2157, baseline=0.54)
 
 
 def _euroc_cam0_T_BS() -> np.ndarray:
@@ -76,9 +105,8 @@ T_BS_CAM1 = T_BS_CAM0 @ T_CAM0_CAM1
 R_HEADING_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
-def camera_matrix() -> np.ndarray:
-    f, cx, cy = CAMERA["f"], CAMERA["cx"], CAMERA["cy"]
-    return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+def camera_matrix(camera: SimCamera = CAMERA) -> np.ndarray:
+    return camera.matrix()
 
 
 # ----------------------------------------------------------------------------- options
@@ -102,8 +130,30 @@ class SynthOptions:
     # Seconds the body waits at its start pose before flying (extra frames in front of the
     # ``frames`` of the flight), as EuRoC's drones do: lets a VIO initialise its gyro bias.
     standstill_s: float = 0.0
+    # "flight": EuRoC-like drone in a hall; "driving": KITTI-like car in a street
+    # (estimator/synthetic_driving.py). Layout "kitti" writes KITTI's odometry folders.
+    scenario: Scenario = "flight"
+    layout: Layout = "euroc"
+
+    @classmethod
+    def driving(cls, **overrides: object) -> SynthOptions:
+        """Driving defaults: 60 s at 10 Hz over 660 m (11 m/s), 100 Hz IMU, coarser texture."""
+        values: dict[str, object] = {
+            "scenario": "driving",
+            "frames": 600,
+            "length_m": 660.0,
+            "fps": 10.0,
+            "imu_rate_hz": 100.0,
+            "texture_px_per_m": 24.0,
+        }
+        return cls(**{**values, **overrides})
 
     def validate(self) -> None:
+        if self.scenario not in get_args(Scenario):
+            raise ValueError(f"scenario must be one of {get_args(Scenario)}, got {self.scenario!r}")
+        if self.layout not in get_args(Layout):
+            raise ValueError(f"layout must be one of {get_args(Layout)}, got {self.layout!r}")
+
         if self.frames < 2:
             raise ValueError(f"frames must be >= 2, got {self.frames}")
         if not 0.5 <= self.length_m <= 1000.0:
@@ -130,6 +180,15 @@ class SynthOptions:
             raise ValueError(f"standstill_s must be <= 60, got {self.standstill_s}")
         if self.texture_px_per_m < 8:
             raise ValueError(f"texture_px_per_m must be >= 8, got {self.texture_px_per_m}")
+        if self.scenario == "driving" and not 2.0 <= self.length_m / self.duration_s <= 40.0:
+            raise ValueError(
+                f"a drive of {self.length_m} m in {self.duration_s:.1f} s is "
+                f"{self.length_m / self.duration_s:.1f} m/s; keep it within 2..40 m/s"
+            )
+
+    @property
+    def duration_s(self) -> float:
+        return max(self.frames - 1, 1) / self.fps if self.fps > 0 else float("nan")
 
 
 # ----------------------------------------------------------------------------- trajectory
@@ -221,17 +280,7 @@ class LoopTrajectory:
         pitch_dot = self.pitch_amp * pitch_w * np.cos(pitch_w * t + 0.7)
         roll = self.roll_amp * np.sin(roll_w * t + 1.9)
         roll_dot = self.roll_amp * roll_w * np.cos(roll_w * t + 1.9)
-
-        heading = _rz(yaw) @ _ry(pitch) @ _rx(roll)
-        # Angular velocity of R = Rz(yaw) Ry(pitch) Rx(roll) in its own (rotating) frame.
-        omega_heading = np.stack(
-            [
-                roll_dot - yaw_dot * np.sin(pitch),
-                pitch_dot * np.cos(roll) + yaw_dot * np.cos(pitch) * np.sin(roll),
-                -pitch_dot * np.sin(roll) + yaw_dot * np.cos(pitch) * np.cos(roll),
-            ],
-            -1,
-        )
+        heading, omega_heading = euler_attitude(yaw, yaw_dot, pitch, pitch_dot, roll, roll_dot)
         # Body = heading frame rotated so the left camera (T_BS) looks along the heading x.
         m = R_HEADING_CAM @ T_BS_CAM0[:3, :3].T
         return TrajectoryState(p, heading @ m, velocity, acceleration, omega_heading @ m)
@@ -262,6 +311,27 @@ def start_after_rest(trajectory: LoopTrajectory, t: np.ndarray, ramp_s: float) -
         base.accelerations * ds[:, None] ** 2 + base.velocities * dds[:, None],
         base.angular_velocities * ds[:, None],
     )
+
+
+def euler_attitude(
+    yaw: np.ndarray,
+    yaw_dot: np.ndarray,
+    pitch: np.ndarray,
+    pitch_dot: np.ndarray,
+    roll: np.ndarray,
+    roll_dot: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """R = Rz(yaw) Ry(pitch) Rx(roll) and its angular velocity in its own (rotating) frame."""
+    rotation = _rz(yaw) @ _ry(pitch) @ _rx(roll)
+    omega = np.stack(
+        [
+            roll_dot - yaw_dot * np.sin(pitch),
+            pitch_dot * np.cos(roll) + yaw_dot * np.cos(pitch) * np.sin(roll),
+            -pitch_dot * np.sin(roll) + yaw_dot * np.cos(pitch) * np.cos(roll),
+        ],
+        -1,
+    )
+    return rotation, omega
 
 
 def _rx(angle: np.ndarray) -> np.ndarray:
@@ -373,10 +443,11 @@ def make_texture(rows: int, cols: int, rng: np.random.Generator) -> np.ndarray:
 class World:
     planes: list[Plane]
     bounds: tuple[float, float, float]  # hall half-extents x, y and height
+    camera: SimCamera = CAMERA
 
     def render(self, T_WC: np.ndarray, z_near: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
         """Grey image (uint8) and inverse depth (float32, 0 = nothing) seen by a camera."""
-        return render_view(self.planes, T_WC, z_near)
+        return render_view(self.planes, T_WC, z_near, self.camera)
 
 
 def _add_plane(
@@ -491,6 +562,7 @@ def _sample_texture(
     ry: np.ndarray,
     px_per_m: float,
     d_c: float,
+    f: float,
 ) -> np.ndarray:
     """Texture seen through each pixel, trilinearly mipmapped (float32, 0 = off the plane).
 
@@ -499,7 +571,6 @@ def _sample_texture(
     instead of the full texture keeps distant surfaces free of aliasing, which would otherwise
     flicker from frame to frame as no real camera does.
     """
-    f = CAMERA["f"]
     # The footprint varies slowly across a plane: evaluate it every 8th pixel, then upsample.
     step = 8
     coarse_x, coarse_y = rx[::step], ry[::step]
@@ -551,12 +622,12 @@ def _sample_texture(
 
 
 def render_view(
-    planes: list[Plane], T_WC: np.ndarray, z_near: float = 0.05
+    planes: list[Plane], T_WC: np.ndarray, z_near: float = 0.05, camera: SimCamera = CAMERA
 ) -> tuple[np.ndarray, np.ndarray]:
     """Draw every plane facing the camera over its image rectangle, nearest one wins."""
-    width, height = CAMERA["width"], CAMERA["height"]
-    f, cx, cy = CAMERA["f"], CAMERA["cx"], CAMERA["cy"]
-    K = camera_matrix()
+    width, height = camera.width, camera.height
+    f, cx, cy = camera.f, camera.cx, camera.cy
+    K = camera.matrix()
     T_CW = invert_pose(T_WC)
     rotation, translation = T_CW[:3, :3], T_CW[:3, 3]
     center = T_WC[:3, 3]
@@ -593,7 +664,9 @@ def render_view(
         plane_inv = (ry * np.float32(normal_c[1] / (f * d_c)))[:, None] + (
             rx * np.float32(normal_c[0] / (f * d_c)) + np.float32(normal_c[2] / d_c)
         )[None, :]
-        texture = _sample_texture(plane, homography, plane_inv, rx, ry, 0.5 * (ppm_u + ppm_v), d_c)
+        texture = _sample_texture(
+            plane, homography, plane_inv, rx, ry, 0.5 * (ppm_u + ppm_v), d_c, f
+        )
         depth_roi = inv_depth[y0 : y1 + 1, x0 : x1 + 1]
         image_roi = image[y0 : y1 + 1, x0 : x1 + 1]
         visible = (texture > 0.5) & (plane_inv > depth_roi) & (plane_inv < 1.0 / z_near)
@@ -653,9 +726,9 @@ def _blur_kernel(displacement: np.ndarray) -> np.ndarray | None:
     return kernel / kernel.sum()
 
 
-def _mean_flow(inv_depth: np.ndarray, T_C0_C1: np.ndarray) -> np.ndarray:
+def _mean_flow(inv_depth: np.ndarray, T_C0_C1: np.ndarray, camera: SimCamera) -> np.ndarray:
     """Mean image displacement of a pixel grid when the camera moves by T_C0_C1."""
-    f, cx, cy = CAMERA["f"], CAMERA["cx"], CAMERA["cy"]
+    f, cx, cy = camera.f, camera.cx, camera.cy
     ys, xs = np.mgrid[8 : inv_depth.shape[0] : 24, 8 : inv_depth.shape[1] : 24]
     inv = inv_depth[ys, xs]
     valid = inv > 0
@@ -693,21 +766,23 @@ class SyntheticSequence:
     broken: dict[int, str] = field(default_factory=dict)  # frame index -> kind
     path_length_m: float = 0.0
     world: World | None = None  # the rendered scene, for checks against the images
-    trajectory: LoopTrajectory | None = None
+    trajectory: LoopTrajectory | DrivingTrajectory | None = None
 
 
 START_NS = 1_600_000_000_000_000_000  # 19-digit timestamps, like EuRoC's
 
 
-def _write_camera_yaml(path: Path, T_BS: np.ndarray, comment: str) -> None:
+def _write_camera_yaml(
+    path: Path, T_BS: np.ndarray, comment: str, camera: SimCamera = CAMERA, rate_hz: float = 20.0
+) -> None:
     data = ", ".join(repr(float(v)) for v in T_BS.reshape(16))
     path.write_text(
         "%YAML:1.0\n"
         f"sensor_type: camera\ncomment: {comment}\n"
         f"T_BS:\n  cols: 4\n  rows: 4\n  data: [{data}]\n"
-        f"rate_hz: 20\nresolution: [{CAMERA['width']}, {CAMERA['height']}]\n"
+        f"rate_hz: {rate_hz:g}\nresolution: [{camera.width}, {camera.height}]\n"
         "camera_model: pinhole\n"
-        f"intrinsics: [{CAMERA['f']}, {CAMERA['f']}, {CAMERA['cx']}, {CAMERA['cy']}]\n"
+        f"intrinsics: [{camera.f}, {camera.f}, {camera.cx}, {camera.cy}]\n"
         "distortion_model: none\ndistortion_coefficients: []\n"
     )
 
@@ -760,15 +835,16 @@ def synthesize(
     options.validate()
     out_dir = Path(out_dir)
     mav0 = out_dir / "mav0"
-    if mav0.exists():
-        raise ValueError(f"{mav0} already exists; choose an empty output folder")
+    for existing in (mav0, out_dir / "image_0"):
+        if existing.exists():
+            raise ValueError(f"{existing} already exists; choose an empty output folder")
     rng = np.random.default_rng(options.seed)
     frame_step_ns = round(1e9 / options.fps)
     imu_step_ns = round(1e9 / options.imu_rate_hz)
     per_frame = frame_step_ns // imu_step_ns
     duration = (options.frames - 1) / options.fps
-    trajectory = loop_for_length(options.length_m, duration)
-    world = build_world(trajectory, rng, options.texture_px_per_m)
+    rig = _scene(options, duration, rng)
+    trajectory, world = rig.trajectory, rig.world
 
     # IMU and ground truth on one 200 Hz grid, 0.2 s beyond both ends; frames every per_frame.
     # A standstill prepends still frames; the flight then starts (from rest) at frame ``still``.
@@ -788,10 +864,109 @@ def synthesize(
     frame_ns = imu_ns[frame_rows]
     body_poses = state.poses()
 
+    if options.layout == "kitti":
+        writer = _kitti_writer(out_dir, rig, frame_ns, body_poses[frame_rows])
+    else:
+        writer = _euroc_writer(mav0, rig, options, imu_ns, state, (gyro, accel), frame_ns)
+        _write_ground_truth(mav0, imu_ns, state, gyro_bias, accel_bias)
+
+    broken = _choose_broken(options, total, rng)
+    # A shuffled frame gets the (unbroken) right image of the frame half a loop away.
+    donors = {i: (i + total // 2) % total for i, kind in broken.items() if kind == "shuffled"}
+    kept_right: dict[int, np.ndarray] = {}
+    for index, left, right in _render_frames(
+        rig, body_poses, frame_rows, per_frame, options, rng, progress
+    ):
+        if index in donors.values():
+            kept_right[index] = right
+        if broken.get(index) == "black":
+            left, right = np.zeros_like(left), np.zeros_like(right)
+        elif broken.get(index) == "blur":
+            left, right = (cv2.GaussianBlur(im, (0, 0), 12.0) for im in (left, right))
+        writer(index, left, "left")
+        writer(index, right, "right")
+    for index, donor in donors.items():
+        writer(index, kept_right[donor], "right")
+    if broken:
+        lines = [f"{frame_ns[i]},{i},{kind}" for i, kind in sorted(broken.items())]
+        (out_dir / BROKEN_FILE).write_text("#timestamp [ns],index,kind\n" + "\n".join(lines) + "\n")
+    path_length = float(
+        np.linalg.norm(np.diff(body_poses[frame_rows, :3, 3], axis=0), axis=1).sum()
+    )
+    scene = (
+        {"loop_semi_axes_m": [trajectory.a, trajectory.b], "hall_half_extents_m": world.bounds}
+        if isinstance(trajectory, LoopTrajectory)
+        else {"turns": len(trajectory.turns), "mean_speed_mps": trajectory.mean_speed}
+    )
+    (out_dir / "synth.json").write_text(
+        json.dumps(
+            {
+                "options": asdict(options),
+                "path_length_m": path_length,
+                **scene,
+                "planes": len(world.planes),
+            },
+            indent=2,
+        )
+    )
+    return SyntheticSequence(
+        out_dir, options, frame_ns, imu_ns, body_poses, broken, path_length, world, trajectory
+    )
+
+
+@dataclass
+class SceneRig:
+    """What a scenario renders: the motion, the world and where the stereo pair sits on it."""
+
+    trajectory: LoopTrajectory | DrivingTrajectory
+    world: World
+    T_BS_cam0: np.ndarray
+
+    @property
+    def camera(self) -> SimCamera:
+        return self.world.camera
+
+    @property
+    def T_cam0_cam1(self) -> np.ndarray:
+        return make_pose(np.eye(3), [self.camera.baseline, 0.0, 0.0])
+
+
+def _scene(options: SynthOptions, duration: float, rng: np.random.Generator) -> SceneRig:
+    if options.scenario == "driving":
+        from estimator.synthetic_driving import (
+            DRIVING_T_BS_CAM0,
+            build_street,
+            driving_for_length,
+        )
+
+        drive = driving_for_length(options.length_m, duration, rng)
+        street = build_street(drive, rng, options.texture_px_per_m)
+        return SceneRig(drive, street, DRIVING_T_BS_CAM0)
+    loop = loop_for_length(options.length_m, duration)
+    return SceneRig(loop, build_world(loop, rng, options.texture_px_per_m), T_BS_CAM0)
+
+
+Writer = Callable[[int, np.ndarray, str], None]
+
+
+def _euroc_writer(
+    mav0: Path,
+    rig: SceneRig,
+    options: SynthOptions,
+    imu_ns: np.ndarray,
+    state: TrajectoryState,
+    imu: tuple[np.ndarray, np.ndarray],
+    frame_ns: np.ndarray,
+) -> Writer:
+    """Write the EuRoC folders and sensor files; returns the image writer."""
     for name in ("cam0/data", "cam1/data", "imu0", "state_groundtruth_estimate0"):
         (mav0 / name).mkdir(parents=True, exist_ok=True)
-    _write_camera_yaml(mav0 / "cam0" / "sensor.yaml", T_BS_CAM0, "simulated left camera")
-    _write_camera_yaml(mav0 / "cam1" / "sensor.yaml", T_BS_CAM1, "simulated right camera")
+    T_BS_cam1 = rig.T_BS_cam0 @ rig.T_cam0_cam1
+    for name, T_BS, side in (("cam0", rig.T_BS_cam0, "left"), ("cam1", T_BS_cam1, "right")):
+        _write_camera_yaml(
+            mav0 / name / "sensor.yaml", T_BS, f"simulated {side} camera", rig.camera, options.fps
+        )
+    noise = ImuNoise(rate_hz=options.imu_rate_hz)
     _write_imu_yaml(mav0 / "imu0" / "sensor.yaml", noise)
     (mav0 / "body.yaml").write_text("%YAML:1.0\ncomment: swarmvo synthetic sequence\n")
     _write_table(
@@ -799,8 +974,26 @@ def synthesize(
         "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
         "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]",
         imu_ns,
-        np.hstack([gyro, accel]),
+        np.hstack(imu),
     )
+    camera_rows = "\n".join(f"{t},{t}.png" for t in frame_ns.tolist())
+    for camera in ("cam0", "cam1"):
+        (mav0 / camera / "data.csv").write_text("#timestamp [ns],filename\n" + camera_rows + "\n")
+    folders = {"left": mav0 / "cam0" / "data", "right": mav0 / "cam1" / "data"}
+
+    def write(index: int, image: np.ndarray, side: str) -> None:
+        cv2.imwrite(str(folders[side] / f"{frame_ns[index]}.png"), image)
+
+    return write
+
+
+def _write_ground_truth(
+    mav0: Path,
+    imu_ns: np.ndarray,
+    state: TrajectoryState,
+    gyro_bias: np.ndarray,
+    accel_bias: np.ndarray,
+) -> None:
     _write_table(
         mav0 / "state_groundtruth_estimate0" / "data.csv",
         "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], "
@@ -819,48 +1012,35 @@ def synthesize(
         ),
     )
 
-    broken = _choose_broken(options, total, rng)
-    # A shuffled frame gets the (unbroken) right image of the frame half a loop away.
-    donors = {i: (i + total // 2) % total for i, kind in broken.items() if kind == "shuffled"}
-    kept_right: dict[int, np.ndarray] = {}
-    for index, left, right in _render_frames(
-        world, body_poses, frame_rows, per_frame, options, rng, progress
-    ):
-        if index in donors.values():
-            kept_right[index] = right
-        if broken.get(index) == "black":
-            left, right = np.zeros_like(left), np.zeros_like(right)
-        elif broken.get(index) == "blur":
-            left, right = (cv2.GaussianBlur(im, (0, 0), 12.0) for im in (left, right))
-        name = f"{frame_ns[index]}.png"
-        cv2.imwrite(str(mav0 / "cam0" / "data" / name), left)
-        cv2.imwrite(str(mav0 / "cam1" / "data" / name), right)
-    for index, donor in donors.items():
-        cv2.imwrite(str(mav0 / "cam1" / "data" / f"{frame_ns[index]}.png"), kept_right[donor])
-    camera_rows = "\n".join(f"{t},{t}.png" for t in frame_ns.tolist())
-    for camera in ("cam0", "cam1"):
-        (mav0 / camera / "data.csv").write_text("#timestamp [ns],filename\n" + camera_rows + "\n")
-    if broken:
-        lines = [f"{frame_ns[i]},{i},{kind}" for i, kind in sorted(broken.items())]
-        (out_dir / BROKEN_FILE).write_text("#timestamp [ns],index,kind\n" + "\n".join(lines) + "\n")
-    path_length = float(
-        np.linalg.norm(np.diff(body_poses[frame_rows, :3, 3], axis=0), axis=1).sum()
-    )
-    (out_dir / "synth.json").write_text(
-        json.dumps(
-            {
-                "options": asdict(options),
-                "path_length_m": path_length,
-                "loop_semi_axes_m": [trajectory.a, trajectory.b],
-                "hall_half_extents_m": list(world.bounds),
-                "planes": len(world.planes),
-            },
-            indent=2,
-        )
-    )
-    return SyntheticSequence(
-        out_dir, options, frame_ns, imu_ns, body_poses, broken, path_length, world, trajectory
-    )
+
+def _kitti_writer(
+    out_dir: Path, rig: SceneRig, frame_ns: np.ndarray, frame_body_poses: np.ndarray
+) -> Writer:
+    """KITTI odometry layout: image_0/ image_1/ NNNNNN.png, calib.txt, times.txt, poses.txt.
+
+    Poses are left-camera poses relative to the first one (KITTI's convention); times are
+    seconds since the first frame. KITTI has no IMU, so none is written.
+    """
+    from estimator.trajectory_io import format_seconds, write_kitti
+
+    folders = {"left": out_dir / "image_0", "right": out_dir / "image_1"}
+    for folder in folders.values():
+        folder.mkdir(parents=True, exist_ok=True)
+    c = rig.camera
+    rows = []
+    for label, offset in (("P0", 0.0), ("P1", -c.f * c.baseline)):
+        values = [c.f, 0.0, c.cx, offset, 0.0, c.f, c.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+        rows.append(f"{label}: " + " ".join(f"{v:.12e}" for v in values))
+    (out_dir / "calib.txt").write_text("\n".join(rows) + "\n")
+    relative_ns = frame_ns - frame_ns[0]
+    (out_dir / "times.txt").write_text("".join(format_seconds(t) + "\n" for t in relative_ns))
+    cameras = frame_body_poses @ rig.T_BS_cam0
+    write_kitti(out_dir / "poses.txt", invert_pose(cameras[0]) @ cameras)
+
+    def write(index: int, image: np.ndarray, side: str) -> None:
+        cv2.imwrite(str(folders[side] / f"{index:06d}.png"), image)
+
+    return write
 
 
 def _choose_broken(options: SynthOptions, total: int, rng: np.random.Generator) -> dict[int, str]:
@@ -876,7 +1056,7 @@ def _choose_broken(options: SynthOptions, total: int, rng: np.random.Generator) 
 
 
 def _render_frames(
-    world: World,
+    rig: SceneRig,
     body_poses: np.ndarray,
     frame_rows: np.ndarray,
     per_frame: int,
@@ -886,15 +1066,17 @@ def _render_frames(
 ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
     """Yield (index, left, right) rendered, with gain changes, motion blur and sensor noise."""
     phases = rng.uniform(0.0, 2 * np.pi, size=4)
+    world, T_BS = rig.world, rig.T_BS_cam0
     for index, row in enumerate(frame_rows):
-        T_WC0 = body_poses[row] @ T_BS_CAM0
+        T_WC0 = body_poses[row] @ T_BS
         left, inv_depth = world.render(T_WC0)
-        right, _ = world.render(T_WC0 @ T_CAM0_CAM1)
+        right, _ = world.render(T_WC0 @ rig.T_cam0_cam1)
         if options.blur > 0:
             # Exposure ends at the frame time: the camera moved over the blur fraction before.
             steps = options.blur * per_frame
-            earlier = body_poses[max(0, round(row - steps))] @ T_BS_CAM0
-            kernel = _blur_kernel(_mean_flow(inv_depth, invert_pose(T_WC0) @ earlier))
+            earlier = body_poses[max(0, round(row - steps))] @ T_BS
+            flow = _mean_flow(inv_depth, invert_pose(T_WC0) @ earlier, world.camera)
+            kernel = _blur_kernel(flow)
             if kernel is not None:
                 left, right = (cv2.filter2D(im, -1, kernel) for im in (left, right))
         if options.brightness > 0:

@@ -1,28 +1,54 @@
 """``swarmvo synth OUT_DIR``: render a stereo + IMU sequence with exact ground truth.
 
-The output is an EuRoC/ASL folder (``OUT_DIR/mav0``) that ``swarmvo run`` reads unchanged.
+``--scenario flight`` (a EuRoC-like drone in a hall) or ``driving`` (a KITTI-like car in a
+street). The output is an EuRoC/ASL folder (``OUT_DIR/mav0``), or with ``--layout kitti`` a
+KITTI odometry folder (image_0/, image_1/, calib.txt, times.txt, poses.txt; no IMU), that
+``swarmvo run`` reads unchanged.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from pathlib import Path
+from typing import get_args
 
 from tqdm import tqdm
 
-from estimator.synthetic import SynthOptions, synthesize
+from estimator.synthetic import Layout, Scenario, SynthOptions, synthesize
+
+
+def _scenario_defaults(scenario: str) -> SynthOptions:
+    return SynthOptions.driving() if scenario == "driving" else SynthOptions()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    defaults = SynthOptions()
+    flight, driving = SynthOptions(), SynthOptions.driving()
+
+    def both(name: str, unit: str = "") -> str:
+        flown, driven = getattr(flight, name), getattr(driving, name)
+        return f"default {flown}{unit} (flight), {driven}{unit} (driving)"
+
     parser.add_argument("out_dir", type=Path, help="output folder (mav0/ is created inside)")
-    parser.add_argument("--frames", type=int, default=defaults.frames)
     parser.add_argument(
-        "--length-m", type=float, default=defaults.length_m, help="body path length [m]"
+        "--scenario",
+        choices=get_args(Scenario),
+        default="flight",
+        help="flight: EuRoC-like drone in a hall; driving: KITTI-like car in a street",
     )
-    parser.add_argument("--fps", type=float, default=defaults.fps)
-    parser.add_argument("--seed", type=int, default=defaults.seed)
+    parser.add_argument(
+        "--layout",
+        choices=get_args(Layout),
+        default="euroc",
+        help="euroc: mav0/ with IMU and ground truth; kitti: image_0/, image_1/, calib.txt, "
+        "times.txt, poses.txt (no IMU)",
+    )
+    parser.add_argument("--frames", type=int, help=both("frames"))
+    parser.add_argument("--length-m", type=float, help="path length; " + both("length_m", " m"))
+    parser.add_argument("--fps", type=float, help=both("fps"))
+    parser.add_argument("--imu-rate-hz", type=float, help=both("imu_rate_hz"))
+    parser.add_argument("--seed", type=int, default=flight.seed)
     parser.add_argument("--noise", type=float, default=0.0, help="image noise sigma [grey levels]")
     parser.add_argument(
         "--brightness", type=float, default=0.0, help="relative amplitude of gain changes"
@@ -40,23 +66,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--imu-noise-scale",
         type=float,
-        default=defaults.imu_noise_scale,
+        default=flight.imu_noise_scale,
         help="1 = EuRoC ADIS16448 noise and bias walk, 0 = perfect IMU",
     )
     parser.add_argument(
         "--standstill-s",
         type=float,
-        default=defaults.standstill_s,
+        default=flight.standstill_s,
         help="seconds the body stands still before flying (extra frames before the flight)",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
-    options = SynthOptions(
-        frames=args.frames,
-        length_m=args.length_m,
-        fps=args.fps,
+    defaults = _scenario_defaults(args.scenario)
+    given = {
+        "frames": args.frames,
+        "length_m": args.length_m,
+        "fps": args.fps,
+        "imu_rate_hz": args.imu_rate_hz,
+    }
+    options = replace(
+        defaults,
+        **{name: value for name, value in given.items() if value is not None},
+        layout=args.layout,
         seed=args.seed,
         noise=args.noise,
         brightness=args.brightness,
@@ -70,9 +103,10 @@ def run(args: argparse.Namespace) -> int:
     frames = options.frames + round(options.standstill_s * options.fps)
     with tqdm(total=frames, unit="frame", disable=args.quiet) as bar:
         result = synthesize(args.out_dir, options, progress=bar.update)
+    where = result.root / "mav0" if options.layout == "euroc" else result.root
     print(
-        f"rendered {frames} stereo frames, body path {result.path_length_m:.2f} m, "
-        f"{len(result.broken)} broken, in {time.perf_counter() - start:.1f} s -> "
-        f"{result.root / 'mav0'}"
+        f"rendered {frames} stereo frames ({options.scenario}, {options.layout} layout), body "
+        f"path {result.path_length_m:.2f} m, {len(result.broken)} broken, in "
+        f"{time.perf_counter() - start:.1f} s -> {where}"
     )
     return 0
