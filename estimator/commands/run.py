@@ -32,6 +32,7 @@ from tqdm import tqdm
 from estimator.config import SwarmvoConfig, explain_validation_error
 from estimator.datasets import Sequence, UnreadableImageError, open_sequence
 from estimator.evaluation import TrajectoryEvaluation, evaluate_trajectory
+from estimator.rig_settings import DerivedSetting, apply_rig_settings, format_settings
 from estimator.types import FrameReport, FrameStatus
 
 if TYPE_CHECKING:
@@ -122,6 +123,8 @@ class RunResult:
     smoothed: dict[int, np.ndarray] = field(default_factory=dict)
     # Timestamps of the frames skipped because an image could not be read.
     skipped_ns: list[int] = field(default_factory=list)
+    # Frontend settings derived from the rig and frame rate (config holds the values used).
+    derived: list[DerivedSetting] = field(default_factory=list)
 
     @property
     def timestamps_ns(self) -> np.ndarray:
@@ -144,16 +147,20 @@ def build_config(
     backend: bool | None = None,
     base: SwarmvoConfig | None = None,
 ) -> SwarmvoConfig:
-    """``base`` (or the defaults) with the given fields overridden; None keeps the base value."""
-    data = (base or SwarmvoConfig()).model_dump()
+    """``base`` (or the defaults) with the given fields overridden; None keeps the base value.
+
+    Only the fields the user set are carried over, so that settings derived from the rig
+    (estimator/rig_settings.py) can still tell a default from a configured value.
+    """
+    data = (base or SwarmvoConfig()).model_dump(exclude_unset=True)
     if estimator is not None:
-        data["registration"]["method"] = estimator
+        data.setdefault("registration", {})["method"] = estimator
     if seed is not None:
         data["seed"] = seed
     if backend is not None:
-        data["backend"]["enabled"] = backend
+        data.setdefault("backend", {})["enabled"] = backend
     if imu is not None:
-        data["backend"]["use_imu"] = imu
+        data.setdefault("backend", {})["use_imu"] = imu
     return SwarmvoConfig.model_validate(data)
 
 
@@ -164,17 +171,23 @@ def run_sequence(
     use_imu: bool = True,
     progress: bool = False,
     strict: bool = False,
+    rig_settings: bool = True,
 ) -> RunResult:
     """Feed every frame (and the IMU samples since the previous frame) through ``Odometry``.
 
     The first frame gets the samples of ``FIRST_FRAME_IMU_WINDOW_NS`` before it, so that the
     back end can level its world with gravity. A frame whose image cannot be read is skipped
-    with a warning (its IMU samples go to the next frame) unless ``strict``.
+    with a warning (its IMU samples go to the next frame) unless ``strict``. With
+    ``rig_settings`` the frontend settings that follow from the rig and the frame rate are
+    derived first (explicitly set values win).
     """
     from estimator.odometry import Odometry  # the pipeline loads only when a run starts
 
     if limit is not None and limit < 2:
         raise ValueError(f"--limit must be at least 2 frames, got {limit}")
+    derived: list[DerivedSetting] = []
+    if rig_settings:
+        config, derived = apply_rig_settings(config, sequence.rig, frame_interval_s(sequence))
     count = len(sequence) if limit is None else min(limit, len(sequence))
     imu_available = use_imu and sequence.imu is not None
     odometry = Odometry(
@@ -206,7 +219,13 @@ def run_sequence(
     smoothed = dict(pose for report in reports for pose in report.final_poses)
     smoothed.update(odometry.finish())
     elapsed = time.perf_counter() - start
-    return RunResult(sequence, config, reports, elapsed, smoothed, skipped_ns)
+    return RunResult(sequence, config, reports, elapsed, smoothed, skipped_ns, derived)
+
+
+def frame_interval_s(sequence: Sequence) -> float | None:
+    """Median time between frames (None for fewer than two frames)."""
+    timestamps = sequence.timestamps_ns
+    return float(np.median(np.diff(timestamps))) * 1e-9 if len(timestamps) > 1 else None
 
 
 def _finite(value: Any) -> Any:
@@ -249,6 +268,10 @@ def summarize(
         "median_stage_time_s": medians,
         "wall_time_s": result.wall_time_s,
         "fps": len(reports) / result.wall_time_s if result.wall_time_s > 0 else None,
+        "rig_settings": {
+            f"frontend.{s.name}": {"value": s.value, "configured": s.overridden}
+            for s in result.derived
+        },
     }
     evaluations: dict[str, TrajectoryEvaluation] = {}
     ground_truth = result.sequence.ground_truth
@@ -355,6 +378,9 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.export_bag} exists already; choose a new bag path")
     sequence = open_input(args)
     config = build_config(args.estimator, args.seed, args.imu, args.backend, base)
+    interval = frame_interval_s(sequence)
+    config, derived = apply_rig_settings(config, sequence.rig, interval)
+    print(format_settings(sequence.rig, interval, derived), flush=True)
     try:
         result = run_sequence(
             sequence,
@@ -363,9 +389,11 @@ def run(args: argparse.Namespace) -> int:
             config.backend.use_imu,
             progress=not args.quiet,
             strict=args.strict,
+            rig_settings=False,
         )
     finally:
         getattr(sequence, "close", lambda: None)()  # a bag stops streaming
+    result.derived = derived
     out = args.out if args.out is not None else Path("runs") / sequence.name
     summary = write_outputs(result, out)
     write_odometry(result, out, args.export_bag, args.export_storage)

@@ -1,0 +1,117 @@
+"""Front-end settings that follow from the stereo rig and the frame rate.
+
+A depth limit in metres or a search window in pixels means something different on every rig:
+30 m is the edge of what a 11 cm EuRoC pair can triangulate, but a 54 cm KITTI pair still
+measures depth at 200 m. So these settings are derived from the calibration and the frame
+interval, with constants chosen so that the real EuRoC rig (436 px after rectification,
+0.11 m, 20 Hz), for which the defaults were tuned, keeps them (30 m, 40 px):
+
+- ``max_depth_m`` = f b / d_min: the depth whose disparity is the smallest one worth using,
+  d_min = disparity_sigma_px / MAX_RELATIVE_DEPTH_ERROR (depth error / depth = sigma_d / d).
+  Farther points are then noisier in depth than that, but they still pin the rotation.
+- ``search_radius_px``: the image motion a constant-velocity prediction misses grows with the
+  focal length (pixels per radian) and the frame interval (the motion changes more between
+  frames), so the window scales with f * dt: 40 px at 436 px and 50 ms.
+
+Explicit configuration always wins: a field the user set (``model_fields_set`` of the frontend
+section) is never replaced.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from estimator.calibration import StereoRig
+from estimator.config import FrontendConfig, SwarmvoConfig
+
+__all__ = [
+    "MAX_RELATIVE_DEPTH_ERROR",
+    "DerivedSetting",
+    "apply_rig_settings",
+    "derive_rig_settings",
+    "format_settings",
+]
+
+# Depth error / depth at the farthest point kept (EuRoC: 30 m with sigma_d = 0.5 px).
+MAX_RELATIVE_DEPTH_ERROR = 0.31
+# Search radius per (focal px x frame interval s): 40 px / (436 px x 0.05 s).
+SEARCH_RADIUS_PER_FOCAL_SECOND = 40.0 / (436.0 * 0.05)
+# Windows are kept within these bounds (a few px of noise; a third of a small image).
+MIN_SEARCH_RADIUS_PX = 20.0
+MAX_SEARCH_RADIUS_PX = 250.0
+
+
+@dataclass(frozen=True)
+class DerivedSetting:
+    """One rig-derived frontend setting, and whether the configuration's own value won."""
+
+    name: str  # field of FrontendConfig
+    value: float
+    reason: str
+    overridden: bool = False  # the user set the field explicitly: their value is used
+
+
+def derive_rig_settings(
+    rig: StereoRig, frame_interval_s: float | None, frontend: FrontendConfig
+) -> list[DerivedSetting]:
+    """Settings that follow from the rig (and the frame interval, when known)."""
+    focal = float(rig.rectification.fx)
+    baseline = rig.baseline
+    explicit = frontend.model_fields_set
+    smallest_disparity = frontend.disparity_sigma_px / MAX_RELATIVE_DEPTH_ERROR
+    settings = [
+        DerivedSetting(
+            "max_depth_m",
+            round(focal * baseline / smallest_disparity, 1),
+            f"f b / d_min = {focal:.1f} px x {baseline:.3f} m / {smallest_disparity:.2f} px",
+        )
+    ]
+    if frame_interval_s is not None and frame_interval_s > 0:
+        radius = SEARCH_RADIUS_PER_FOCAL_SECOND * focal * frame_interval_s
+        radius = min(max(radius, MIN_SEARCH_RADIUS_PX), MAX_SEARCH_RADIUS_PX)
+        settings.append(
+            DerivedSetting(
+                "search_radius_px",
+                round(radius, 1),
+                f"{SEARCH_RADIUS_PER_FOCAL_SECOND:.3f} x f dt = {focal:.1f} px x "
+                f"{frame_interval_s * 1e3:.1f} ms",
+            )
+        )
+    return [
+        DerivedSetting(
+            s.name,
+            float(getattr(frontend, s.name)),
+            f"configured; the rig suggests {s.value:g}",
+            overridden=True,
+        )
+        if s.name in explicit
+        else s
+        for s in settings
+    ]
+
+
+def apply_rig_settings(
+    config: SwarmvoConfig, rig: StereoRig, frame_interval_s: float | None
+) -> tuple[SwarmvoConfig, list[DerivedSetting]]:
+    """``config`` with the derived settings filled in where the user left the default."""
+    settings = derive_rig_settings(rig, frame_interval_s, config.frontend)
+    updates = {s.name: s.value for s in settings if not s.overridden}
+    # Re-validated, with the user's fields-set record kept: derived values are not the user's.
+    user = config.frontend.model_fields_set
+    frontend = FrontendConfig.model_validate({**config.frontend.model_dump(), **updates})
+    frontend = FrontendConfig.model_construct(user, **frontend.model_dump())
+    return config.model_copy(update={"frontend": frontend}), settings
+
+
+def format_settings(
+    rig: StereoRig, frame_interval_s: float | None, settings: list[DerivedSetting]
+) -> str:
+    """Lines for the console: the rig, then each setting with where its value came from."""
+    rate = f", {1.0 / frame_interval_s:.1f} Hz" if frame_interval_s else ""
+    lines = [
+        f"rig: {rig.size[0]}x{rig.size[1]} px, f {rig.rectification.fx:.1f} px, "
+        f"baseline {rig.baseline:.3f} m{rate}; settings derived from it:"
+    ]
+    for s in settings:
+        lines.append(f"  frontend.{s.name} = {s.value:g}  ({s.reason})")
+    return "\n".join(lines)
