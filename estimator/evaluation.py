@@ -18,6 +18,11 @@ Metrics (all on left-camera poses; ground-truth body poses become camera poses t
   both trajectories relative to their first pose; ``final_drift_pct`` = final_drift_m / path
   length x 100, reported only when the ground-truth path is at least ``MIN_PATH_FOR_PCT_M``
   long (null otherwise: a percentage of a few centimetres of travel means nothing).
+- ``kitti_trans_err_pct`` / ``kitti_rot_err_deg_per_100m``: the KITTI odometry benchmark's
+  segment errors (its devkit's definition): from every 10th frame, the first frame more than
+  L = 100, 200, ..., 800 m further along the ground-truth path ends a segment; the error of the
+  segment's relative pose, translation norm / L and rotation angle / L, averaged over all
+  segments (``kitti_by_length_m`` per L). Null when the path has no 100 m segment.
 """
 
 from __future__ import annotations
@@ -36,15 +41,19 @@ from estimator.datasets import GroundTruth
 from estimator.geometry import invert_pose, kabsch, make_pose, rotation_angle_deg
 
 __all__ = [
+    "KITTI_SEGMENT_LENGTHS_M",
     "MIN_PATH_FOR_PCT_M",
     "TrajectoryEvaluation",
     "camera_ground_truth",
     "eq20_errors",
     "evaluate_trajectory",
+    "kitti_segment_errors",
     "path_length",
 ]
 
 MIN_PATH_FOR_PCT_M = 1.0
+KITTI_SEGMENT_LENGTHS_M = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
+KITTI_STEP_FRAMES = 10
 
 
 @dataclass
@@ -83,6 +92,54 @@ def eq20_errors(estimate: np.ndarray, reference: np.ndarray) -> np.ndarray:
     r_gt = relative_to_first(reference)[:, :3, :3]
     product = r_gt @ np.swapaxes(r_est, -1, -2)
     return np.linalg.norm(np.eye(3) - product, axis=(-2, -1))
+
+
+def kitti_segment_errors(
+    estimate: np.ndarray,
+    reference: np.ndarray,
+    lengths_m: tuple[float, ...] = KITTI_SEGMENT_LENGTHS_M,
+    step_frames: int = KITTI_STEP_FRAMES,
+) -> dict[str, Any] | None:
+    """KITTI's segment errors of ``estimate`` against ``reference`` poses (both (N, 4, 4)).
+
+    Returns the mean translation error (% of segment length), the mean rotation error
+    (deg per 100 m), the segment count and the same per length; None without any segment.
+    """
+    distance = np.concatenate(
+        [[0.0], np.cumsum(np.linalg.norm(np.diff(reference[:, :3, 3], axis=0), axis=1))]
+    )
+    translation: dict[float, list[float]] = {length: [] for length in lengths_m}
+    rotation: dict[float, list[float]] = {length: [] for length in lengths_m}
+    for first in range(0, len(reference), step_frames):
+        for length in lengths_m:
+            beyond = np.flatnonzero(distance > distance[first] + length)
+            if len(beyond) == 0:
+                continue
+            last = int(beyond[0])
+            true_delta = invert_pose(reference[first]) @ reference[last]
+            estimated_delta = invert_pose(estimate[first]) @ estimate[last]
+            error = invert_pose(estimated_delta) @ true_delta
+            translation[length].append(float(np.linalg.norm(error[:3, 3])) / length)
+            rotation[length].append(float(np.radians(rotation_angle_deg(error[:3, :3]))) / length)
+    all_t = [value for values in translation.values() for value in values]
+    if not all_t:
+        return None
+    all_r = [value for values in rotation.values() for value in values]
+    to_deg_per_100m = 180.0 / np.pi * 100.0
+    return {
+        "kitti_trans_err_pct": float(np.mean(all_t)) * 100.0,
+        "kitti_rot_err_deg_per_100m": float(np.mean(all_r)) * to_deg_per_100m,
+        "kitti_segments": len(all_t),
+        "kitti_by_length_m": {
+            f"{length:g}": {
+                "trans_err_pct": float(np.mean(translation[length])) * 100.0,
+                "rot_err_deg_per_100m": float(np.mean(rotation[length])) * to_deg_per_100m,
+                "segments": len(translation[length]),
+            }
+            for length in lengths_m
+            if translation[length]
+        },
+    }
 
 
 def _evo_trajectory(timestamps_ns: np.ndarray, poses: np.ndarray) -> PoseTrajectory3D:
@@ -214,7 +271,11 @@ def evaluate_trajectory(
         "ate_pct_of_path": _rmse(ate_errors) / length * 100
         if length >= MIN_PATH_FOR_PCT_M
         else None,
+        "kitti_trans_err_pct": None,
+        "kitti_rot_err_deg_per_100m": None,
+        "kitti_segments": 0,
     }
+    summary.update(kitti_segment_errors(estimate, reference) or {})
     return TrajectoryEvaluation(
         timestamps_ns=timestamps_ns,
         estimate=estimate,

@@ -33,7 +33,7 @@ __all__ = [
 ]
 
 # Depth error / depth at the farthest point kept (EuRoC: 30 m with sigma_d = 0.5 px).
-MAX_RELATIVE_DEPTH_ERROR = 0.31
+MAX_RELATIVE_DEPTH_ERROR = 0.3125  # d_min = 1.6 px at the default sigma_d of 0.5 px
 # Search radius per (focal px x frame interval s): 40 px / (436 px x 0.05 s).
 SEARCH_RADIUS_PER_FOCAL_SECOND = 40.0 / (436.0 * 0.05)
 # Windows are kept within these bounds (a few px of noise; a third of a small image).

@@ -9,7 +9,10 @@ finished with it), ``metrics.json`` (accuracy against ground truth when the data
 (``estimator.odometry_msg``): ``odometry.jsonl`` (one nav_msgs/Odometry-like JSON object per
 frame) and ``odometry.tum`` (base_link in odom). ``DATASET`` may also be a ROS 1 ``.bag`` or a
 ROS 2 bag folder (``--calibration`` and the topic flags; ``estimator.rosbag_io``), and
-``--export-bag`` writes the result as a bag (``estimator.rosbag_write``).
+``--export-bag`` writes the result as a bag (``estimator.rosbag_write``). For KITTI input
+it also writes ``kitti/<sequence>.txt``, the poses in KITTI's format. Before the run it derives
+the frontend settings that follow from the rig and the frame rate (estimator/rig_settings.py)
+and prints them.
 """
 
 from __future__ import annotations
@@ -329,15 +332,30 @@ def write_odometry(
         write_odometry_bag(export_bag, messages, camera, storage)  # type: ignore[arg-type]
 
 
+def kitti_poses_path(result: RunResult, out: Path) -> Path | None:
+    """Where a KITTI input's poses go in KITTI's format (``kitti/<sequence>.txt``), else None."""
+    return (
+        out / "kitti" / f"{result.sequence.name}.txt" if result.sequence.format == "kitti" else None
+    )
+
+
 def write_outputs(result: RunResult, out: Path) -> dict[str, Any]:
+    from estimator.geometry import invert_pose
     from estimator.plots import plot_run
-    from estimator.trajectory_io import write_tum
+    from estimator.trajectory_io import write_kitti, write_tum
 
     out.mkdir(parents=True, exist_ok=True)
     summary, evaluations = summarize(result)
     write_tum(out / "trajectory.tum", result.timestamps_ns, result.poses("pose"))
     if result.config.backend.enabled:
         write_tum(out / "trajectory_smoothed.tum", result.timestamps_ns, result.poses("smoothed"))
+    kitti_path = kitti_poses_path(result, out)
+    if kitti_path is not None:
+        # KITTI's devkit and evo read left-camera poses relative to the first frame, one per
+        # image, as 12 numbers (the top 3x4 block, row-major).
+        poses = result.poses("pose")
+        kitti_path.parent.mkdir(exist_ok=True)
+        write_kitti(kitti_path, invert_pose(poses[0]) @ poses)
     (out / "metrics.json").write_text(json.dumps(summary, indent=2) + "\n")
     plot_run(
         out / "trajectory.png",
@@ -406,10 +424,18 @@ def run(args: argparse.Namespace) -> int:
             f"{summary['rpe_rot_rmse_deg']:.4f} deg per frame, "
             f"path {summary['path_length_m']:.2f} m"
         )
+    if summary.get("kitti_segments"):
+        line += (
+            f"; KITTI segment errors {summary['kitti_trans_err_pct']:.2f} % / "
+            f"{summary['kitti_rot_err_deg_per_100m']:.3f} deg per 100 m "
+            f"({summary['kitti_segments']} segments)"
+        )
+    kitti_path = kitti_poses_path(result, out)
     print(
         f"{line}\nwrote {out / 'trajectory.tum'}, {out / 'metrics.json'}, {out / 'trajectory.png'}"
         + (f", {out / 'trajectory_smoothed.tum'}" if config.backend.enabled else "")
         + f", {out / 'odometry.jsonl'}, {out / 'odometry.tum'}"
         + (f", {args.export_bag}" if args.export_bag is not None else "")
+        + (f", {kitti_path}" if kitti_path is not None else "")
     )
     return 0
