@@ -36,6 +36,7 @@ bench: $(STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench frontend --out benchmarks/results/frontend
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench odometry --out benchmarks/results/odometry
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench backend --out benchmarks/results/backend
+	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench driving --out benchmarks/results/driving
 	$(BIN)/python benchmarks/load_test.py
 
 clean:
