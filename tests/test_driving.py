@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from estimator.calibration import CameraModel, StereoRig
 from estimator.cli import main
@@ -223,3 +224,28 @@ def test_bad_driving_options_are_rejected(tmp_path):
         )
         != 0
     )
+
+
+def test_driving_in_the_euroc_layout_has_a_100_hz_imu_consistent_with_the_motion(tmp_path):
+    from estimator.synthetic import synthesize
+
+    options = SynthOptions.driving(frames=4, length_m=3.3, seed=2, imu_noise_scale=0.0)
+    result = synthesize(tmp_path / "drive", options)
+    sequence = open_sequence(tmp_path / "drive")
+    assert sequence.format == "euroc" and sequence.imu_noise.rate_hz == 100.0
+    assert sequence.rig.size == (KITTI_CAMERA.width, KITTI_CAMERA.height)
+    # The left camera rides 1.65 m above the road, looking along the body's x axis.
+    camera = sequence.ground_truth.poses[0] @ sequence.rig.left.T_BS
+    assert camera[2, 3] == pytest.approx(1.65, abs=0.05)
+    assert camera[:3, 2] @ sequence.ground_truth.poses[0][:3, 0] > 0.99
+    # A perfect IMU: the gyro integrates to the ground-truth rotation over the drive.
+    imu = sequence.imu_between(
+        int(result.frame_timestamps_ns[0]), int(result.frame_timestamps_ns[-1])
+    )
+    rotation = np.eye(3)
+    midpoints = 0.5 * (imu.gyro[1:] + imu.gyro[:-1])
+    for gyro, dt in zip(midpoints, np.diff(imu.timestamps_ns) * 1e-9, strict=True):
+        rotation = rotation @ Rotation.from_rotvec(gyro * dt).as_matrix()
+    poses = sequence.ground_truth.interpolate(imu.timestamps_ns[[0, -1]])
+    truth = poses[0][:3, :3].T @ poses[1][:3, :3]
+    assert rotation_angle_deg(rotation.T @ truth) < 0.01
