@@ -12,6 +12,7 @@ BENCHMARKS: dict[str, str] = {
     "odometry": "estimator.bench.odometry",
     "backend": "estimator.bench.backend",
     "consistency": "estimator.bench.consistency",
+    "perturbations": "estimator.bench.perturbations",
 }
 
 
