@@ -17,9 +17,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from estimator.commands.run import build_config, run_sequence, summarize
+from estimator.commands.run import build_config, load_config, run_sequence, summarize
 from estimator.config import SwarmvoConfig
-from estimator.datasets import open_sequence
+from estimator.datasets import Sequence, open_sequence
 from estimator.perturb import PERTURBATIONS, perturb_sequence
 
 __all__ = ["SETTINGS", "add_arguments", "run", "run_one"]
@@ -42,12 +42,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS))
     parser.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
+    parser.add_argument("--config", type=Path, help="base SwarmvoConfig (JSON/YAML)")
     parser.add_argument("--seed", type=int, default=0, help="estimator and perturbation seed")
     parser.add_argument("--frames", type=int, default=None, help="use only the first N frames")
 
 
-def _config(setting: str, mode: str, seed: int) -> SwarmvoConfig:
-    data = SwarmvoConfig().model_dump()
+def _config(
+    setting: str, mode: str, seed: int, base: SwarmvoConfig | None = None
+) -> SwarmvoConfig:
+    data = (base or SwarmvoConfig()).model_dump()
     for section, values in SETTINGS[setting].items():
         data[section].update(values)
     return build_config(seed=seed, imu=mode == "fused", backend=True,
@@ -55,11 +58,17 @@ def _config(setting: str, mode: str, seed: int) -> SwarmvoConfig:
 
 
 def run_one(
-    sequence, perturbation: str, setting: str, mode: str, seed: int = 0, limit: int | None = None
+    sequence: Sequence,
+    perturbation: str,
+    setting: str,
+    mode: str,
+    seed: int = 0,
+    limit: int | None = None,
+    base: SwarmvoConfig | None = None,
 ) -> dict[str, Any]:
     """Metrics of one (perturbation, setting, mode) run, as ``swarmvo run`` would write them."""
     perturbed = perturb_sequence(sequence, replace(PERTURBATIONS[perturbation], seed=seed))
-    config = _config(setting, mode, seed)
+    config = _config(setting, mode, seed, base)
     result = run_sequence(perturbed, config, limit, use_imu=config.backend.use_imu)
     summary, _ = summarize(result)
     summary["perturbation"], summary["setting"], summary["mode"] = perturbation, setting, mode
@@ -109,10 +118,11 @@ def run(args: argparse.Namespace) -> int:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # unpaired camera rows are expected in EuRoC
         sequence = open_sequence(args.data)
+    base = load_config(args.config) if args.config is not None else None
     for name in args.perturbations:
         for mode in args.modes:
             for setting in args.settings:
-                summary = run_one(sequence, name, setting, mode, args.seed, args.frames)
+                summary = run_one(sequence, name, setting, mode, args.seed, args.frames, base)
                 results.setdefault(name, {})[f"{mode}/{setting}"] = summary
                 print(f"{name:24s} {mode:6s} {setting:9s} {_cell(summary)}", flush=True)
                 results_file.write_text(json.dumps(results, indent=2) + "\n")
