@@ -138,7 +138,8 @@ class Odometry:
         self._last_timestamp_ns: int | None = None
         self._pose = self._initial_pose if self._initial_pose is not None else np.eye(4)
         self._reference: _Reference | None = None  # keyframe (or previous frame)
-        self._previous: _Reference | None = None
+        self._previous: _Reference | None = None  # the last frame with an estimate
+        self._fallback: _Reference | None = None  # a later failed frame with enough points
         self._reference_from_previous = np.eye(4)  # rectified; for predicting the search
         self._motion = np.eye(4)  # last measured motion (rectified), constant velocity ...
         self._motion_interval_ns = 1  # ... over this time: predictions scale it to theirs
@@ -269,7 +270,8 @@ class Odometry:
     def _track(
         self, points: StereoPoints, image: np.ndarray, timings: dict[str, float]
     ) -> _Estimate:
-        """Relative pose against the keyframe; if that fails, against the previous frame."""
+        """Relative pose against the keyframe; if that fails, against the previous good frame,
+        and then against the last failed frame that had points (its pose coasted)."""
         assert self._reference is not None and self._previous is not None
         assert self._last_timestamp_ns is not None
         since_previous = self._motion_over(self._last_timestamp_ns - self._previous.timestamp_ns)
@@ -277,16 +279,23 @@ class Odometry:
         estimate = self._estimate_against(
             self._reference, keyframe_prediction, points, image, timings
         )
-        if estimate.reference_from_current is not None or self._previous is self._reference:
-            return estimate
-        retry = self._estimate_against(self._previous, since_previous, points, image, timings)
-        if retry.reference_from_current is None:
-            return estimate
-        retry.message = (
-            f"keyframe {self._reference.index} not tracked ({estimate.message}); "
-            "tracked against the previous frame"
-        )
-        return retry
+        retries = [(self._previous, since_previous, "the previous frame")]
+        if self._fallback is not None:
+            since_fallback = self._last_timestamp_ns - self._fallback.timestamp_ns
+            retries.append(
+                (self._fallback, self._motion_over(since_fallback), "the last frame with points")
+            )
+        for reference, prediction, name in retries:
+            if estimate.reference_from_current is not None or reference is self._reference:
+                continue
+            retry = self._estimate_against(reference, prediction, points, image, timings)
+            if retry.reference_from_current is not None:
+                retry.message = (
+                    f"keyframe {self._reference.index} not tracked ({estimate.message}); "
+                    f"tracked against {name}"
+                )
+                return retry
+        return estimate
 
     def _estimate_against(
         self,
@@ -503,8 +512,9 @@ class Odometry:
         A failed frame (black, blurred, or just not registered) replaces neither the keyframe
         nor the previous frame while the pose coasts: the next frame is matched against the
         last good ones at once, with the prediction scaled to the time since them, so the
-        failure does not reach later frames. Only once the pose is held does a frame with
-        enough points become the new reference, so that tracking restarts from it.
+        failure does not reach later frames. A failed frame with enough points is kept as a
+        last resort (when the view has moved on, the next frame may only match it); once the
+        pose is held such a frame becomes the new reference, so that tracking restarts.
         """
         frontend = self.config.frontend
         self._pose = pose
@@ -517,15 +527,21 @@ class Odometry:
             held = self._failures > frontend.max_coast_frames
             if held:
                 self._motion = np.eye(4)  # the pose is held from now on
-            if not held or len(points) < frontend.keyframe_min_inliers:
+            usable = len(points) >= frontend.keyframe_min_inliers
+            if usable:
+                self._fallback = current  # the last resort if the good references fail
+            if not held or not usable:
                 return  # keep the last good references
         elif reference_from_current is not None:
-            assert self._previous is not None
+            assert self._previous is not None and estimate.reference is not None
             if estimate.reference is self._reference:
                 self._motion = invert_pose(self._reference_from_previous) @ reference_from_current
+                since_ns = self._previous.timestamp_ns
             else:
-                self._motion = reference_from_current  # measured against the previous frame
-            self._motion_interval_ns = max(int(timestamp_ns) - self._previous.timestamp_ns, 1)
+                self._motion = reference_from_current  # measured against a later frame
+                since_ns = estimate.reference.timestamp_ns
+            self._motion_interval_ns = max(int(timestamp_ns) - since_ns, 1)
+        self._fallback = None
         if first or failed or self._needs_new_reference(estimate):
             self._reference = current
             self._reference_from_previous = np.eye(4)
