@@ -178,3 +178,27 @@ def test_real_clip_with_gain_flicker_keeps_every_frame(euroc_mh01_moving: Path) 
     assert all(report.status == "ok" for report in flicker)
     clean_matches = np.median([report.matches for report in runs["none"]])
     assert np.median([report.matches for report in flicker]) >= 0.7 * clean_matches
+
+
+@pytest.mark.slow
+@pytest.mark.euroc
+def test_perturbation_benchmark_writes_and_compares(
+    euroc_mh01_moving: Path, tmp_path: Path
+) -> None:
+    import json
+
+    from estimator.cli import main
+
+    out = tmp_path / "bench"
+    args = ["bench", "perturbations", "--data", str(euroc_mh01_moving), "--out", str(out)]
+    args += ["--frames", "6", "--settings", "msac", "--modes", "vision"]
+    assert main([*args, "--perturbations", "black every 10th"]) == 0
+    results = json.loads((out / "perturbations.json").read_text())
+    summary = results["black every 10th"]["vision/msac"]
+    assert summary["frames"] == 6 and summary["frames_failed"] == 0  # frame 9 is the first black
+    assert summary["ate_rmse_m"] < 0.05
+    (tmp_path / "before.json").write_text(json.dumps(results))
+    compare = ["--compare", str(tmp_path / "before.json"), "--report-only"]
+    assert main([*args, "--perturbations", "none", *compare]) == 0
+    table = (out / "perturbations.md").read_text()
+    assert "| black every 10th | " in table and " -> " in table

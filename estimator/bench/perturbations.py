@@ -45,6 +45,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, help="base SwarmvoConfig (JSON/YAML)")
     parser.add_argument("--seed", type=int, default=0, help="estimator and perturbation seed")
     parser.add_argument("--frames", type=int, default=None, help="use only the first N frames")
+    parser.add_argument(
+        "--compare",
+        type=Path,
+        help="an earlier perturbations.json: also print (and write) a before -> after table",
+    )
+    parser.add_argument(
+        "--report-only", action="store_true", help="run nothing: tables from the stored results"
+    )
 
 
 def _config(
@@ -86,6 +94,37 @@ def _cell(summary: dict[str, Any] | None) -> str:
     )
 
 
+def _short(summary: dict[str, Any] | None) -> str:
+    if summary is None or summary.get("ate_rmse_m") is None:
+        return "-"
+    return (
+        f"{summary['ate_rmse_m'] * 1e3:.1f} / {summary['rpe_rot_rmse_deg']:.3f} / "
+        f"{summary['frames_failed']}"
+    )
+
+
+def _comparison(before: dict[str, dict[str, Any]], after: dict[str, dict[str, Any]]) -> str:
+    """Before -> after per (perturbation, column) present in both: ATE mm / deg / lost."""
+    columns = [(m, s) for m in MODES for s in SETTINGS
+               if any(f"{m}/{s}" in runs for runs in after.values())
+               and any(f"{m}/{s}" in runs for runs in before.values())]  # fmt: skip
+    lines = [
+        "ATE mm / RMS rotation error deg per frame / frames without a vision estimate, "
+        "before -> after",
+        "",
+        "| perturbation | " + " | ".join(f"{m} {s}" for m, s in columns) + " |",
+        "|---" * (len(columns) + 1) + "|",
+    ]
+    for name in PERTURBATIONS:
+        if name in after and name in before:
+            cells = [
+                f"{_short(before[name].get(f'{m}/{s}'))} -> {_short(after[name].get(f'{m}/{s}'))}"
+                for m, s in columns
+            ]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def _table(results: dict[str, dict[str, Any]]) -> str:
     columns = [(m, s) for m in MODES for s in SETTINGS
                if any(f"{m}/{s}" in runs for runs in results.values())]  # fmt: skip
@@ -119,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
         warnings.simplefilter("ignore")  # unpaired camera rows are expected in EuRoC
         sequence = open_sequence(args.data)
     base = load_config(args.config) if args.config is not None else None
-    for name in args.perturbations:
+    for name in [] if args.report_only else args.perturbations:
         for mode in args.modes:
             for setting in args.settings:
                 summary = run_one(sequence, name, setting, mode, args.seed, args.frames, base)
@@ -127,6 +166,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"{name:24s} {mode:6s} {setting:9s} {_cell(summary)}", flush=True)
                 results_file.write_text(json.dumps(results, indent=2) + "\n")
     table = _table(results)
+    if args.compare is not None:
+        table += "\n" + _comparison(json.loads(Path(args.compare).read_text()), results)
     print("\n" + table)
     (out / "perturbations.md").write_text(table)
     return 0
