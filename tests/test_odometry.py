@@ -20,6 +20,7 @@ from estimator.geometry import (
     quat_to_matrix,
     rotation_angle_deg,
     rotation_vector_to_quat,
+    scale_motion,
 )
 from estimator.odometry import Odometry, frame_seed, to_grey8
 from estimator.synthetic import CAMERA, T_BS_CAM0, build_world, loop_for_length
@@ -377,6 +378,21 @@ def test_coasting_keeps_the_velocity() -> None:
     assert np.linalg.norm(reports[6].pose[:3, 3] - truth[6, :3, 3]) < 0.2 * step
     error = np.linalg.norm(reports[9].pose[:3, 3] - truth[9, :3, 3])
     assert error < 0.05 * step
+
+
+@pytest.mark.slow
+def test_coasting_scales_with_the_time_between_frames() -> None:
+    """Two frames missing, then a black one: it coasts three frame intervals at the velocity."""
+    frames, _ = _rendered_flight()
+    config = _config(backend={"enabled": False}, registration={"method": "msac"})
+    odometry = Odometry(_rendered_rig(), config)
+    reports = _run(odometry, frames[:6])
+    late = frames[8]
+    black = StereoFrame(late.timestamp_ns, np.zeros_like(late.left), np.zeros_like(late.right))
+    coasted = odometry.process(black)
+    assert coasted.status == FrameStatus.DEGRADED
+    expected = scale_motion(reports[5].relative_pose, 3.0)
+    np.testing.assert_allclose(coasted.relative_pose, expected, atol=1e-9)
 
 
 @pytest.mark.slow
