@@ -27,12 +27,6 @@ def euroc_v101_micro() -> Path:
 
 
 @pytest.fixture(scope="session")
-def euroc_mh01_moving() -> Path:
-    """EuRoC MH_01 200 stereo frames + IMU + ground truth (hand-held motion, 3.3 m)."""
-    return _dataset("euroc_mh01_moving")
-
-
-@pytest.fixture(scope="session")
 def euroc_v102_imu_segment() -> Path:
     """EuRoC V1_02 40 s of real IMU + ground truth, fast motion, no images."""
     return _dataset("euroc_v102_imu_segment")
