@@ -37,6 +37,8 @@ bench: $(STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench odometry --out benchmarks/results/odometry
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench backend --out benchmarks/results/backend
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench driving --out benchmarks/results/driving
+	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench perturbations --out benchmarks/results/perturbations \
+		--compare benchmarks/results/perturbations/before/perturbations.json
 	$(BIN)/python benchmarks/load_test.py
 
 clean:

@@ -40,6 +40,11 @@ class RegistrationConfig(_Section):
 class FrontendConfig(_Section):
     """Features, stereo matching, triangulation and temporal matching."""
 
+    # Map every rectified image to this grey-level mean and standard deviation first, so that
+    # auto exposure and a left/right gain mismatch do not reach the later stages.
+    normalise_contrast: bool = True
+    normalised_mean: float = Field(128.0, gt=0, lt=255)
+    normalised_std: float = Field(64.0, gt=0)
     detector: Literal["orb", "sift"] = "orb"
     max_features: int = Field(1200, gt=0)
     # Detection: over-sample, then keep the best corners cell by cell (docs/frontend.md).

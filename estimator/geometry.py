@@ -30,6 +30,7 @@ __all__ = [
     "quat_to_rotation_vector",
     "rotation_angle_deg",
     "rotation_vector_to_quat",
+    "scale_motion",
     "skew",
     "transform_points",
     "wahba",
@@ -170,6 +171,15 @@ def nearest_rigid(pose: np.ndarray) -> np.ndarray:
     rigid[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
     rigid[3] = (0.0, 0.0, 0.0, 1.0)
     return rigid
+
+
+def scale_motion(pose: np.ndarray, factor: float) -> np.ndarray:
+    """The motion at the same velocity over ``factor`` times the time: rotation vector and
+    translation scaled (constant-velocity prediction across unequal frame intervals)."""
+    if factor == 1.0:
+        return np.array(pose, dtype=float)
+    rotvec = quat_to_rotation_vector(matrix_to_quat(pose[:3, :3])) * factor
+    return make_pose(quat_to_matrix(rotation_vector_to_quat(rotvec)), pose[:3, 3] * factor)
 
 
 def compose(*poses: np.ndarray) -> np.ndarray:

@@ -12,8 +12,10 @@ Geometry runs in the rectified left camera frame; reported poses are of the orig
 (unrectified) left camera, so the relative pose is conjugated by the rectifying rotation.
 When the keyframe cannot be tracked the previous frame is tried before giving up. A frame
 without any estimate coasts at the last measured velocity (``degraded``) for at most
-``frontend.max_coast_frames`` frames, after which the pose is held (``lost``); either way it
-becomes the new reference, so tracking restarts from it. With the back end enabled, the fused
+``frontend.max_coast_frames`` frames, after which the pose is held (``lost``). While it
+coasts, the next frame is matched against the last good references at once (predictions scale
+with the time between frames); once the pose is held, a frame with enough points becomes the
+new reference, so tracking restarts from it. With the back end enabled, the fused
 pose and status are the back end's (it bridges such frames with the IMU).
 """
 
@@ -31,7 +33,14 @@ import numpy as np
 from estimator.calibration import StereoRig
 from estimator.config import SwarmvoConfig
 from estimator.features import FeatureDetector
-from estimator.geometry import invert_pose, make_pose, rotation_angle_deg, transform_points
+from estimator.geometry import (
+    invert_pose,
+    make_pose,
+    rotation_angle_deg,
+    scale_motion,
+    transform_points,
+)
+from estimator.photometric import normalise_contrast
 from estimator.refine import refine_pose_mahalanobis
 from estimator.registration import RegistrationResult, register
 from estimator.stereo import StereoMatcher, StereoPoints, point_covariances
@@ -129,9 +138,12 @@ class Odometry:
         self._last_timestamp_ns: int | None = None
         self._pose = self._initial_pose if self._initial_pose is not None else np.eye(4)
         self._reference: _Reference | None = None  # keyframe (or previous frame)
-        self._previous: _Reference | None = None
+        self._previous: _Reference | None = None  # the last frame with an estimate
+        self._fallback: _Reference | None = None  # a later failed frame with enough points
         self._reference_from_previous = np.eye(4)  # rectified; for predicting the search
-        self._motion = np.eye(4)  # last frame-to-frame motion (rectified), constant velocity
+        self._motion = np.eye(4)  # last measured motion (rectified), constant velocity ...
+        self._motion_interval_ns = 1  # ... over this time: predictions scale it to theirs
+        self._frame_interval_ns = 0  # time since the previous frame
         self._failures = 0  # consecutive frames without a vision estimate
         self._final_poses: tuple[tuple[int, np.ndarray], ...] = ()  # from the back end
         self._fused: FusedEstimate | None = None  # the back end's latest answer
@@ -172,6 +184,7 @@ class Odometry:
             self._count += 1
             with _stage(timings, "rectify"):
                 left, right = self.rectification.rectify(left, right)
+                left, right = self._normalised(left), self._normalised(right)
             with _stage(timings, "detect"):
                 left_features = self.detector.detect(left)
                 right_features = self.detector.detect(right)
@@ -243,28 +256,46 @@ class Odometry:
                     f"{name} image is {image.shape[1]}x{image.shape[0]}, the calibration "
                     f"expects {expected[1]}x{expected[0]}"
                 )
+        if self._last_timestamp_ns is not None:
+            self._frame_interval_ns = timestamp - self._last_timestamp_ns
         self._last_timestamp_ns = timestamp
         return left, right
+
+    def _normalised(self, image: np.ndarray) -> np.ndarray:
+        frontend = self.config.frontend
+        if not frontend.normalise_contrast:
+            return image
+        return normalise_contrast(image, frontend.normalised_mean, frontend.normalised_std)
 
     def _track(
         self, points: StereoPoints, image: np.ndarray, timings: dict[str, float]
     ) -> _Estimate:
-        """Relative pose against the keyframe; if that fails, against the previous frame."""
+        """Relative pose against the keyframe; if that fails, against the previous good frame,
+        and then against the last failed frame that had points (its pose coasted)."""
         assert self._reference is not None and self._previous is not None
-        keyframe_prediction = self._reference_from_previous @ self._motion
+        assert self._last_timestamp_ns is not None
+        since_previous = self._motion_over(self._last_timestamp_ns - self._previous.timestamp_ns)
+        keyframe_prediction = self._reference_from_previous @ since_previous
         estimate = self._estimate_against(
             self._reference, keyframe_prediction, points, image, timings
         )
-        if estimate.reference_from_current is not None or self._previous is self._reference:
-            return estimate
-        retry = self._estimate_against(self._previous, self._motion, points, image, timings)
-        if retry.reference_from_current is None:
-            return estimate
-        retry.message = (
-            f"keyframe {self._reference.index} not tracked ({estimate.message}); "
-            "tracked against the previous frame"
-        )
-        return retry
+        retries = [(self._previous, since_previous, "the previous frame")]
+        if self._fallback is not None:
+            since_fallback = self._last_timestamp_ns - self._fallback.timestamp_ns
+            retries.append(
+                (self._fallback, self._motion_over(since_fallback), "the last frame with points")
+            )
+        for reference, prediction, name in retries:
+            if estimate.reference_from_current is not None or reference is self._reference:
+                continue
+            retry = self._estimate_against(reference, prediction, points, image, timings)
+            if retry.reference_from_current is not None:
+                retry.message = (
+                    f"keyframe {self._reference.index} not tracked ({estimate.message}); "
+                    f"tracked against {name}"
+                )
+                return retry
+        return estimate
 
     def _estimate_against(
         self,
@@ -363,7 +394,8 @@ class Odometry:
         if estimate.reference_from_current is None or estimate.reference is None:
             if self._failures < self.config.frontend.max_coast_frames:
                 # Constant velocity: a moving camera keeps moving; a still one stays still.
-                motion = self._camera_from_rect @ self._motion @ self._rect_from_camera
+                step = self._motion_over(self._frame_interval_ns)
+                motion = self._camera_from_rect @ step @ self._rect_from_camera
                 message = f"{estimate.message}; pose predicted at constant velocity"
                 return self._pose @ motion, FrameStatus.DEGRADED, message
             return self._pose, FrameStatus.LOST, f"{estimate.message}; pose held"
@@ -477,8 +509,12 @@ class Odometry:
     ) -> None:
         """Keep the keyframe while it still tracks well; otherwise this frame becomes it.
 
-        A failed frame with too few points to be matched against (black, blurred) does not
-        replace the reference: the next usable frame is matched against the old one again.
+        A failed frame (black, blurred, or just not registered) replaces neither the keyframe
+        nor the previous frame while the pose coasts: the next frame is matched against the
+        last good ones at once, with the prediction scaled to the time since them, so the
+        failure does not reach later frames. A failed frame with enough points is kept as a
+        last resort (when the view has moved on, the next frame may only match it); once the
+        pose is held such a frame becomes the new reference, so that tracking restarts.
         """
         frontend = self.config.frontend
         self._pose = pose
@@ -488,17 +524,24 @@ class Odometry:
         failed = reference_from_current is None and not first
         self._failures = self._failures + 1 if failed else 0
         if failed:
-            if self._failures > frontend.max_coast_frames:
+            held = self._failures > frontend.max_coast_frames
+            if held:
                 self._motion = np.eye(4)  # the pose is held from now on
-            if len(points) < frontend.keyframe_min_inliers:
-                # Unusable frame: keep the references, and predict the next frame from here.
-                self._reference_from_previous = self._reference_from_previous @ self._motion
-                return
+            usable = len(points) >= frontend.keyframe_min_inliers
+            if usable:
+                self._fallback = current  # the last resort if the good references fail
+            if not held or not usable:
+                return  # keep the last good references
         elif reference_from_current is not None:
+            assert self._previous is not None and estimate.reference is not None
             if estimate.reference is self._reference:
                 self._motion = invert_pose(self._reference_from_previous) @ reference_from_current
+                since_ns = self._previous.timestamp_ns
             else:
-                self._motion = reference_from_current  # measured against the previous frame
+                self._motion = reference_from_current  # measured against a later frame
+                since_ns = estimate.reference.timestamp_ns
+            self._motion_interval_ns = max(int(timestamp_ns) - since_ns, 1)
+        self._fallback = None
         if first or failed or self._needs_new_reference(estimate):
             self._reference = current
             self._reference_from_previous = np.eye(4)
@@ -506,6 +549,10 @@ class Odometry:
             assert reference_from_current is not None
             self._reference_from_previous = reference_from_current
         self._previous = current
+
+    def _motion_over(self, interval_ns: int) -> np.ndarray:
+        """The last measured motion at the same velocity over ``interval_ns`` (rectified)."""
+        return scale_motion(self._motion, interval_ns / self._motion_interval_ns)
 
     def _needs_new_reference(self, estimate: _Estimate) -> bool:
         frontend = self.config.frontend

@@ -23,6 +23,7 @@ from estimator.features import (
     match_candidates,
 )
 from estimator.geometry import invert_pose, make_pose
+from estimator.photometric import normalise_contrast
 from estimator.stereo import (
     StereoMatcher,
     point_covariances,
@@ -459,3 +460,91 @@ def test_frontend_benchmark_writes_its_report(euroc_v101_micro, tmp_path) -> Non
     assert result["fps_from_cpu_time"] > 0
     assert result["drift"]["frontend_pose_final_translation_error_m"] < 0.05
     assert (out / "frontend.md").read_text().startswith("Front end on 8 frames 752x480")
+
+
+# ----------------------------------------------------------------------------- exposure
+
+
+def _exposed(image: np.ndarray, gain: float, offset: float = 0.0) -> np.ndarray:
+    """The image as a camera with another gain and black level records it (8 bits, clipped)."""
+    return np.clip(np.rint(image.astype(np.float32) * gain + offset), 0, 255).astype(np.uint8)
+
+
+def _frontend_stages(config: FrontendConfig, reference_images, current_images) -> dict:
+    """Each stage's output for a reference and a current pair, normalised as Odometry does."""
+    if config.normalise_contrast:
+        reference_images, current_images = (
+            tuple(normalise_contrast(i, config.normalised_mean, config.normalised_std) for i in p)
+            for p in (reference_images, current_images)
+        )
+    detector = FeatureDetector(config)
+    detections = [len(detector.detect(image)) for image in current_images]
+    reference = _stereo(config, *reference_images)
+    current = _stereo(config, *current_images)
+    rect = _rig().rectification
+    pairs = match_temporal(
+        reference, current, config, rect, images=(reference_images[0], current_images[0])
+    )
+    return {"detections": detections, "current": current, "reference": reference, "pairs": pairs}
+
+
+def test_normalisation_undoes_gain_and_offset() -> None:
+    image = _texture(11).astype(np.uint8)[:, :WIDTH]
+    darker = _exposed(image, 0.55, 12.0)
+    mean, std = 128.0, 64.0
+    normalised, normalised_darker = (normalise_contrast(i, mean, std) for i in (image, darker))
+    # (The tails of this wide texture clip at 0 and 255, which narrows the spread a little.)
+    assert abs(normalised.mean() - mean) < 1.0 and abs(normalised.std() - std) < 4.0
+    # Rounding 0.55 I to whole grey levels costs about one level after the stretch back.
+    difference = np.abs(normalised.astype(int) - normalised_darker)
+    assert np.percentile(difference, 99) <= 2
+    # A black (or covered) frame stays flat: its noise is not amplified into texture.
+    rng = np.random.default_rng(0)
+    dark = np.clip(rng.normal(2.0, 1.0, image.shape), 0, 255).astype(np.uint8)
+    assert normalise_contrast(dark, mean, std).std() <= 4.0 * dark.std() + 1e-9
+
+
+@pytest.mark.parametrize(("left_gain", "right_gain"), [(0.6, 1.3), (1.3, 0.6), (0.6, 0.6)])
+def test_exposure_changes_leave_every_stage_unchanged(left_gain: float, right_gain: float) -> None:
+    """The current frame's cameras change exposure (not in step): detection counts, stereo
+    matches and their disparities, and temporal matches stay as without the change."""
+    texture = _texture(7)
+    shift, depths = (3.4, -1.7), (2.0, 5.0)
+    reference_images = _two_plane_pair(texture, depths)
+    current_images = _two_plane_pair(texture, depths, *shift)
+    changed = (_exposed(current_images[0], left_gain, 5.0), _exposed(current_images[1], right_gain))
+    config = FrontendConfig()
+    same = _frontend_stages(config, reference_images, current_images)
+    exposed = _frontend_stages(config, reference_images, changed)
+    for count, expected in zip(exposed["detections"], same["detections"], strict=True):
+        assert abs(count - expected) <= 0.1 * expected
+    assert len(exposed["current"]) >= 0.85 * len(same["current"])
+    # Stereo points found in both runs (same left pixel) have the same sub-pixel disparity.
+    unchanged, changed = same["current"], exposed["current"]
+    key = {tuple(p): d for p, d in zip(unchanged.pixels, unchanged.disparity, strict=True)}
+    common = [
+        (key[tuple(p)], d)
+        for p, d in zip(changed.pixels, changed.disparity, strict=True)
+        if tuple(p) in key
+    ]
+    assert len(common) >= 0.7 * len(same["current"])
+    before, after = np.array(common).T
+    assert np.median(np.abs(after - before)) < 0.05
+    pairs = exposed["pairs"]
+    assert len(pairs) >= 0.8 * len(same["pairs"])
+    rect = _rig().rectification
+    seen_at = project(pairs.current_points, rect.fx, rect.cx, rect.cy)
+    expected_at = exposed["reference"].pixels[pairs.reference_index] + shift
+    assert np.median(np.linalg.norm(seen_at - expected_at, axis=1)) < 0.1
+
+
+def test_without_normalisation_exposure_changes_break_the_temporal_matches() -> None:
+    """Why the normalisation is on: Lucas-Kanade refinement assumes constant brightness."""
+    texture = _texture(7)
+    reference_images = _two_plane_pair(texture, (2.0, 5.0))
+    current_images = _two_plane_pair(texture, (2.0, 5.0), 3.4, -1.7)
+    changed = tuple(_exposed(image, 0.6) for image in current_images)
+    config = FrontendConfig(normalise_contrast=False)
+    same = _frontend_stages(config, reference_images, current_images)
+    exposed = _frontend_stages(config, reference_images, changed)
+    assert len(exposed["pairs"]) < 0.5 * len(same["pairs"])

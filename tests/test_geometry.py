@@ -125,3 +125,17 @@ def test_nearest_rigid_projects_onto_se3_and_keeps_rigid_poses():
     np.testing.assert_allclose(rigid[:3, 3], noisy[:3, 3])
     assert g.rotation_angle_deg(rigid[:3, :3].T @ pose[:3, :3]) < 0.05
     np.testing.assert_array_equal(rigid[3], [0, 0, 0, 1])
+
+
+def test_scale_motion_keeps_the_velocity() -> None:
+    """Twice the time at the same velocity: the rotation applied twice, twice the translation;
+    half the time: the rotation whose square is the original."""
+    rotation = Rotation.from_rotvec([0.02, -0.05, 0.01]).as_matrix()
+    motion = g.make_pose(rotation, [0.03, -0.01, 0.04])
+    double = g.scale_motion(motion, 2.0)
+    np.testing.assert_allclose(double[:3, :3], rotation @ rotation, atol=1e-12)
+    np.testing.assert_allclose(double[:3, 3], 2 * motion[:3, 3], atol=1e-12)
+    half = g.scale_motion(motion, 0.5)[:3, :3]
+    np.testing.assert_allclose(half @ half, rotation, atol=1e-12)
+    np.testing.assert_allclose(g.scale_motion(motion, 0.0), np.eye(4), atol=1e-12)
+    np.testing.assert_array_equal(g.scale_motion(motion, 1.0), motion)

@@ -20,6 +20,7 @@ from estimator.geometry import (
     quat_to_matrix,
     rotation_angle_deg,
     rotation_vector_to_quat,
+    scale_motion,
 )
 from estimator.odometry import Odometry, frame_seed, to_grey8
 from estimator.synthetic import CAMERA, T_BS_CAM0, build_world, loop_for_length
@@ -370,11 +371,56 @@ def test_coasting_keeps_the_velocity() -> None:
     np.testing.assert_allclose(reports[6].relative_pose, reports[5].relative_pose, atol=1e-12)
     assert all(report.status == FrameStatus.OK for report in reports[7:])
     truth = relative_to_first(truth)
-    # Frame 7 is measured against the coasted frame 6, so its error is the coasting error: the
-    # velocity change over one frame, a few millimetres here instead of the whole step.
+    # Frame 6 coasts at the velocity of frame 5: its error is the velocity change over one
+    # frame, millimetres here instead of the whole step. Frame 7 is measured against the last
+    # good references again, so the coasting error does not carry over.
     step = np.linalg.norm(truth[6, :3, 3] - truth[5, :3, 3])
+    assert np.linalg.norm(reports[6].pose[:3, 3] - truth[6, :3, 3]) < 0.2 * step
     error = np.linalg.norm(reports[9].pose[:3, 3] - truth[9, :3, 3])
-    assert error < 0.2 * step
+    assert error < 0.05 * step
+
+
+@pytest.mark.slow
+def test_coasting_scales_with_the_time_between_frames() -> None:
+    """Two frames missing, then a black one: it coasts three frame intervals at the velocity."""
+    frames, _ = _rendered_flight()
+    config = _config(backend={"enabled": False}, registration={"method": "msac"})
+    odometry = Odometry(_rendered_rig(), config)
+    reports = _run(odometry, frames[:6])
+    late = frames[8]
+    black = StereoFrame(late.timestamp_ns, np.zeros_like(late.left), np.zeros_like(late.right))
+    coasted = odometry.process(black)
+    assert coasted.status == FrameStatus.DEGRADED
+    expected = scale_motion(reports[5].relative_pose, 3.0)
+    np.testing.assert_allclose(coasted.relative_pose, expected, atol=1e-9)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("loss", ["black", "foreign", "dropped"])
+def test_a_lost_frame_does_not_damage_the_frames_after_it(loss: str) -> None:
+    """Frame 6 is black, shows something else entirely (plenty of stereo points, nothing to
+    match: a shaken or covered camera), or never arrives. The frames after it are matched
+    against the last good references at once and come out exactly as without the loss."""
+    frames, _ = _rendered_flight()
+    config = _config(backend={"enabled": False}, registration={"method": "msac"})
+    clean = _run(Odometry(_rendered_rig(), config), frames)
+    lost = frames[6]
+    if loss == "dropped":
+        perturbed = frames[:6] + frames[7:]
+    else:
+        left, right = (
+            (np.zeros_like(lost.left), np.zeros_like(lost.right))
+            if loss == "black"
+            else (np.roll(lost.left, 200, axis=1), np.roll(lost.right, 200, axis=1))
+        )
+        perturbed = [*frames[:6], StereoFrame(lost.timestamp_ns, left, right), *frames[7:]]
+    reports = _run(Odometry(_rendered_rig(), config), perturbed)
+    after = {r.timestamp_ns: r for r in reports if r.timestamp_ns > lost.timestamp_ns}
+    if loss != "dropped":
+        assert reports[6].status == FrameStatus.DEGRADED
+    for report in clean[7:]:
+        assert after[report.timestamp_ns].status == FrameStatus.OK
+        np.testing.assert_allclose(after[report.timestamp_ns].pose, report.pose, atol=1e-6)
 
 
 def _rigid(rotvec: list[float], translation: list[float]) -> np.ndarray:

@@ -13,6 +13,7 @@ BENCHMARKS: dict[str, str] = {
     "backend": "estimator.bench.backend",
     "consistency": "estimator.bench.consistency",
     "driving": "estimator.bench.driving",
+    "perturbations": "estimator.bench.perturbations",
 }
 
 
