@@ -415,6 +415,9 @@ def create_app(
         description="Stereo visual odometry over HTTP and WebSocket. Every answered pose is "
         "stored before the answer is sent.",
         lifespan=lifespan,
+        # Served offline by service.web (the defaults load Swagger UI / ReDoc from a CDN).
+        docs_url=None,
+        redoc_url=None,
     )
     app.add_middleware(BodyLimit, max_bytes=settings.max_request_bytes, metrics=metrics)
 
@@ -661,6 +664,9 @@ def create_app(
     async def stream(websocket: WebSocket, session_id: str) -> None:
         await StreamConnection(websocket, session_id).run()
 
+    from service.web import install_web_view  # imports this module: not at the top
+
+    install_web_view(app)
     return app
 
 

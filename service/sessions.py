@@ -138,6 +138,8 @@ class SessionWorker:
         self.last_submitted_ns = record.last_timestamp_ns
         self.busy = False
         self.closed = False
+        # Wall-clock times of the latest stored poses: the live view's frames/s and last update.
+        self.stored_at: deque[float] = deque(maxlen=64)
         self._imu_lock = threading.Lock()
         self._imu: list[ImuSamples] = []
         self._imu_count = 0
@@ -367,6 +369,7 @@ class SessionWorker:
         self.next_index += 1
         self.last_processed_ns = job.timestamp_ns
         self.smoothed.extend(outcome.smoothed)
+        self.stored_at.append(time.time())
         for stage, seconds in timings.items():
             self.metrics.stage_latency.labels(stage).observe(seconds)
         self.metrics.frames.labels(record.status).inc()

@@ -343,11 +343,15 @@ class Store:
             ).first()
             return None if row is None else _pose_record(row)
 
-    def poses(self, session_id: str) -> list[PoseRecord]:
+    def poses(
+        self, session_id: str, start: int = 0, limit: int | None = None
+    ) -> list[PoseRecord]:
+        """The session's poses from frame ``start`` on (a watcher catching up reads only new)."""
         with self._sessions() as db:
             rows = db.scalars(
                 select(PoseRow)
-                .where(PoseRow.session_id == session_id)
+                .where(PoseRow.session_id == session_id, PoseRow.frame_index >= start)
                 .order_by(PoseRow.frame_index)
+                .limit(limit)
             )
             return [_pose_record(row) for row in rows]

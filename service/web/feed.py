@@ -1,0 +1,137 @@
+"""What the live view is sent: poses as compact columns, and a session's activity.
+
+A browser drawing ten thousand poses needs positions, a heading, the status and two numbers per
+frame, not three 4x4 matrices and a timing table each; columns of rounded numbers are about a
+tenth of the JSON of :class:`~service.schemas.PoseOut`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from estimator.geometry import invert_pose
+from service.sessions import SessionWorker
+from service.storage import PoseRecord, SessionRecord
+
+# One letter per pose status in the ``status`` column.
+STATUS_CODES: dict[str, str] = {"ok": "o", "degraded": "d", "lost": "l"}
+# A session is live while its poses keep coming: no frame for this long and it is idle.
+LIVE_WINDOW_S = 5.0
+
+Activity = Literal["live", "idle"]
+
+
+# Stages of a frame before its pose is stored: what the view plots as the service's latency.
+LATENCY_STAGES = ("queue_wait", "decode", "odometry", "transfer")
+
+
+@dataclass(frozen=True)
+class WorldFrame:
+    """How to look at a session's world, read from its first pose.
+
+    The world is the first left camera (x right, y down, z forward) unless the back end levels
+    it with the accelerometer (z up, yaw of the first body pose). A camera looking roughly
+    level is never at the identity in a z-up world, so frame 0's rotation tells which. The
+    vision-only poses always start at the first camera; ``frontend_to_world`` brings them into
+    the same world as the real-time poses so both paths can be drawn together.
+    """
+
+    levelled: bool
+    frontend_to_world: np.ndarray
+
+    @classmethod
+    def of(cls, first: PoseRecord) -> WorldFrame:
+        pose = np.array(first.pose, dtype=float).reshape(4, 4)
+        frontend = np.array(first.frontend_pose, dtype=float).reshape(4, 4)
+        levelled = not np.allclose(pose[:3, :3], np.eye(3), atol=1e-6)
+        return cls(levelled, pose @ invert_pose(frontend))
+
+    def axes(self) -> dict[str, Any]:
+        """World axes (index, sign) across and up each view, and their labels."""
+        if self.levelled:
+            return {"up": "z", "top": [[0, 1], [1, 1]], "side": [[0, 1], [2, 1]],
+                    "top_labels": ["x →", "y ↑"], "side_labels": ["x →", "z ↑ (up)"],
+                    "note": "world levelled by the accelerometer: z up"}
+        return {"up": "-y", "top": [[0, 1], [2, 1]], "side": [[2, 1], [1, -1]],
+                "top_labels": ["x →", "z ↑ (forward)"], "side_labels": ["z →", "−y ↑ (up)"],
+                "note": "world = first left camera: x right, y down, z forward"}
+
+
+def pose_columns(records: Sequence[PoseRecord], world: WorldFrame) -> dict[str, Any]:
+    """A ``poses`` message: one column per quantity, positions flattened x, y, z per pose."""
+    poses = np.array([r.pose for r in records], dtype=float).reshape(-1, 4, 4)
+    frontend = np.array([r.frontend_pose for r in records], dtype=float).reshape(-1, 4, 4)
+    frontend_positions = frontend[:, :3, 3] @ world.frontend_to_world[:3, :3].T
+    frontend_positions += world.frontend_to_world[:3, 3]
+    return {
+        "type": "poses",
+        "index": [r.frame_index for r in records],
+        "timestamp_ns": [r.timestamp_ns for r in records],
+        # 0.1 mm is far below what a screen shows and keeps the numbers short.
+        "position": np.round(poses[:, :3, 3], 4).ravel().tolist(),
+        "frontend_position": np.round(frontend_positions, 4).ravel().tolist(),
+        # The camera's optical axis in the world: the heading drawn at the newest pose.
+        "forward": np.round(poses[:, :3, 2], 3).ravel().tolist(),
+        "status": "".join(STATUS_CODES.get(r.status, "l") for r in records),
+        "inliers": [r.inliers for r in records],
+        "latency_ms": [
+            round(1000.0 * sum(r.timings.get(k, 0.0) for k in LATENCY_STAGES), 2)
+            for r in records
+        ],
+        "message": records[-1].message if records else "",
+    }
+
+
+@dataclass(frozen=True)
+class SessionActivity:
+    """Whether frames are arriving on this server, and how fast."""
+
+    activity: Activity
+    frames_per_s: float | None
+    last_update: float | None  # Unix time of the newest stored pose seen by this server
+    queued: int
+
+    @classmethod
+    def of(cls, worker: SessionWorker | None, now: float | None = None) -> SessionActivity:
+        """From the session's worker; a session without one received no frame recently."""
+        if worker is None:
+            return cls("idle", None, None, 0)
+        now = time.time() if now is None else now
+        stamps = [t for t in worker.stored_at if now - t <= LIVE_WINDOW_S]
+        queued = worker.queue.qsize() + int(worker.busy)
+        live = bool(stamps) or queued > 0
+        rate = None
+        if len(stamps) >= 2 and stamps[-1] > stamps[0]:
+            rate = (len(stamps) - 1) / (stamps[-1] - stamps[0])
+        elif live:
+            rate = 0.0
+        last = worker.stored_at[-1] if worker.stored_at else None
+        return cls("live" if live else "idle", rate, last, queued)
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "activity": self.activity,
+            "frames_per_s": None if self.frames_per_s is None else round(self.frames_per_s, 2),
+            "last_update": self.last_update,
+            "queued": self.queued,
+        }
+
+
+def session_summary(
+    record: SessionRecord, worker: SessionWorker | None, last: PoseRecord | None
+) -> dict[str, Any]:
+    """One row of the sessions list."""
+    return {
+        "id": record.id,
+        "name": record.name,
+        "created_at": record.created_at.isoformat(),
+        "frame_count": record.frame_count if worker is None else worker.next_index,
+        "last_timestamp_ns": record.last_timestamp_ns,
+        "last_status": None if last is None else last.status,
+        **SessionActivity.of(worker).as_json(),
+    }

@@ -1,0 +1,221 @@
+"""The read-only watcher channel of one session, and the live sessions list.
+
+``/v1/sessions/{id}/watch`` is a WebSocket next to the robot's stream. The key does not travel
+in the URL (access logs print URLs): the first message is ``{"type": "auth", "token": KEY}``.
+The server answers ``hello``, then every stored pose in ``poses`` messages (columns, see
+:mod:`service.web.feed`), ``synced`` once the backlog is sent, then new poses as they are
+stored and a ``state`` message every second. Poses are read from the store, so a watcher sees
+the same trajectory whichever server process the robot streams to.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import time
+from typing import Any
+
+from fastapi import APIRouter, WebSocket
+from starlette.concurrency import run_in_threadpool
+from starlette.websockets import WebSocketDisconnect, WebSocketState
+
+from service.app import SESSION_ID, Owner, ServiceState, State
+from service.auth import AuthError, owner_for
+from service.storage import SessionRecord
+from service.web.feed import SessionActivity, WorldFrame, pose_columns, session_summary
+
+AUTH_TIMEOUT_S = 10.0
+# Poses per message while catching up (a 10,000-pose backlog goes in a few messages).
+CHUNK = 2000
+# Store polling: quick while poses keep coming, slow when the session is quiet.
+FAST_POLL_S = 0.04
+SLOW_POLL_S = 0.5
+STATE_EVERY_S = 1.0
+# Close codes (4000-4999 are the application's): the page shows the ``detail`` sent before.
+CLOSE_UNAUTHORIZED = 4401
+CLOSE_NOT_FOUND = 4404
+CLOSE_BAD_REQUEST = 4400
+
+router = APIRouter()
+
+
+@router.get("/v1/live/sessions", tags=["live view"])
+async def live_sessions(owner: Owner, state: State) -> dict[str, Any]:
+    """The key's sessions with frames, frames/s, last update and the newest pose's status."""
+
+    def read() -> list[tuple[SessionRecord, Any]]:
+        records = state.store.list_sessions(owner)
+        return [(r, state.store.last_pose(r.id)) for r in records]
+
+    rows = await run_in_threadpool(read)
+    workers = state.manager.workers
+    return {
+        "server_time": time.time(),
+        "sessions": [session_summary(r, workers.get(r.id), last) for r, last in rows],
+    }
+
+
+@router.websocket("/v1/sessions/{session_id}/watch")
+async def watch(websocket: WebSocket, session_id: str) -> None:
+    await WatchConnection(websocket, session_id).run()
+
+
+class WatchConnection:
+    """One browser watching one session: authenticate, send the backlog, then follow."""
+
+    def __init__(self, websocket: WebSocket, session_id: str) -> None:
+        self.websocket = websocket
+        self.session_id = session_id
+        self.state: ServiceState = websocket.app.state.swarmvo
+        self.sent = 0  # next frame index to send
+        self.world: WorldFrame | None = None  # known once the session has a pose
+        self.closed = asyncio.Event()
+
+    async def _fail(self, status: int, detail: str, code: int) -> None:
+        label = {401: "auth", 404: "unknown_session"}.get(status, "validation")
+        self.state.metrics.errors.labels(label).inc()
+        with contextlib.suppress(Exception):
+            await self.websocket.send_json({"type": "error", "status": status, "detail": detail})
+            await self.websocket.close(code)
+
+    async def run(self) -> None:
+        await self.websocket.accept()
+        try:
+            record = await self._authenticate()
+        except (WebSocketDisconnect, RuntimeError):
+            return
+        if record is None:
+            return
+        reader = asyncio.create_task(self._read_until_closed())
+        try:
+            await self._follow(record)
+        except (WebSocketDisconnect, RuntimeError):
+            pass
+        finally:
+            reader.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await reader
+
+    async def _authenticate(self) -> SessionRecord | None:
+        try:
+            text = await asyncio.wait_for(self.websocket.receive_text(), AUTH_TIMEOUT_S)
+        except TimeoutError:
+            await self._fail(
+                401, f"no auth message within {AUTH_TIMEOUT_S:.0f} s", CLOSE_UNAUTHORIZED
+            )
+            return None
+        except KeyError:  # a binary message
+            await self._fail(400, "the first message must be text (JSON)", CLOSE_BAD_REQUEST)
+            return None
+        problem, message = _auth_message(text)
+        if problem is not None:
+            await self._fail(400, problem, CLOSE_BAD_REQUEST)
+            return None
+        token = message.get("token") or None
+        try:
+            owner = owner_for(token, self.state.settings)
+        except AuthError as error:
+            await self._fail(401, str(error), CLOSE_UNAUTHORIZED)
+            return None
+        record = None
+        if SESSION_ID.match(self.session_id):
+            record = await run_in_threadpool(self.state.store.get_session, self.session_id, owner)
+        if record is None:
+            await self._fail(404, f"unknown session {self.session_id!r}", CLOSE_NOT_FOUND)
+            return None
+        self.sent = max(0, int(message.get("since", 0)))
+        return record
+
+    async def _read_until_closed(self) -> None:
+        """The channel is read-only; reading still notices the browser leaving."""
+        try:
+            while True:
+                text = await self.websocket.receive_text()
+                with contextlib.suppress(json.JSONDecodeError):
+                    if json.loads(text) == {"type": "ping"}:
+                        await self.websocket.send_json({"type": "pong"})
+                        continue
+                await self.websocket.send_json(
+                    {"type": "error", "status": 400, "detail": "the watch channel is read-only "
+                     '(it answers {"type": "ping"}; frames go to /v1/sessions/{id}/stream)'}
+                )
+        except (WebSocketDisconnect, RuntimeError, KeyError):
+            pass
+        finally:
+            self.closed.set()
+
+    async def _frame_count(self) -> int | None:
+        """Stored poses of the session: from its worker here, else from the store."""
+        worker = self.state.manager.workers.get(self.session_id)
+        if worker is not None:
+            return worker.next_index
+        record = await run_in_threadpool(self.state.store.get_session, self.session_id)
+        return None if record is None else record.frame_count
+
+    async def _send_new(self, count: int) -> bool:
+        """Send the poses from ``self.sent`` up to ``count``; True when there were some."""
+        if count <= self.sent:
+            return False
+        records = await run_in_threadpool(self.state.store.poses, self.session_id, self.sent)
+        if not records:
+            return False
+        if self.world is None:
+            first = records[0] if records[0].frame_index == 0 else None
+            if first is None:  # a watcher resuming mid-session: frame 0 fixes the world
+                first = (await run_in_threadpool(self.state.store.poses, self.session_id, 0, 1))[0]
+            self.world = WorldFrame.of(first)
+            await self.websocket.send_json({"type": "world", **self.world.axes()})
+        for start in range(0, len(records), CHUNK):
+            await self.websocket.send_json(pose_columns(records[start : start + CHUNK], self.world))
+        self.sent = records[-1].frame_index + 1
+        return True
+
+    async def _send_state(self, count: int) -> None:
+        worker = self.state.manager.workers.get(self.session_id)
+        activity = SessionActivity.of(worker)
+        await self.websocket.send_json(
+            {"type": "state", "frame_count": count, "server_time": time.time(),
+             **activity.as_json()}
+        )
+
+    async def _follow(self, record: SessionRecord) -> None:
+        websocket = self.websocket
+        await websocket.send_json({"type": "hello", "session_id": record.id, "name": record.name,
+                                   "created_at": record.created_at.isoformat()})
+        count = await self._frame_count()
+        await self._send_new(count or 0)
+        await websocket.send_json({"type": "synced", "frame_count": self.sent})
+        await self._send_state(self.sent)
+        state_due = time.monotonic() + STATE_EVERY_S
+        quiet_since = time.monotonic()
+        while not self.closed.is_set() and websocket.client_state == WebSocketState.CONNECTED:
+            busy = time.monotonic() - quiet_since < 1.0
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self.closed.wait(), FAST_POLL_S if busy else SLOW_POLL_S)
+            count = await self._frame_count()
+            if count is None:
+                await self._fail(404, "the session was deleted", CLOSE_NOT_FOUND)
+                return
+            if await self._send_new(count):
+                quiet_since = time.monotonic()
+            if time.monotonic() >= state_due:
+                await self._send_state(count)
+                state_due = time.monotonic() + STATE_EVERY_S
+
+
+def _auth_message(text: str) -> tuple[str | None, dict[str, Any]]:
+    """The parsed first message, or what is wrong with it."""
+    try:
+        message = json.loads(text)
+    except json.JSONDecodeError:
+        return "the first message must be JSON", {}
+    if not isinstance(message, dict) or message.get("type") != "auth":
+        return 'the first message must be {"type": "auth", "token": "<API key>"}', {}
+    token, since = message.get("token"), message.get("since", 0)
+    if token is not None and not isinstance(token, str):
+        return "token must be a string", {}
+    if not isinstance(since, int) or isinstance(since, bool) or since < 0:
+        return "since must be a non-negative integer", {}
+    return None, message
+
