@@ -7,6 +7,7 @@ import logging
 import uvicorn
 
 from service.app import create_app
+from service.redact import redact_logs
 from service.settings import ServiceSettings
 
 
@@ -34,5 +35,7 @@ def serve(settings: ServiceSettings, log_level: str = "info") -> int:
         timeout_graceful_shutdown=15,
         access_log=log_level == "debug",
     )
+    # After uvicorn.Config: it installs the handlers the filter goes on.
+    redact_logs(k.strip() for k in settings.api_keys.split(","))
     uvicorn.Server(config).run()
     return 0

@@ -8,6 +8,7 @@ services, component updates, sync and QUIC are off. The protocol is JSON over a 
 from __future__ import annotations
 
 import base64
+import contextlib
 import itertools
 import json
 import shutil
@@ -63,8 +64,9 @@ class Browser:
         )
         self._ids = itertools.count(1)
         self.events: list[dict[str, Any]] = []
+        self._stack = contextlib.ExitStack()
         try:
-            self.socket = self._attach()
+            self.socket = self._stack.enter_context(self._attach())
             for domain in ("Page", "Runtime", "Network"):
                 self.call(f"{domain}.enable")
             self.call("Emulation.setDeviceMetricsOverride", width=width, height=height,
@@ -73,7 +75,7 @@ class Browser:
             self.close()
             raise
 
-    def _attach(self) -> ClientConnection:
+    def _attach(self) -> contextlib.AbstractContextManager[ClientConnection]:
         active = self.profile / "DevToolsActivePort"
         deadline = time.monotonic() + 30
         while not (active.exists() and active.read_text().count("\n") >= 1):
@@ -92,9 +94,7 @@ class Browser:
         self.close()
 
     def close(self) -> None:
-        socket = getattr(self, "socket", None)
-        if socket is not None:
-            socket.close()
+        self._stack.close()
         if self.process.poll() is None:
             self.process.terminate()
             try:
