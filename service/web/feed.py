@@ -10,13 +10,14 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 import numpy as np
+from sqlalchemy import select
 
 from estimator.geometry import invert_pose
 from service.sessions import SessionWorker
-from service.storage import PoseRecord, SessionRecord
+from service.storage import PoseRecord, PoseRow, SessionRecord, Store
 
 # One letter per pose status in the ``status`` column.
 STATUS_CODES: dict[str, str] = {"ok": "o", "degraded": "d", "lost": "l"}
@@ -45,7 +46,7 @@ class WorldFrame:
     frontend_to_world: np.ndarray
 
     @classmethod
-    def of(cls, first: PoseRecord) -> WorldFrame:
+    def of(cls, first: PoseLike) -> WorldFrame:
         pose = np.array(first.pose, dtype=float).reshape(4, 4)
         frontend = np.array(first.frontend_pose, dtype=float).reshape(4, 4)
         levelled = not np.allclose(pose[:3, :3], np.eye(3), atol=1e-6)
@@ -53,16 +54,51 @@ class WorldFrame:
 
     def axes(self) -> dict[str, Any]:
         """World axes (index, sign) across and up each view, and their labels."""
+        # The side view looks along whichever horizontal axis the path spans least.
         if self.levelled:
             return {"up": "z", "top": [[0, 1], [1, 1]], "side": [[0, 1], [2, 1]],
+                    "side_across": [[0, 1, "x →"], [1, 1, "y →"]],
                     "top_labels": ["x →", "y ↑"], "side_labels": ["x →", "z ↑ (up)"],
                     "note": "world levelled by the accelerometer: z up"}
         return {"up": "-y", "top": [[0, 1], [2, 1]], "side": [[2, 1], [1, -1]],
+                "side_across": [[2, 1, "z →"], [0, 1, "x →"]],
                 "top_labels": ["x →", "z ↑ (forward)"], "side_labels": ["z →", "−y ↑ (up)"],
                 "note": "world = first left camera: x right, y down, z forward"}
 
 
-def pose_columns(records: Sequence[PoseRecord], world: WorldFrame) -> dict[str, Any]:
+class PoseLike(Protocol):
+    """What the view reads of a pose: a :class:`PoseRecord` or a row of :func:`read_poses`."""
+
+    frame_index: int
+    timestamp_ns: int
+    pose: list[float]
+    frontend_pose: list[float]
+    status: str
+    inliers: int
+    timings: dict[str, float]
+    message: str
+
+
+def read_poses(
+    store: Store, session_id: str, start: int = 0, limit: int | None = None
+) -> Sequence[PoseLike]:
+    """The columns the view needs from frame ``start`` on, without building records.
+
+    A long run's backlog is most of the time to first draw; leaving out the relative pose and
+    the ORM objects halves the read.
+    """
+    query = (
+        select(PoseRow.frame_index, PoseRow.timestamp_ns, PoseRow.pose, PoseRow.frontend_pose,
+               PoseRow.status, PoseRow.inliers, PoseRow.timings, PoseRow.message)
+        .where(PoseRow.session_id == session_id, PoseRow.frame_index >= start)
+        .order_by(PoseRow.frame_index)
+        .limit(limit)
+    )
+    with store.engine.connect() as connection:
+        return connection.execute(query).all()  # type: ignore[return-value]
+
+
+def pose_columns(records: Sequence[PoseLike], world: WorldFrame) -> dict[str, Any]:
     """A ``poses`` message: one column per quantity, positions flattened x, y, z per pose."""
     poses = np.array([r.pose for r in records], dtype=float).reshape(-1, 4, 4)
     frontend = np.array([r.frontend_pose for r in records], dtype=float).reshape(-1, 4, 4)

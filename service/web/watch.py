@@ -23,13 +23,19 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from service.app import SESSION_ID, Owner, ServiceState, State
 from service.auth import AuthError, owner_for
 from service.storage import SessionRecord
-from service.web.feed import SessionActivity, WorldFrame, pose_columns, session_summary
+from service.web.feed import (
+    SessionActivity,
+    WorldFrame,
+    pose_columns,
+    read_poses,
+    session_summary,
+)
 
 AUTH_TIMEOUT_S = 10.0
 # Poses per message while catching up (a 10,000-pose backlog goes in a few messages).
 CHUNK = 2000
 # Store polling: quick while poses keep coming, slow when the session is quiet.
-FAST_POLL_S = 0.04
+FAST_POLL_S = 0.025
 SLOW_POLL_S = 0.5
 STATE_EVERY_S = 1.0
 # Close codes (4000-4999 are the application's): the page shows the ``detail`` sent before.
@@ -154,22 +160,27 @@ class WatchConnection:
         return None if record is None else record.frame_count
 
     async def _send_new(self, count: int) -> bool:
-        """Send the poses from ``self.sent`` up to ``count``; True when there were some."""
-        if count <= self.sent:
-            return False
-        records = await run_in_threadpool(self.state.store.poses, self.session_id, self.sent)
-        if not records:
-            return False
-        if self.world is None:
-            first = records[0] if records[0].frame_index == 0 else None
-            if first is None:  # a watcher resuming mid-session: frame 0 fixes the world
-                first = (await run_in_threadpool(self.state.store.poses, self.session_id, 0, 1))[0]
-            self.world = WorldFrame.of(first)
-            await self.websocket.send_json({"type": "world", **self.world.axes()})
-        for start in range(0, len(records), CHUNK):
-            await self.websocket.send_json(pose_columns(records[start : start + CHUNK], self.world))
-        self.sent = records[-1].frame_index + 1
-        return True
+        """Send the poses from ``self.sent`` up to ``count``; True when there were some.
+
+        Read and sent in chunks: the browser parses one while the next is read, and a long
+        run's backlog is never all in memory at once.
+        """
+        store = self.state.store
+        sent_any = False
+        while self.sent < count:
+            records = await run_in_threadpool(read_poses, store, self.session_id, self.sent, CHUNK)
+            if not records:
+                break
+            if self.world is None:
+                first = records[0] if records[0].frame_index == 0 else None
+                if first is None:  # a watcher resuming mid-session: frame 0 fixes the world
+                    first = (await run_in_threadpool(store.poses, self.session_id, 0, 1))[0]
+                self.world = WorldFrame.of(first)
+                await self.websocket.send_json({"type": "world", **self.world.axes()})
+            await self.websocket.send_json(pose_columns(records, self.world))
+            self.sent = records[-1].frame_index + 1
+            sent_any = True
+        return sent_any
 
     async def _send_state(self, count: int) -> None:
         worker = self.state.manager.workers.get(self.session_id)

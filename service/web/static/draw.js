@@ -95,11 +95,31 @@ export class TrajectoryView {
     this.bounds = null;
   }
 
-  // A new projection: everything is drawn again at the next update.
-  setAxes(axes, labels) {
+  // A new projection: everything is drawn again at the next update. With ``across`` (a list
+  // of [axis, sign, label]) the horizontal axis is whichever of them the path spans most.
+  setAxes(axes, labels, across = null) {
     this.axes = axes;
     this.labels = labels;
+    this.across = across;
     this.bounds = null;
+  }
+
+  chooseAcross() {
+    const b = this.buffer;
+    let best = null;
+    for (const [axis, sign, label] of this.across) {
+      let low = Infinity;
+      let high = -Infinity;
+      for (let i = 0; i < b.n; i++) {
+        low = Math.min(low, b.position[3 * i + axis]);
+        high = Math.max(high, b.position[3 * i + axis]);
+      }
+      if (!best || high - low > best.span) best = { span: high - low, axis, sign, label };
+    }
+    const changed = best.axis !== this.axes[0][0];
+    this.axes = [[best.axis, best.sign], this.axes[1]];
+    this.labels = [best.label, this.labels[1]];
+    return changed;
   }
 
   coord(array, i, which) {
@@ -161,6 +181,7 @@ export class TrajectoryView {
     }
     if (!full && this.drawn === b.n) return false;
     if (full) {
+      if (this.across && this.chooseAcross()) this.bounds = null;
       this.fit(this.bounds === null || resized ? 0 : this.drawn);
       this.redrawAll();
     } else {

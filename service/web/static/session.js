@@ -80,30 +80,35 @@ export function showSession(id, { app, crumb, say, failed }) {
   };
   // What tests and benchmarks read: counts, timings and the page's own measurements.
   const stats = { poses: 0, serverFrames: null, synced: false, firstDrawMs: null,
-                  fullDrawMs: null, updates: 0, lastUpdateMs: 0, states: 0,
-                  activity: null, error: null };
+                  fullDrawMs: null, updates: 0, lastUpdateMs: 0, drawMsTotal: 0, drawMsMax: 0,
+                  states: 0, activity: null, error: null };
   window.swarmvoView = { stats, buffer, views, plots };
   let socket = null;
   let stopped = false;
   let frame = null;
   let lastState = null;
+  let wasLive = false;
   let retry = null;
 
   function render() {
     frame = null;
     const started = performance.now();
+    const redraws = views[0].redraws;
     let changed = false;
     for (const view of views) changed = view.update() || changed;
     for (const plot of Object.values(plots)) plot.draw();
     stats.lastUpdateMs = performance.now() - started;
-    if (changed) stats.updates += 1;
+    if (changed) {
+      stats.updates += 1;
+      stats.drawMsTotal += stats.lastUpdateMs;
+      stats.drawMsMax = Math.max(stats.drawMsMax, stats.lastUpdateMs);
+    }
     stats.drawn = views[0].drawn;
     stats.vertices = views[0].vertices;
     stats.redraws = views[0].redraws;
-    if (stats.synced && stats.firstDrawMs === null) {
-      stats.firstDrawMs = performance.now();
-      stats.fullDrawMs = stats.lastUpdateMs;
-    }
+    if (views[0].redraws !== redraws) stats.fullDrawMs = stats.lastUpdateMs;
+    if (changed && stats.firstPathMs === undefined) stats.firstPathMs = performance.now();
+    if (stats.synced && stats.firstDrawMs === null) stats.firstDrawMs = performance.now();
   }
 
   function schedule() {
@@ -149,12 +154,13 @@ export function showSession(id, { app, crumb, say, failed }) {
 
   function onMessage(message) {
     if (message.type === "hello") {
+      stats.helloMs = performance.now();
       crumb.querySelector("#crumb-name").textContent = message.name || id.slice(0, 8);
       document.title = `swarmvo · ${message.name || id.slice(0, 8)}`;
       say("");
     } else if (message.type === "world") {
       views[0].setAxes(message.top, message.top_labels);
-      views[1].setAxes(message.side, message.side_labels);
+      views[1].setAxes(message.side, message.side_labels, message.side_across);
       $("#world-note").textContent = message.note;
       stats.world = message.up;
     } else if (message.type === "poses") {
@@ -164,10 +170,11 @@ export function showSession(id, { app, crumb, say, failed }) {
         plots.inliers.push(message.inliers[k]);
         plots.latency.push(message.latency_ms[k]);
       }
-      if (message.message) $("#f-message").textContent = message.message;
+      $("#f-message").textContent = message.message;
       showFacts();
       schedule();
     } else if (message.type === "synced") {
+      stats.syncedMs = performance.now();
       stats.synced = true;
       stats.serverFrames = message.frame_count;
       schedule();
@@ -178,6 +185,11 @@ export function showSession(id, { app, crumb, say, failed }) {
       stats.serverFrames = message.frame_count;
       if (message.activity === "live") plots.fps.push(message.frames_per_s ?? 0);
       showFacts();
+      if (message.activity === "idle" && wasLive) {
+        // The run ended: fit the whole trajectory again, tightly.
+        for (const view of views) view.setAxes(view.axes, view.labels, view.across);
+      }
+      wasLive = message.activity === "live";
       if (message.activity === "idle") showSummary(); else $("#summary").hidden = true;
       schedule();
     } else if (message.type === "error") {
