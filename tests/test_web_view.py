@@ -321,3 +321,4 @@ def test_page_follows_a_live_session_in_chromium(
     assert "/watch" in log and "GET /v1/live/sessions" in log  # debug: requests are logged
     assert KEY not in log, "the API key reached the server log"
     assert "Traceback" not in log
+

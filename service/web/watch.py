@@ -13,10 +13,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import time
 from typing import Any
 
 from fastapi import APIRouter, WebSocket
+from sqlalchemy.exc import OperationalError
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
@@ -43,6 +45,7 @@ CLOSE_UNAUTHORIZED = 4401
 CLOSE_NOT_FOUND = 4404
 CLOSE_BAD_REQUEST = 4400
 
+logger = logging.getLogger("swarmvo.service")
 router = APIRouter()
 
 
@@ -98,6 +101,14 @@ class WatchConnection:
             await self._follow(record)
         except (WebSocketDisconnect, RuntimeError):
             pass
+        except OperationalError as error:  # the database went away: the page will reconnect
+            logger.error("watcher of session %s: database unavailable: %s", self.session_id,
+                         str(error).splitlines()[0])
+            with contextlib.suppress(Exception):
+                await self.websocket.send_json(
+                    {"type": "error", "status": 503, "detail": "database unavailable; retry later"}
+                )
+                await self.websocket.close(1011)
         finally:
             reader.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -171,11 +182,9 @@ class WatchConnection:
             records = await run_in_threadpool(read_poses, store, self.session_id, self.sent, CHUNK)
             if not records:
                 break
-            if self.world is None:
-                first = records[0] if records[0].frame_index == 0 else None
-                if first is None:  # a watcher resuming mid-session: frame 0 fixes the world
-                    first = (await run_in_threadpool(store.poses, self.session_id, 0, 1))[0]
-                self.world = WorldFrame.of(first)
+            if self.world is None:  # frame 0 fixes the world (its whole pose is needed)
+                first = await run_in_threadpool(store.poses, self.session_id, 0, 1)
+                self.world = WorldFrame.of(first[0])
                 await self.websocket.send_json({"type": "world", **self.world.axes()})
             await self.websocket.send_json(pose_columns(records, self.world))
             self.sent = records[-1].frame_index + 1
