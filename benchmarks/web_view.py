@@ -177,6 +177,7 @@ def bench(args: argparse.Namespace) -> int:
         "heap_after_gc_start_mb": round(heap_start / 2**20, 2),
         "heap_after_gc_end_mb": round(heap_end / 2**20, 2),
         "heap_growth_kb": round((heap_end - heap_start) / 1024, 1),
+        "heap_after_gc_every_10_s_mb": [round(s["heap"] / 2**20, 2) for s in samples if s["gc"]],
         "heap_samples_mb": [round(s["heap"] / 2**20, 2) for s in samples],
         "page_errors": errors,
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, shared with other work",
@@ -211,8 +212,11 @@ def follow(browser: Browser, store: Store, session_id: str, args: argparse.Names
         while time.monotonic() < end:
             time.sleep(1.0)
             page = stats(browser)
+            # Every tenth sample after a garbage collection: the trend of live memory.
+            collect = len(samples) % 10 == 9
             samples.append({"t": time.monotonic(), "updates": page["updates"],
-                            "poses": page["poses"], "heap": browser.heap_used(collect=False)})
+                            "poses": page["poses"], "gc": collect,
+                            "heap": browser.heap_used(collect=collect)})
     finally:
         stop.set()
         thread.join()
@@ -237,6 +241,8 @@ def print_table(summary: dict) -> None:
         ("JS heap after GC, start -> end",
          f"{summary['heap_after_gc_start_mb']} -> {summary['heap_after_gc_end_mb']} MB "
          f"({summary['heap_growth_kb']:+} kB)"),
+        ("  after GC every 10 s",
+         " ".join(f"{v:.2f}" for v in summary["heap_after_gc_every_10_s_mb"]) + " MB"),
         ("page errors", len(summary["page_errors"])),
         ("machine load average (1 min)", summary["load_average_1min"]),
     ]
