@@ -29,6 +29,7 @@ from test_service_units import KEY_A, KEY_B, A, FakeFactory, new_session, send, 
 
 from service.app import create_app
 from service.redact import MASK, SecretFilter
+from service.web import watch as watch_module
 from service.web.browser import Browser, find_chromium
 from service.web.pages import STATIC_DIR
 
@@ -89,7 +90,10 @@ def _watch_messages(ws, until: str) -> list[dict]:
     return messages
 
 
-def test_watch_channel_sends_backlog_then_follows(client: TestClient) -> None:
+def test_watch_channel_sends_backlog_then_follows(
+    client: TestClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(watch_module, "CHUNK", 2)  # a backlog of 3 poses comes in two parts
     sid = new_session(client, name="rover")
     for t in (10, 20, 30):
         assert send(client, sid, t).status_code == 200
@@ -97,8 +101,11 @@ def test_watch_channel_sends_backlog_then_follows(client: TestClient) -> None:
     with client.websocket_connect(f"/v1/sessions/{sid}/watch") as ws:
         ws.send_text(json.dumps({"type": "auth", "token": KEY_A}))
         messages = _watch_messages(ws, "synced")
-        assert [m["type"] for m in messages] == ["hello", "world", "poses", "synced"]
-        hello, world, poses, synced = messages
+        assert [m["type"] for m in messages] == ["hello", "world", "poses", "poses", "synced"]
+        hello, world, first, second, synced = messages
+        assert first["index"] == [0, 1] and second["index"] == [2]
+        poses = {key: first[key] + second[key] for key in first if isinstance(first[key], list)}
+        poses["status"] = first["status"] + second["status"]
         assert hello["name"] == "rover" and synced["frame_count"] == 3
         # The fake odometry starts at the identity: the world is the first camera, y down.
         assert world["up"] == "-y"
@@ -130,6 +137,8 @@ def test_watch_channel_sends_backlog_then_follows(client: TestClient) -> None:
         messages = _watch_messages(ws, "synced")
         assert [m["type"] for m in messages] == ["hello", "world", "poses", "synced"]
         assert messages[2]["index"] == [3, 4]
+        np.testing.assert_allclose(np.reshape(messages[2]["position"], (-1, 3))[:, 0],
+                                   [0.03, 0.04], atol=1e-4)  # the fake moves 1 cm per frame
 
 
 @pytest.mark.parametrize(

@@ -173,22 +173,37 @@ class WatchConnection:
     async def _send_new(self, count: int) -> bool:
         """Send the poses from ``self.sent`` up to ``count``; True when there were some.
 
-        Read and sent in chunks: the browser parses one while the next is read, and a long
-        run's backlog is never all in memory at once.
+        Read and sent in chunks, the next read while this one is sent: a long run's backlog
+        is never all in memory at once, and the browser parses one chunk while the next is read.
         """
         store = self.state.store
+        start = self.sent
         sent_any = False
-        while self.sent < count:
-            records = await run_in_threadpool(read_poses, store, self.session_id, self.sent, CHUNK)
-            if not records:
-                break
-            if self.world is None:  # frame 0 fixes the world (its whole pose is needed)
-                first = await run_in_threadpool(store.poses, self.session_id, 0, 1)
-                self.world = WorldFrame.of(first[0])
-                await self.websocket.send_json({"type": "world", **self.world.axes()})
-            await self.websocket.send_json(pose_columns(records, self.world))
-            self.sent = records[-1].frame_index + 1
-            sent_any = True
+        reading: asyncio.Future[Any] | None = None
+
+        def read_from(index: int) -> asyncio.Future[Any]:
+            return asyncio.ensure_future(
+                run_in_threadpool(read_poses, store, self.session_id, index, CHUNK))
+
+        try:
+            while start < count or reading is not None:
+                records = await (reading or read_from(start))
+                reading = None
+                if not records:
+                    break
+                start = records[-1].frame_index + 1
+                if start < count:
+                    reading = read_from(start)
+                if self.world is None:  # frame 0 fixes the world (its whole pose is needed)
+                    first = await run_in_threadpool(store.poses, self.session_id, 0, 1)
+                    self.world = WorldFrame.of(first[0])
+                    await self.websocket.send_json({"type": "world", **self.world.axes()})
+                await self.websocket.send_json(pose_columns(records, self.world))
+                self.sent = start
+                sent_any = True
+        finally:
+            if reading is not None:  # the browser left while a chunk was being read
+                reading.cancel()
         return sent_any
 
     async def _send_state(self, count: int) -> None:

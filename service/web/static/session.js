@@ -153,6 +153,12 @@ export function showSession(id, { app, crumb, say, failed }) {
   }
 
   function onMessage(message) {
+    const started = performance.now();
+    handle(message);
+    stats.messageMs = (stats.messageMs ?? 0) + performance.now() - started;
+  }
+
+  function handle(message) {
     if (message.type === "hello") {
       stats.helloMs = performance.now();
       crumb.querySelector("#crumb-name").textContent = message.name || id.slice(0, 8);
