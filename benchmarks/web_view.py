@@ -234,7 +234,8 @@ def print_table(summary: dict) -> None:
         ("  backlog received (read, sent, parsed) at", f"{summary['backlog_received_ms']} ms"),
         ("  the last full draw itself", f"{summary['full_redraw_ms']} ms"),
         ("  page: handling messages / all drawing",
-         f"{summary['page_message_handling_ms']} / {summary['page_drawing_until_first_draw_ms']} ms"),
+         f"{summary['page_message_handling_ms']} / "
+         f"{summary['page_drawing_until_first_draw_ms']} ms"),
         ("  vertices drawn after decimation", summary["vertices_drawn_at_start"]),
         ("poses sent", f"{summary['rate_hz_sent']} Hz for {summary['seconds']} s"),
         ("poses received by the page", f"{summary['poses_received_per_s']} /s"),
