@@ -178,7 +178,9 @@ export function showSession(id, { app, crumb, say, failed }) {
       }
       $("#f-message").textContent = message.message;
       showFacts();
-      schedule();
+      // While a backlog streams in, its first part is drawn at once and the rest when it is
+      // complete: each part that leaves the view would otherwise cost a full redraw.
+      if (stats.synced || !views[0].drawn) schedule();
     } else if (message.type === "synced") {
       stats.syncedMs = performance.now();
       stats.synced = true;
