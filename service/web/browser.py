@@ -156,7 +156,8 @@ class Browser:
 
     def heap_used(self, collect: bool = True) -> int:
         """Bytes of JavaScript heap in use (after a garbage collection when ``collect``)."""
-        if collect:
+        if collect:  # twice: objects freed by finalisers of the first pass go in the second
+            self.call("HeapProfiler.collectGarbage")
             self.call("HeapProfiler.collectGarbage")
         return int(self.call("Runtime.getHeapUsage")["usedSize"])
 
