@@ -279,7 +279,8 @@ def test_page_follows_a_live_session_in_chromium(
                 streamer.join(0.05)
             with Client(server.url, KEY) as api:
                 stored = api.trajectory(session.id)
-            assert len(stored) == FRAMES
+                smoothed = api.smoothed(session.id)
+            assert len(stored) == FRAMES and smoothed
             stats = json.loads(browser.wait_for(
                 f"window.swarmvoView.stats.drawn === {FRAMES} && "
                 f"window.swarmvoView.stats.serverFrames === {FRAMES} && "
@@ -287,6 +288,13 @@ def test_page_follows_a_live_session_in_chromium(
             assert len({n for n in seen if 0 < n < FRAMES}) >= 2, f"no live updates: {seen}"
             assert stats["poses"] == stats["serverFrames"] == FRAMES
             assert stats["world"] == "z"  # the rendered flight has an IMU: z up
+            # The smoother's final poses are drawn too, every one the server has handed out.
+            assert stats["smoothed"] == len(smoothed)
+            assert browser.evaluate("window.swarmvoView.views[0].drawnSmoothed") == len(smoothed)
+            last_smoothed = browser.evaluate(
+                "Array.from(window.swarmvoView.smoothed.position.subarray("
+                "3 * (window.swarmvoView.smoothed.n - 1), 3 * window.swarmvoView.smoothed.n))")
+            np.testing.assert_allclose(last_smoothed, smoothed[-1][1][:3, 3], atol=1e-4)
             # The path is really on the canvas, and the plots got every frame.
             painted = browser.evaluate(
                 "(() => { const c = document.querySelector('#top');"

@@ -118,6 +118,16 @@ def pose_columns(rows: Sequence[Row[Any]], world: WorldFrame) -> dict[str, Any]:
     }
 
 
+def smoothed_columns(smoothed: Sequence[tuple[int, list[float]]]) -> dict[str, Any]:
+    """A ``smoothed`` message: the smoother's final poses (timestamp, flat 4x4) as columns."""
+    matrices = np.array([pose for _, pose in smoothed], dtype=float).reshape(-1, 16)
+    return {
+        "type": "smoothed",
+        "timestamp_ns": [stamp for stamp, _ in smoothed],
+        "position": np.round(matrices[:, list(_TRANSLATION)], 4).ravel().tolist(),
+    }
+
+
 @dataclass(frozen=True)
 class SessionActivity:
     """Whether frames are arriving on this server, and how fast."""

@@ -31,6 +31,7 @@ from service.web.feed import (
     pose_columns,
     read_poses,
     session_summary,
+    smoothed_columns,
 )
 
 AUTH_TIMEOUT_S = 10.0
@@ -79,6 +80,7 @@ class WatchConnection:
         self.state: ServiceState = websocket.app.state.swarmvo
         self.sent = 0  # next frame index to send
         self.world: WorldFrame | None = None  # known once the session has a pose
+        self.smoothed_ns = -1  # timestamp of the newest smoothed pose sent
         self.closed = asyncio.Event()
 
     async def _fail(self, status: int, detail: str, code: int) -> None:
@@ -206,6 +208,17 @@ class WatchConnection:
                 reading.cancel()
         return sent_any
 
+    async def _send_smoothed(self) -> None:
+        """The smoother's final poses since the last sent (kept by a live session's worker)."""
+        worker = self.state.manager.workers.get(self.session_id)
+        if worker is None or self.world is None or not worker.smoothed:
+            return
+        if worker.smoothed[-1][0] <= self.smoothed_ns:
+            return
+        new = [(t, pose) for t, pose in worker.smoothed if t > self.smoothed_ns]
+        self.smoothed_ns = new[-1][0]
+        await self.websocket.send_json(smoothed_columns(new))
+
     async def _send_state(self, count: int) -> None:
         worker = self.state.manager.workers.get(self.session_id)
         activity = SessionActivity.of(worker)
@@ -220,6 +233,7 @@ class WatchConnection:
                                    "created_at": record.created_at.isoformat()})
         count = await self._frame_count()
         await self._send_new(count or 0)
+        await self._send_smoothed()
         await websocket.send_json({"type": "synced", "frame_count": self.sent})
         await self._send_state(self.sent)
         state_due = time.monotonic() + STATE_EVERY_S
@@ -234,6 +248,7 @@ class WatchConnection:
                 return
             if await self._send_new(count):
                 quiet_since = time.monotonic()
+                await self._send_smoothed()
             if time.monotonic() >= state_due:
                 await self._send_state(count)
                 state_due = time.monotonic() + STATE_EVERY_S

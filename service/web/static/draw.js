@@ -4,7 +4,7 @@
 
 const STATUS = { o: 0, d: 1, l: 2 };
 export const STATUS_NAMES = ["ok", "degraded", "lost"];
-const COLORS = { path: "#2563eb", front: "#9aa3b2", degraded: "#e08a00", lost: "#d62828",
+const COLORS = { path: "#2563eb", front: "#9aa3b2", smoothed: "#16a34a", degraded: "#e08a00", lost: "#d62828",
                  grid: "#e6e9ef", text: "#6b7280", now: "#111827" };
 
 // Column store of every pose received; typed arrays grow by doubling.
@@ -63,6 +63,25 @@ export class PoseBuffer {
   }
 }
 
+// Positions only (the smoother's final poses), growing by doubling.
+export class PathBuffer {
+  constructor() {
+    this.n = 0;
+    this.position = new Float64Array(3 * 1024);
+  }
+
+  append(flat) {
+    const count = flat.length / 3;
+    if (3 * (this.n + count) > this.position.length) {
+      const grown = new Float64Array(Math.max(2 * this.position.length, 3 * (this.n + count)));
+      grown.set(this.position.subarray(0, 3 * this.n));
+      this.position = grown;
+    }
+    this.position.set(flat, 3 * this.n);
+    this.n += count;
+  }
+}
+
 function fitCanvas(canvas) {
   const ratio = window.devicePixelRatio || 1;
   const width = Math.max(1, Math.round(canvas.clientWidth * ratio));
@@ -83,9 +102,11 @@ function niceStep(span) {
 
 // One projection of the trajectory: world axes ``axes`` = [[axis, sign] horizontal, vertical].
 export class TrajectoryView {
-  constructor(canvas, buffer, axes, labels) {
+  constructor(canvas, buffer, axes, labels, smoothed) {
     this.canvas = canvas;
     this.buffer = buffer;
+    this.smoothed = smoothed;  // a PathBuffer drawn on top
+    this.drawnSmoothed = 0;
     this.axes = axes;
     this.labels = labels;
     this.layer = document.createElement("canvas");
@@ -131,12 +152,17 @@ export class TrajectoryView {
   fit(from) {
     const b = this.buffer;
     let [u0, u1, v0, v1] = this.bounds ?? [Infinity, -Infinity, Infinity, -Infinity];
+    const take = (array, i) => {
+      const u = this.coord(array, i, 0);
+      const v = this.coord(array, i, 1);
+      u0 = Math.min(u0, u); u1 = Math.max(u1, u); v0 = Math.min(v0, v); v1 = Math.max(v1, v);
+    };
     for (let i = from; i < b.n; i++) {
-      for (const array of [b.position, b.front]) {
-        const u = this.coord(array, i, 0);
-        const v = this.coord(array, i, 1);
-        u0 = Math.min(u0, u); u1 = Math.max(u1, u); v0 = Math.min(v0, v); v1 = Math.max(v1, v);
-      }
+      take(b.position, i);
+      take(b.front, i);
+    }
+    for (let i = from ? this.drawnSmoothed : 0; i < this.smoothed.n; i++) {
+      take(this.smoothed.position, i);
     }
     const span = Math.max(u1 - u0, v1 - v0, 0.5);
     const margin = 0.15 * span;
@@ -149,9 +175,9 @@ export class TrajectoryView {
     this.cv = (this.bounds[2] + this.bounds[3]) / 2;
   }
 
-  inside(i) {
+  inside(i, arrays = [this.buffer.position, this.buffer.front]) {
     const [u0, u1, v0, v1] = this.bounds;
-    for (const array of [this.buffer.position, this.buffer.front]) {
+    for (const array of arrays) {
       const u = this.coord(array, i, 0);
       const v = this.coord(array, i, 1);
       if (u < u0 || u > u1 || v < v0 || v > v1) return false;
@@ -175,19 +201,21 @@ export class TrajectoryView {
     if (b.n === 0) return false;
     let full = resized || this.bounds === null;
     if (!full) {
-      for (let i = this.drawn; i < b.n; i++) {
-        if (!this.inside(i)) { full = true; break; }
+      for (let i = this.drawn; i < b.n && !full; i++) full = !this.inside(i);
+      for (let i = this.drawnSmoothed; i < this.smoothed.n && !full; i++) {
+        full = !this.inside(i, [this.smoothed.position]);
       }
     }
-    if (!full && this.drawn === b.n) return false;
+    if (!full && this.drawn === b.n && this.drawnSmoothed === this.smoothed.n) return false;
     if (full) {
       if (this.across && this.chooseAcross()) this.bounds = null;
       this.fit(this.bounds === null || resized ? 0 : this.drawn);
       this.redrawAll();
     } else {
-      this.drawFrom(this.drawn);
+      this.drawFrom(this.drawn, this.drawnSmoothed);
     }
     this.drawn = b.n;
+    this.drawnSmoothed = this.smoothed.n;
     this.compose();
     return true;
   }
@@ -200,14 +228,15 @@ export class TrajectoryView {
     this.vertices = 0;
     this.last = null;
     this.lastFront = null;
-    this.drawFrom(0);
+    this.lastSmoothed = null;
+    this.drawFrom(0, 0);
   }
 
-  drawFrom(start) {
+  drawFrom(start, startSmoothed) {
     const ctx = this.layer.getContext("2d");
     const b = this.buffer;
     const ratio = window.devicePixelRatio || 1;
-    const line = (array, lastKey, color, width) => {
+    const line = (array, lastKey, color, width, from = start, n = b.n) => {
       ctx.beginPath();
       ctx.strokeStyle = color;
       ctx.lineWidth = width * ratio;
@@ -215,11 +244,11 @@ export class TrajectoryView {
       let last = this[lastKey];
       if (last) ctx.moveTo(last[0], last[1]);
       let drawn = 0;
-      for (let i = start; i < b.n; i++) {
+      for (let i = from; i < n; i++) {
         const p = this.px(array, i);
         // Decimation: a vertex within a pixel of the previous one adds nothing visible.
         if (last && Math.abs(p[0] - last[0]) < ratio && Math.abs(p[1] - last[1]) < ratio
-            && i < b.n - 1) continue;
+            && i < n - 1) continue;
         if (last) ctx.lineTo(p[0], p[1]); else ctx.moveTo(p[0], p[1]);
         last = p;
         drawn += 1;
@@ -230,6 +259,8 @@ export class TrajectoryView {
     };
     line(b.front, "lastFront", COLORS.front, 1);
     this.vertices += line(b.position, "last", COLORS.path, 2);
+    line(this.smoothed.position, "lastSmoothed", COLORS.smoothed, 1.5, startSmoothed,
+         this.smoothed.n);
     // Degraded and lost frames are few and always shown (never decimated away).
     for (let i = start; i < b.n; i++) {
       if (b.status[i] === 0) continue;

@@ -1,7 +1,7 @@
 // One session: its trajectory from above and from the side, live over the watcher channel,
 // small time plots, and for a finished run its summary and downloads.
 import { ApiError, download, watch } from "./api.js";
-import { PoseBuffer, STATUS_NAMES, TimePlot, TrajectoryView } from "./draw.js";
+import { PathBuffer, PoseBuffer, STATUS_NAMES, TimePlot, TrajectoryView } from "./draw.js";
 import { ago } from "./list.js";
 
 const RECONNECT_MS = 2000;
@@ -12,6 +12,7 @@ function template(id) {
     <div class="views">
       <div class="panel"><h2>From above</h2><canvas id="top" class="view"></canvas>
         <div class="legend"><span><i style="background:#2563eb"></i>pose (real time)</span>
+          <span><i style="background:#16a34a"></i>smoothed (final)</span>
           <span><i style="background:#9aa3b2"></i>vision only</span>
           <span><i style="background:#e08a00;height:8px;width:8px;border-radius:4px"></i>degraded</span>
           <span><i style="background:#d62828;height:8px;width:8px;border-radius:4px"></i>lost</span>
@@ -43,8 +44,9 @@ function template(id) {
       <div class="panel"><canvas id="p-fps" class="plot"></canvas></div>
     </div>
   </div>
-  <p class="muted">Session <code>${id}</code>. Smoothed poses are not served yet: the views show
-  each frame's real-time pose (fused when the session has an IMU) and the vision-only pose.</p>`;
+  <p class="muted">Session <code>${id}</code>. Real time: each frame's pose as answered (fused
+  when the session has an IMU). Smoothed: the back end's final estimate of a frame once it leaves
+  the smoother's window (kept by the live session only, not stored).</p>`;
 }
 
 function median(values) {
@@ -68,9 +70,10 @@ export function showSession(id, { app, crumb, say, failed }) {
   crumb.querySelector("#crumb-name").textContent = id.slice(0, 8);
   const $ = (selector) => app.querySelector(selector);
   const buffer = new PoseBuffer();
+  const smoothed = new PathBuffer();
   const views = [
-    new TrajectoryView($("#top"), buffer, [[0, 1], [2, 1]], ["x →", "z ↑ (forward)"]),
-    new TrajectoryView($("#side"), buffer, [[2, 1], [1, -1]], ["z →", "−y ↑ (up)"]),
+    new TrajectoryView($("#top"), buffer, [[0, 1], [2, 1]], ["x →", "z ↑ (forward)"], smoothed),
+    new TrajectoryView($("#side"), buffer, [[2, 1], [1, -1]], ["z →", "−y ↑ (up)"], smoothed),
   ];
   const plots = {
     inliers: new TimePlot($("#p-inliers"), "inliers", "", { color: "#1f9d55" }),
@@ -82,7 +85,7 @@ export function showSession(id, { app, crumb, say, failed }) {
   const stats = { poses: 0, serverFrames: null, synced: false, firstDrawMs: null,
                   fullDrawMs: null, updates: 0, lastUpdateMs: 0, drawMsTotal: 0, drawMsMax: 0,
                   states: 0, activity: null, error: null };
-  window.swarmvoView = { stats, buffer, views, plots };
+  window.swarmvoView = { stats, buffer, smoothed, views, plots };
   let socket = null;
   let stopped = false;
   let frame = null;
@@ -180,6 +183,10 @@ export function showSession(id, { app, crumb, say, failed }) {
       showFacts();
       // While a backlog streams in, its first part is drawn at once and the rest when it is
       // complete: each part that leaves the view would otherwise cost a full redraw.
+      if (stats.synced || !views[0].drawn) schedule();
+    } else if (message.type === "smoothed") {
+      smoothed.append(message.position);
+      stats.smoothed = smoothed.n;
       if (stats.synced || !views[0].drawn) schedule();
     } else if (message.type === "synced") {
       stats.syncedMs = performance.now();
