@@ -72,11 +72,13 @@ from estimator.geometry import (
     quat_to_rotation_vector,
 )
 from estimator.pso import optimise
+from estimator.refine import refine_pose_mahalanobis, squared_mahalanobis
 from estimator.registration import RegistrationResult, register_method
 
 __all__ = ["PsoSupportEstimator", "rigidity_scores", "rigidity_weights"]
 
 MIN_SUPPORT = 4
+GATE_CHI2 = 16.266  # chi-square quantile 0.999 with 3 degrees of freedom
 # Scale ladder: double the threshold while support grows by at least this fraction.
 LADDER_GAIN = 0.05
 
@@ -100,6 +102,10 @@ class PsoSupportEstimator:
     refits: maximal fit/recount rounds after the swarm (robust only).
     sigmas: (N,) per-pair residual std in metres, e.g. from stereo depth uncertainty
         (robust only; ``pso`` ignores it). Only ratios matter: see the module docstring.
+    source_cov, target_cov: (N, 3, 3) covariances of the points (robust only), e.g. stereo
+        points' ray-aligned covariances: support is then the Mahalanobis test
+        r^T (R C_src R^T + C_tgt)^-1 r < gate_chi2 (see ``_mahalanobis_support``).
+    gate_chi2: that gate; the default keeps 99.9 % of the inliers (chi-square, 3 DOF).
     """
 
     robust: bool = True
@@ -116,6 +122,9 @@ class PsoSupportEstimator:
     delta_min: float = 0.005
     delta_max: float = 0.5
     sigmas: np.ndarray | None = None
+    source_cov: np.ndarray | None = None
+    target_cov: np.ndarray | None = None
+    gate_chi2: float = GATE_CHI2
 
     def __post_init__(self) -> None:
         for name in ("delta", "particles", "stagnation"):
@@ -135,6 +144,9 @@ class PsoSupportEstimator:
         )
         if self.delta_max < self.delta_min:
             raise ValueError(f"delta_max {self.delta_max} < delta_min {self.delta_min}")
+        check_positive(gate_chi2=self.gate_chi2)
+        if (self.source_cov is None) != (self.target_cov is None):
+            raise ValueError("source_cov and target_cov must be given together")
 
     @classmethod
     def from_options(cls, robust: bool, options: dict[str, object]) -> PsoSupportEstimator:
@@ -230,7 +242,13 @@ class PsoSupportEstimator:
         )
         supporters = objective.supporters(swarm.position)
         supporters, delta, pose = self._refine(pairs, supporters, delta)
-        if self.delta is None:
+        if self.source_cov is not None and self.target_cov is not None:
+            covariances = _covariances(self.source_cov, self.target_cov, len(source))
+            supporters, pose = _mahalanobis_support(
+                source, target, *covariances, supporters, pose, self.gate_chi2, self.refits
+            )
+            delta = math.sqrt(self.gate_chi2)
+        elif self.delta is None:
             supporters, delta, pose = self._ladder(pairs, supporters, delta, pose)
         return _finish(source, target, supporters, delta, swarm.iterations, pairs.fit, pose)
 
@@ -455,6 +473,64 @@ def _finish(
     return pose_result(
         rotation, translation, supporters, cost=cost, iterations=iterations, quaternion=quaternion
     )
+
+
+def _covariances(
+    source_cov: object, target_cov: object, count: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Both (N, 3, 3) covariance arrays, checked: finite, one per pair."""
+    arrays = []
+    for name, value in (("source_cov", source_cov), ("target_cov", target_cov)):
+        array = np.asarray(value, dtype=float)
+        if array.shape != (count, 3, 3):
+            raise ValueError(f"{name} must have shape ({count}, 3, 3), got {array.shape}")
+        if not np.isfinite(array).all():
+            raise ValueError(f"{name} must be finite")
+        arrays.append(array)
+    return arrays[0], arrays[1]
+
+
+def _mahalanobis_support(
+    source: np.ndarray,
+    target: np.ndarray,
+    source_cov: np.ndarray,
+    target_cov: np.ndarray,
+    supporters: np.ndarray,
+    pose: Pose | None,
+    gate: float,
+    rounds: int,
+) -> tuple[np.ndarray, Pose | None]:
+    """Support as the Mahalanobis test of every pair, refitted by maximum likelihood.
+
+    Stereo noise lies along the viewing ray and grows with depth squared: one isotropic
+    threshold either rejects the near pairs' lateral error or accepts far wrong matches. Here a
+    pair supports the pose when r^T (R C_src R^T + C_tgt)^-1 r < gate; the pose is then fitted
+    to the supporters with those covariances (``refine.refine_pose_mahalanobis``), and the two
+    steps repeat until the set is stable. Starts from the isotropic fit ``pose``.
+    """
+    if pose is None:
+        return supporters, pose
+    rotation, translation = pose[1], pose[2]
+    squared = squared_mahalanobis(source, target, source_cov, target_cov, rotation, translation)
+    for _ in range(rounds):
+        chosen = squared < gate
+        if np.count_nonzero(chosen) < MIN_SUPPORT:
+            break
+        refined = refine_pose_mahalanobis(
+            source[chosen], target[chosen], source_cov[chosen], target_cov[chosen],
+            rotation, translation, iterations=3, robust="none",
+        )  # fmt: skip
+        if refined.success:
+            rotation, translation = refined.rotation, refined.translation
+        squared = squared_mahalanobis(
+            source, target, source_cov, target_cov, rotation, translation
+        )
+        supporters = squared < gate
+        if np.array_equal(supporters, chosen):
+            break
+    if np.count_nonzero(supporters) < MIN_SUPPORT:
+        return supporters, None
+    return supporters, (matrix_to_quat(rotation), rotation, translation, np.sqrt(squared))
 
 
 def _rigid_core(weights: np.ndarray, ranking: np.ndarray, size: int) -> np.ndarray:

@@ -24,7 +24,7 @@ import numpy as np
 
 from estimator.geometry import quat_to_matrix, rotation_vector_to_quat, skew
 
-__all__ = ["RefinementResult", "refine_pose_mahalanobis"]
+__all__ = ["RefinementResult", "refine_pose_mahalanobis", "squared_mahalanobis"]
 
 Robust = Literal["cauchy", "huber", "none"]
 
@@ -96,6 +96,23 @@ def _inverse_symmetric(matrices: np.ndarray) -> np.ndarray:
     inverse[:, 2, 2] = a * d - b * b
     inverse[:, 1, 0], inverse[:, 2, 0], inverse[:, 2, 1] = cofactor_b, cofactor_c, inverse[:, 1, 2]
     return inverse / determinant[:, None, None]
+
+
+def squared_mahalanobis(
+    source: np.ndarray,
+    target: np.ndarray,
+    source_cov: np.ndarray,
+    target_cov: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+) -> np.ndarray:
+    """(N,) r^T (R C_src R^T + C_tgt)^-1 r with r = target - (R source + t): the support test
+    and the noise model's check use the same distance as the refinement."""
+    residual = (target - translation) @ rotation - source  # R^T r: the source frame
+    moved = (target_cov.reshape(-1, 3) @ rotation).reshape(-1, 3, 3)
+    moved = (moved.transpose(0, 2, 1).reshape(-1, 3) @ rotation).reshape(-1, 3, 3)
+    information = _inverse_symmetric(source_cov + moved)
+    return np.einsum("ni,nij,nj->n", residual, information, residual)
 
 
 def _linearise(
