@@ -242,14 +242,16 @@ class PsoSupportEstimator:
         )
         supporters = objective.supporters(swarm.position)
         supporters, delta, pose = self._refine(pairs, supporters, delta)
+        if self.delta is None:
+            supporters, delta, pose = self._ladder(pairs, supporters, delta, pose)
         if self.source_cov is not None and self.target_cov is not None:
+            # The isotropic search has found the rigid majority and its pose; the stereo
+            # metric now decides, pair by pair, who supports it.
             covariances = _covariances(self.source_cov, self.target_cov, len(source))
             supporters, pose = _mahalanobis_support(
                 source, target, *covariances, supporters, pose, self.gate_chi2, self.refits
             )
             delta = math.sqrt(self.gate_chi2)
-        elif self.delta is None:
-            supporters, delta, pose = self._ladder(pairs, supporters, delta, pose)
         return _finish(source, target, supporters, delta, swarm.iterations, pairs.fit, pose)
 
     def _refine(
@@ -518,7 +520,7 @@ def _mahalanobis_support(
             break
         refined = refine_pose_mahalanobis(
             source[chosen], target[chosen], source_cov[chosen], target_cov[chosen],
-            rotation, translation, iterations=3, robust="none",
+            rotation, translation, iterations=3, robust="cauchy",
         )  # fmt: skip
         if refined.success:
             rotation, translation = refined.rotation, refined.translation

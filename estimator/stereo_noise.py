@@ -9,7 +9,9 @@ So the level is estimated from the data, per session and online:
   are projected into the reference camera: e = proj(p) - proj(R q + t) in pixels, per axis.
   Both points carry noise, so Var(e_k) ~ 2 sigma_k^2 (small inter-frame motion);
 * a robust scale of each axis (1.4826 x the median absolute residual, immune to the leftover
-  outliers) gives this frame's sigma_k;
+  outliers) gives the shape (sigma_u : sigma_v : sigma_d) of this frame's level, and one common
+  factor scales it so that the median squared Mahalanobis residual of the frame's pairs is the
+  chi-square median (heavy tails make the per-axis rule alone overestimate the 3D spread);
 * frames are pooled as a weighted running variance that forgets old frames (``memory``), starting
   from a prior (the configured constants) worth ``prior_pairs`` residuals, so the first frames
   are not at the mercy of a handful of pairs.
@@ -35,16 +37,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimator.calibration import Rectification
-from estimator.refine import squared_mahalanobis
+from estimator.refine import CHI2_3_MEDIAN, squared_mahalanobis
 from estimator.stereo import point_covariances
 
 __all__ = ["CHI2_3_MEDIAN", "NoiseLevel", "StereoNoiseModel", "squared_mahalanobis"]
 
-CHI2_3_MEDIAN = 2.365974  # median of a chi-square variable with 3 degrees of freedom
 _MAD_TO_SIGMA = 1.482602  # sigma of a Gaussian from its median absolute deviation
 _MIN_SIGMA_PX = 0.01  # floor: quantised or synthetic data must not claim zero noise
 _MIN_PAIRS = 8  # fewer inliers say nothing reliable about the scale
-_GAUSSIAN_Q99 = 2.5758  # 99th percentile of |N(0, 1)|
+_GAUSSIAN_Q999 = 3.2905  # 99.9th percentile of |N(0, 1)|
 _CHI2_3_Q999 = 16.266  # the Gaussian support gate: chi-square 99.9 % quantile, 3 DOF
 
 
@@ -80,12 +81,13 @@ class StereoNoiseModel:
     rectification: Rectification
     prior: NoiseLevel
     prior_pairs: float = 200.0  # how many residuals the prior is worth
-    memory: float = 0.9  # weight kept by the past at each update (about 10 frames)
+    memory: float = 0.5  # weight kept by the past at each update
     prior_tail: float = 3.0  # generous: a tight first gate would cut the tail it measures
     _variance_sums: np.ndarray = field(init=False, repr=False)
     _tail_sum: float = field(init=False, repr=False)
     _weight: float = field(init=False, repr=False)
     _medians: list[float] = field(default_factory=list, init=False, repr=False)
+    _q90: list[float] = field(default_factory=list, init=False, repr=False)
     _updates: int = field(default=0, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -114,7 +116,10 @@ class StereoNoiseModel:
 
     def covariances(self, points: np.ndarray) -> np.ndarray:
         """(N, 3, 3) covariances of rectified-camera points at the current level."""
-        return point_covariances(points, self.rectification, *self.level.as_tuple())
+        return self._covariances(points, self.level)
+
+    def _covariances(self, points: np.ndarray, level: NoiseLevel) -> np.ndarray:
+        return point_covariances(points, self.rectification, *level.as_tuple())
 
     def update(
         self,
@@ -127,21 +132,26 @@ class StereoNoiseModel:
         squared Mahalanobis residual under the level *before* the update (None: too few)."""
         if len(reference) < _MIN_PAIRS:
             return None
-        median = float(
-            np.median(
-                squared_mahalanobis(
-                    current, reference, self.covariances(current), self.covariances(reference),
-                    rotation, translation,
-                )
-            )
+        # The check first: residuals against the level predicted before this frame.
+        predicted_squared = squared_mahalanobis(
+            current, reference, self.covariances(current), self.covariances(reference),
+            rotation, translation,
         )  # fmt: skip
+        median = float(np.median(predicted_squared))
+        self._q90.append(float(np.quantile(predicted_squared, 0.9)))
         predicted = current @ rotation.T + translation
         errors = project(reference, self.rectification) - project(predicted, self.rectification)
         # Both points are noisy: the difference has twice the variance of one measurement.
         sigma = _MAD_TO_SIGMA * np.median(np.abs(errors), axis=0) / np.sqrt(2.0)
         sigma = np.maximum(sigma, _MIN_SIGMA_PX)
+        frame_level = NoiseLevel(*(float(value) for value in sigma))
+        squared = squared_mahalanobis(
+            current, reference, self._covariances(current, frame_level),
+            self._covariances(reference, frame_level), rotation, translation,
+        )  # fmt: skip
+        sigma = np.maximum(sigma * np.sqrt(np.median(squared) / CHI2_3_MEDIAN), _MIN_SIGMA_PX)
         normalised = np.abs(errors) / (np.sqrt(2.0) * sigma)
-        tail = float(np.quantile(normalised, 0.99, axis=0).max()) / _GAUSSIAN_Q99
+        tail = float(np.quantile(normalised, 0.999, axis=0).max()) / _GAUSSIAN_Q999
         pairs = float(len(reference))
         self._variance_sums = self.memory * self._variance_sums + pairs * sigma**2
         self._tail_sum = self.memory * self._tail_sum + pairs * tail
@@ -154,6 +164,7 @@ class StereoNoiseModel:
         """The level now and the median (over frames) of the inliers' median squared
         Mahalanobis residual, ignoring the first frames in which the prior still weighs."""
         settled = self._medians[5:] or self._medians
+        settled_q90 = self._q90[5:] or self._q90
         return {
             **{key: value for key, value in zip(
                 ("sigma_u_px", "sigma_v_px", "sigma_d_px"), self.level.as_tuple(), strict=True
@@ -161,5 +172,7 @@ class StereoNoiseModel:
             "tail": self.tail,
             "gate_chi2": self.gate_chi2,
             "median_squared_mahalanobis": float(np.median(settled)) if settled else None,
+            # Chi-square (3 DOF) 90 % quantile: 6.251; larger here means heavier tails.
+            "q90_squared_mahalanobis": float(np.median(settled_q90)) if settled_q90 else None,
             "frames": self._updates,
         }  # fmt: skip

@@ -35,7 +35,7 @@ from estimator.synthetic import SynthOptions, synthesize
 __all__ = ["add_arguments", "run"]
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared/data"
-REAL = {"euroc_mh01_moving": DATA / "euroc_mh01_moving", "euroc_v101_micro": DATA / "euroc_v101_micro"}
+REAL = {name: DATA / name for name in ("euroc_mh01_moving", "euroc_v101_micro")}
 RENDERED = ("rendered", "rendered_noisy")
 PARTS = ("real", "rendered")
 PEER = "opencv-vo"
@@ -211,6 +211,7 @@ def _noise_line(runs: dict[str, Any]) -> str:
     noise = default.get("noise") or {}
     if not noise:
         return ""
+    ratio = noise["median_squared_mahalanobis"] / CHI2_3_MEDIAN
     return (
         "\nnoise model (pso-robust, vision alone): sigma_u {sigma_u_px:.3f} px, sigma_v "
         "{sigma_v_px:.3f} px, sigma_d {sigma_d_px:.3f} px; median squared Mahalanobis residual "
@@ -218,8 +219,8 @@ def _noise_line(runs: dict[str, Any]) -> str:
         "ratio {ratio:.2f}, within 20 %: {ok})"
     ).format(
         chi2=CHI2_3_MEDIAN,
-        ratio=noise["median_squared_mahalanobis"] / CHI2_3_MEDIAN,
-        ok="PASS" if abs(noise["median_squared_mahalanobis"] / CHI2_3_MEDIAN - 1) <= 0.2 else "MISS",
+        ratio=ratio,
+        ok="PASS" if abs(ratio - 1.0) <= 0.2 else "MISS",
         **noise,
     )
 
