@@ -129,15 +129,17 @@ def _peer_run(sequence: Sequence) -> dict[str, Any]:
     return metrics
 
 
-def _run_real(args: argparse.Namespace, estimators: list[str]) -> dict[str, Any]:
-    results: dict[str, Any] = {}
+def _run_real(
+    args: argparse.Namespace, estimators: list[str], results: dict[str, Any], save
+) -> None:
+    """Every run of the real clips into ``results``, saved after each run (long bench)."""
     for name in args.real:
         path = REAL[name]
         if not (path / "mav0").is_dir():
             print(f"skipping {name}: no data at {path}")
             continue
         sequence = _open(path)
-        runs: dict[str, Any] = {}
+        runs: dict[str, Any] = results.setdefault(name, {})
         for estimator in estimators:
             for refine in (True, False):
                 for imu in (False, True):
@@ -145,10 +147,10 @@ def _run_real(args: argparse.Namespace, estimators: list[str]) -> dict[str, Any]
                     folder = args.out / name / label.replace(" ", "_")
                     runs[label] = _real_run(sequence, estimator, refine, imu, args, folder)
                     print(f"{name} {label}: {_real_cells(runs[label])}", flush=True)
+                    save()
         runs[f"{PEER} vision"] = _peer_run(sequence)
         print(f"{name} {PEER} vision: {_real_cells(runs[f'{PEER} vision'])}", flush=True)
-        results[name] = runs
-    return results
+        save()
 
 
 def _real_cells(run: dict[str, Any] | None) -> str:
@@ -246,8 +248,9 @@ def _rendered(args: argparse.Namespace, noisy: bool) -> Path:
     return root
 
 
-def _run_rendered(args: argparse.Namespace, estimators: list[str]) -> dict[str, Any]:
-    results: dict[str, Any] = {}
+def _run_rendered(
+    args: argparse.Namespace, estimators: list[str], results: dict[str, Any], save
+) -> None:
     for name in args.datasets:
         sequence = _open(_rendered(args, noisy=name == "rendered_noisy"))
         results[name] = {}
@@ -259,7 +262,7 @@ def _run_rendered(args: argparse.Namespace, estimators: list[str]) -> dict[str, 
             for section in ("fused", "frontend"):
                 print(_row(f"{name} {estimator} {section}", summary[section]), flush=True)
             print(f"{name} {estimator} noise: {_noise_cell(summary)}", flush=True)
-    return results
+            save()
 
 
 def _rendered_table(results: dict[str, Any]) -> str:
@@ -310,12 +313,16 @@ def run(args: argparse.Namespace) -> int:
     # Runs of a subset update the stored results instead of discarding the rest.
     stored = json.loads(results_file.read_text()) if results_file.is_file() else {}
     results: dict[str, Any] = {part: stored.get(part, {}) for part in PARTS}
+
+    def save() -> str:
+        table = _real_table(results["real"]) + "\n" + _rendered_table(results["rendered"])
+        (out / "odometry.md").write_text(table)
+        results_file.write_text(json.dumps(results, indent=2) + "\n")
+        return table
+
     if "real" in args.parts:
-        results["real"].update(_run_real(args, estimators))
+        _run_real(args, estimators, results["real"], save)
     if "rendered" in args.parts:
-        results["rendered"].update(_run_rendered(args, estimators))
-    table = _real_table(results["real"]) + "\n" + _rendered_table(results["rendered"])
-    print("\n" + table)
-    (out / "odometry.md").write_text(table)
-    results_file.write_text(json.dumps(results, indent=2) + "\n")
+        _run_rendered(args, estimators, results["rendered"], save)
+    print("\n" + save())
     return 0
