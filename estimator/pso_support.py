@@ -524,9 +524,7 @@ def _mahalanobis_support(
         )  # fmt: skip
         if refined.success:
             rotation, translation = refined.rotation, refined.translation
-        squared = squared_mahalanobis(
-            source, target, source_cov, target_cov, rotation, translation
-        )
+        squared = squared_mahalanobis(source, target, source_cov, target_cov, rotation, translation)
         supporters = squared < gate
         if np.array_equal(supporters, chosen):
             break

@@ -32,7 +32,7 @@ from estimator.evaluation import evaluate_trajectory
 from estimator.registration import available_methods
 from estimator.synthetic import SynthOptions, synthesize
 
-__all__ = ["add_arguments", "run"]
+__all__ = ["add_arguments", "run", "update_readme"]
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared/data"
 REAL = {name: DATA / name for name in ("euroc_mh01_moving", "euroc_v101_micro")}
@@ -74,6 +74,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--datasets", nargs="+", choices=RENDERED, default=list(RENDERED))
     parser.add_argument("--quick", action="store_true", help="40 frames / 4 m, for a smoke run")
+    parser.add_argument(
+        "--readme",
+        type=Path,
+        help="also write the tables into this file between the odometry-results markers",
+    )
 
 
 def _estimators(args: argparse.Namespace) -> list[str]:
@@ -324,5 +329,23 @@ def run(args: argparse.Namespace) -> int:
         _run_real(args, estimators, results["real"], save)
     if "rendered" in args.parts:
         _run_rendered(args, estimators, results["rendered"], save)
-    print("\n" + save())
+    table = save()
+    print("\n" + table)
+    if args.readme is not None:
+        update_readme(args.readme, table)
     return 0
+
+
+README_BEGIN = "<!-- odometry-results: begin (written by swarmvo bench odometry --readme) -->"
+README_END = "<!-- odometry-results: end -->"
+
+
+def update_readme(path: Path, table: str) -> None:
+    """Replace the block between the markers of ``path`` with ``table`` (the result files'
+    numbers, never typed by hand)."""
+    text = path.read_text()
+    start, end = text.find(README_BEGIN), text.find(README_END)
+    if start < 0 or end < start:
+        raise ValueError(f"{path} has no {README_BEGIN!r} ... {README_END!r} block")
+    block = f"{README_BEGIN}\n\n{table.strip()}\n\n"
+    path.write_text(text[:start] + block + text[end:])
