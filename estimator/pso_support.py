@@ -15,7 +15,9 @@ the all-pairs centroids are wrong, every residual is shifted, and the support co
    max(0, 1 - (difference / rigidity)^2). Correct pairs are all mutually consistent, wrong
    matches only by chance, so a few power iterations of the weight matrix (its leading
    eigenvector, "spectral matching") rank correct pairs first even at 95 % outliers. The
-   O(N^2) pass costs the same at any outlier ratio.
+   O(M^2) pass costs the same at any outlier ratio; it only has to find a small core, so on
+   more than ``graph_pairs`` pairs it is built on a random subset of that size (the same
+   outlier ratio) and the whole call grows linearly with the pairs.
 2. Core and anchor. Greedily taking top-ranked pairs that are consistent with every pair
    already taken gives a small mutually rigid core. Its centroids replace the all-pairs
    centroids (no outlier bias) and its Kabsch rotation seeds the swarm.
@@ -106,6 +108,8 @@ class PsoSupportEstimator:
         points' ray-aligned covariances: support is then the Mahalanobis test
         r^T (R C_src R^T + C_tgt)^-1 r < gate_chi2 (see ``_mahalanobis_support``).
     gate_chi2: that gate; the default keeps 99.9 % of the inliers (chi-square, 3 DOF).
+    graph_pairs: most pairs in the rigidity graph (robust only): larger inputs build it on a
+        random subset, so the cost grows linearly with the pairs instead of quadratically.
     """
 
     robust: bool = True
@@ -125,6 +129,7 @@ class PsoSupportEstimator:
     source_cov: np.ndarray | None = None
     target_cov: np.ndarray | None = None
     gate_chi2: float = GATE_CHI2
+    graph_pairs: int = 512
 
     def __post_init__(self) -> None:
         for name in ("delta", "particles", "stagnation"):
@@ -140,6 +145,7 @@ class PsoSupportEstimator:
             core_size=self.core_size - 2,  # needs >= 3 pairs
             spread_deg=self.spread_deg,
             refits=self.refits + 1,
+            graph_pairs=self.graph_pairs - 4 * self.core_size + 1,  # room for the core search
             delta_min=self.delta_min,
         )
         if self.delta_max < self.delta_min:
@@ -214,13 +220,18 @@ class PsoSupportEstimator:
         rng: np.random.Generator,
         scales: np.ndarray | None,
     ) -> RegistrationResult:
-        weights = rigidity_weights(source, target, self.rigidity, scales)
+        # The O(M^2) graph only has to find a small rigid core: on a random subset of at most
+        # ``graph_pairs`` pairs (same outlier ratio) the cost stops growing with N.
+        sample = _graph_sample(len(source), self.graph_pairs, rng)
+        sample_scales = None if scales is None else scales[sample]
+        weights = rigidity_weights(source[sample], target[sample], self.rigidity, sample_scales)
         # Only the top of the ranking is ever looked at: select it, do not sort all pairs.
         ranking = _top_ranked(rigidity_scores(weights), 4 * self.core_size)
-        core = _rigid_core(weights, ranking, self.core_size)
+        local_core = _rigid_core(weights, ranking, self.core_size)
+        core = sample[local_core]
         if _degenerate_rows(source, target, core):
             return failed_result(len(source), "no rigid, non-collinear core of pairs found")
-        delta = self.delta or self._delta_from_core(weights[core[:, None], core])
+        delta = self.delta or self._delta_from_core(weights[local_core[:, None], local_core])
 
         # Anchor on the core (not all pairs) and search rotations around its Kabsch fit.
         seed_rotation = np.ascontiguousarray(kabsch(source[core], target[core])[0])
@@ -475,6 +486,13 @@ def _finish(
     return pose_result(
         rotation, translation, supporters, cost=cost, iterations=iterations, quaternion=quaternion
     )
+
+
+def _graph_sample(count: int, limit: int, rng: np.random.Generator) -> np.ndarray:
+    """All pair indices, or ``limit`` of them drawn at random (sorted) when there are more."""
+    if count <= limit:
+        return np.arange(count)
+    return np.sort(rng.choice(count, limit, replace=False))
 
 
 def _covariances(
