@@ -51,9 +51,11 @@ def record(path: Path) -> tuple[list[tuple], object]:
                 reference.points.depth_sigma[pairs.reference_index],
                 points.depth_sigma[pairs.current_index],
             )
+            # The gate the estimate used (the noise model is updated after it).
             problems.append(
                 (reference.timestamp_ns, self._last_timestamp_ns, pairs.current_points,
-                 pairs.reference_points, depth_sigma, estimate.point_covariances)
+                 pairs.reference_points, depth_sigma, estimate.point_covariances,
+                 self.noise.gate_chi2)
             )  # fmt: skip
         return estimate
 
@@ -76,7 +78,8 @@ def main() -> int:
         "pso-robust + depth sigmas (former default)": ("pso-robust", lambda p: {"sigmas": p[4]}),
         "pso-robust isotropic": ("pso-robust", lambda p: {}),
         "pso-robust + covariances (default)": (
-            "pso-robust", lambda p: {"source_cov": p[5][0], "target_cov": p[5][1]},
+            "pso-robust",
+            lambda p: {"source_cov": p[5][0], "target_cov": p[5][1], "gate_chi2": p[6]},
         ),
         "msac": ("msac", lambda p: {}),
         "pso": ("pso", lambda p: {}),
