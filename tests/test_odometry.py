@@ -124,12 +124,14 @@ def _relative_errors(reports: list, truth: np.ndarray) -> tuple[np.ndarray, np.n
 @pytest.mark.slow
 def test_mahalanobis_refinement_cuts_the_per_frame_error() -> None:
     """Weighing each stereo point by its ray-aligned covariance removes most of the depth
-    noise from the relative poses; the registration's inlier set stays the same."""
+    noise from the relative poses; the registration's inlier set stays the same. (msac: it
+    fits isotropically; pso-robust already fits with the covariances itself.)"""
     frames, truth = _rendered_flight()
     truth = relative_to_first(truth)
     runs = {}
     for refine in (False, True):
-        config = _config(backend={"enabled": False}, registration={"mahalanobis_refine": refine})
+        registration = {"mahalanobis_refine": refine, "method": "msac"}
+        config = _config(backend={"enabled": False}, registration=registration)
         runs[refine] = _run(Odometry(_rendered_rig(), config), frames)
         assert all(report.status == FrameStatus.OK for report in runs[refine])
     # Same keyframe, same prediction, same seed: the first steps match the same pairs.
@@ -251,7 +253,9 @@ def test_rendered_broken_frames_fused_with_the_imu_beats_the_front_end(tmp_path:
         options = SynthOptions(frames=80, length_m=8.0, seed=seed, broken_fraction=0.2)
         sequence = open_sequence(synthesize(tmp_path / str(seed), options).root)
         for refine, errors in ate.items():
-            config = SwarmvoConfig(seed=seed, registration={"mahalanobis_refine": refine})
+            # Off: the isotropic front end (no point covariances in the estimator either).
+            registration = {"mahalanobis_refine": refine, "use_point_sigmas": refine}
+            config = SwarmvoConfig(seed=seed, registration=registration)
             run = run_sequence(sequence, config)
             assert not any(report.status == FrameStatus.LOST for report in run.reports)
             for which, values in errors.items():

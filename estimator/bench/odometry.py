@@ -73,6 +73,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="where the rendered sequence is written once and reused (kept out of --out)",
     )
     parser.add_argument("--datasets", nargs="+", choices=RENDERED, default=list(RENDERED))
+    parser.add_argument(
+        "--refinement", nargs="+", choices=("on", "off"), default=["on", "off"],
+        help="real clips: which refinement settings to run",
+    )  # fmt: skip
+    parser.add_argument(
+        "--peer", action=argparse.BooleanOptionalAction, default=True,
+        help="real clips: run the OpenCV stereo VO peer",
+    )  # fmt: skip
     parser.add_argument("--quick", action="store_true", help="40 frames / 4 m, for a smoke run")
     parser.add_argument(
         "--readme",
@@ -147,15 +155,18 @@ def _run_real(
         runs: dict[str, Any] = results.setdefault(name, {})
         for estimator in estimators:
             for refine in (True, False):
+                if ("on" if refine else "off") not in args.refinement:
+                    continue
                 for imu in (False, True):
                     label = _real_label(estimator, refine, imu)
                     folder = args.out / name / label.replace(" ", "_")
                     runs[label] = _real_run(sequence, estimator, refine, imu, args, folder)
                     print(f"{name} {label}: {_real_cells(runs[label])}", flush=True)
                     save()
-        runs[f"{PEER} vision"] = _peer_run(sequence)
-        print(f"{name} {PEER} vision: {_real_cells(runs[f'{PEER} vision'])}", flush=True)
-        save()
+        if args.peer:
+            runs[f"{PEER} vision"] = _peer_run(sequence)
+            print(f"{name} {PEER} vision: {_real_cells(runs[f'{PEER} vision'])}", flush=True)
+            save()
 
 
 def _real_cells(run: dict[str, Any] | None) -> str:
