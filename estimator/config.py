@@ -27,6 +27,9 @@ class RegistrationConfig(_Section):
     # inlier residuals, estimator/stereo_noise.py) to estimators that weigh it: pso-robust's
     # support is then a Mahalanobis test (noise along the viewing ray, growing with depth).
     use_point_sigmas: bool = True
+    # "measured": the pixel / disparity noise is estimated online from the inlier residuals;
+    # "fixed": the frontend constants throughout (no state carried from frame to frame).
+    noise_model: Literal["measured", "fixed"] = "measured"
     # Final maximum-likelihood refinement of the pose on the inliers, each point weighed by its
     # full stereo covariance (ray-aligned: depth is far less certain than direction); see
     # estimator/refine.py. The inlier set stays the estimator's; it cuts the front-end error

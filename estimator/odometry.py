@@ -396,6 +396,8 @@ class Odometry:
         pairs, result, pose = estimate.pairs, estimate.result, estimate.reference_from_current
         if pairs is None or result is None or pose is None:
             return
+        if self.config.registration.noise_model == "fixed":
+            return
         inliers = result.inliers
         self.noise.update(
             pairs.reference_points[inliers], pairs.current_points[inliers], pose[:3, :3],
