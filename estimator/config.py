@@ -23,9 +23,13 @@ class RegistrationConfig(_Section):
     method: Literal["pso-robust", "pso", "msac", "svd"] = "pso-robust"
     # Extra keyword options passed to the estimator (e.g. {"particles": 48}).
     options: dict[str, float | int | str | bool] = Field(default_factory=dict)
-    # Hand the per-pair stereo noise (depth uncertainty of both points) to estimators that
-    # weigh it (``sigmas`` of pso-robust): far points are noisier than near ones.
+    # Hand each stereo point's 3x3 covariance (at the noise level measured on the session's
+    # inlier residuals, estimator/stereo_noise.py) to estimators that weigh it: pso-robust's
+    # support is then a Mahalanobis test (noise along the viewing ray, growing with depth).
     use_point_sigmas: bool = True
+    # "measured": the pixel / disparity noise is estimated online from the inlier residuals;
+    # "fixed": the frontend constants throughout (no state carried from frame to frame).
+    noise_model: Literal["measured", "fixed"] = "measured"
     # Final maximum-likelihood refinement of the pose on the inliers, each point weighed by its
     # full stereo covariance (ray-aligned: depth is far less certain than direction); see
     # estimator/refine.py. The inlier set stays the estimator's; it cuts the front-end error
@@ -34,7 +38,10 @@ class RegistrationConfig(_Section):
     refine_iterations: int = Field(5, ge=1, le=50)
     # Robust weight on the Mahalanobis distance of each pair (leftover outliers).
     refine_robust: Literal["cauchy", "huber", "none"] = "cauchy"
-    refine_robust_scale: float = Field(3.0, gt=0)  # in standard deviations
+    # In standard deviations of the measured noise level (estimator/stereo_noise.py): at 3 the
+    # kernel, now at the right scale, biased rendered rotations (4 standard errors about the
+    # optical axis); 6 removes that and is as accurate on the real clip.
+    refine_robust_scale: float = Field(6.0, gt=0)
 
 
 class FrontendConfig(_Section):
@@ -66,10 +73,9 @@ class FrontendConfig(_Section):
     subpixel: Literal["sad", "lk", "none"] = "sad"
     subpixel_window: int = Field(5, ge=1, le=15)  # half size of the patch
     disparity_sigma_px: float = Field(0.5, gt=0)  # disparity noise behind depth_sigma
-    # Pixel noise of a stereo point's image position, for its full covariance (used by
-    # registration.mahalanobis_refine; disparity noise is disparity_sigma_px). Twice the
-    # disparity noise, as measured on rendered flights (0.1 px temporal, 0.05 px disparity),
-    # at the same conservative scale as disparity_sigma_px (docs/frontend.md).
+    # Pixel noise of a stereo point's image position, for its full covariance (disparity noise
+    # is disparity_sigma_px). Only the prior of the first frames: the odometry measures the
+    # session's own level on its inlier residuals (estimator/stereo_noise.py).
     pixel_sigma_u_px: float = Field(1.0, gt=0)
     pixel_sigma_v_px: float = Field(1.0, gt=0)
     min_depth_m: float = Field(0.2, gt=0)

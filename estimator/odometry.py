@@ -43,7 +43,8 @@ from estimator.geometry import (
 from estimator.photometric import normalise_contrast
 from estimator.refine import refine_pose_mahalanobis
 from estimator.registration import RegistrationResult, register
-from estimator.stereo import StereoMatcher, StereoPoints, point_covariances
+from estimator.stereo import StereoMatcher, StereoPoints
+from estimator.stereo_noise import NoiseLevel, StereoNoiseModel
 from estimator.temporal import Correspondences, match_temporal
 from estimator.types import FrameReport, FrameStatus, ImuBatch, ImuNoise, StereoFrame
 
@@ -53,17 +54,8 @@ if TYPE_CHECKING:
 __all__ = ["Odometry", "frame_seed", "to_grey8"]
 
 
-# Estimators that accept per-pair noise (``sigmas``); msac measured no better with it.
-_METHODS_WITH_SIGMAS = frozenset({"pso-robust"})
-
-
-def _pair_sigmas(
-    reference: StereoPoints, current: StereoPoints, pairs: Correspondences
-) -> np.ndarray:
-    """Per-pair noise std: the depth uncertainties of both stereo points combined."""
-    return np.hypot(
-        reference.depth_sigma[pairs.reference_index], current.depth_sigma[pairs.current_index]
-    )
+# Estimators that weigh each point's covariance (``source_cov`` / ``target_cov``).
+_METHODS_WITH_COVARIANCES = frozenset({"pso-robust"})
 
 
 def frame_seed(seed: int, index: int) -> int:
@@ -110,6 +102,8 @@ class _Estimate:
     reference: _Reference | None = None  # the frame it was measured against
     # 6x6 of (rotation, translation), right perturbation, when the pose was refined.
     covariance: np.ndarray | None = None
+    # (N, 3, 3) covariances of the current and reference points of ``pairs``.
+    point_covariances: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class Odometry:
@@ -147,6 +141,13 @@ class Odometry:
         self._failures = 0  # consecutive frames without a vision estimate
         self._final_poses: tuple[tuple[int, np.ndarray], ...] = ()  # from the back end
         self._fused: FusedEstimate | None = None  # the back end's latest answer
+        frontend = self.config.frontend
+        self.noise = StereoNoiseModel(
+            self.rectification,
+            NoiseLevel(
+                frontend.pixel_sigma_u_px, frontend.pixel_sigma_v_px, frontend.disparity_sigma_px
+            ),
+        )
 
     def _make_backend(self, imu_noise: ImuNoise | None):
         try:
@@ -194,6 +195,7 @@ class Odometry:
                 estimate = _Estimate(None, None, "")
             else:
                 estimate = self._track(points, left, timings)
+                self._measure_noise(estimate)
             previous_pose = self._pose
             frontend_pose, status, message = self._chain(estimate)
             relative_pose = invert_pose(previous_pose) @ frontend_pose
@@ -315,13 +317,20 @@ class Odometry:
                 images=(reference.image, image),
             )
         with _stage(timings, "estimate"):
-            estimate = self._estimate(pairs, _pair_sigmas(reference.points, points, pairs))
+            covariances = (
+                self.noise.covariances(pairs.current_points),
+                self.noise.covariances(pairs.reference_points),
+            )
+            estimate = self._estimate(pairs, covariances)
+            estimate.point_covariances = covariances
             if self.config.registration.mahalanobis_refine:
                 estimate = self._refine(estimate, pairs)
         estimate.pairs, estimate.reference = pairs, reference
         return estimate
 
-    def _estimate(self, correspondences: Correspondences, sigmas: np.ndarray) -> _Estimate:
+    def _estimate(
+        self, correspondences: Correspondences, covariances: tuple[np.ndarray, np.ndarray]
+    ) -> _Estimate:
         """Rigid registration: reference points ~ R current points + t (T_ref_cur)."""
         frontend = self.config.frontend
         needed = frontend.min_matches
@@ -329,8 +338,9 @@ class Odometry:
             return _Estimate(None, None, f"{len(correspondences)} temporal matches (< {needed})")
         registration = self.config.registration
         options: dict[str, object] = dict(registration.options)
-        if registration.use_point_sigmas and registration.method in _METHODS_WITH_SIGMAS:
-            options["sigmas"] = sigmas
+        if registration.use_point_sigmas and registration.method in _METHODS_WITH_COVARIANCES:
+            options["source_cov"], options["target_cov"] = covariances
+            options.setdefault("gate_chi2", self.noise.gate_chi2)
         result = register(
             correspondences.current_points,
             correspondences.reference_points,
@@ -361,16 +371,15 @@ class Odometry:
         When the refinement cannot improve on the registration its pose is kept."""
         if estimate.reference_from_current is None or estimate.result is None:
             return estimate
-        frontend, registration = self.config.frontend, self.config.registration
+        assert estimate.point_covariances is not None
+        registration = self.config.registration
         inliers = estimate.result.inliers
-        current = correspondences.current_points[inliers]
-        reference = correspondences.reference_points[inliers]
-        noise = (frontend.pixel_sigma_u_px, frontend.pixel_sigma_v_px, frontend.disparity_sigma_px)
+        current_cov, reference_cov = estimate.point_covariances
         refined = refine_pose_mahalanobis(
-            current,
-            reference,
-            point_covariances(current, self.rectification, *noise),
-            point_covariances(reference, self.rectification, *noise),
+            correspondences.current_points[inliers],
+            correspondences.reference_points[inliers],
+            current_cov[inliers],
+            reference_cov[inliers],
             estimate.reference_from_current[:3, :3],
             estimate.reference_from_current[:3, 3],
             iterations=registration.refine_iterations,
@@ -381,6 +390,19 @@ class Odometry:
             estimate.reference_from_current = make_pose(refined.rotation, refined.translation)
             estimate.covariance = refined.covariance
         return estimate
+
+    def _measure_noise(self, estimate: _Estimate) -> None:
+        """Fold this frame's inlier residuals into the session's noise level."""
+        pairs, result, pose = estimate.pairs, estimate.result, estimate.reference_from_current
+        if pairs is None or result is None or pose is None:
+            return
+        if self.config.registration.noise_model == "fixed":
+            return
+        inliers = result.inliers
+        self.noise.update(
+            pairs.reference_points[inliers], pairs.current_points[inliers], pose[:3, :3],
+            pose[:3, 3],
+        )  # fmt: skip
 
     def _chain(self, estimate: _Estimate) -> tuple[np.ndarray, FrameStatus, str]:
         """pose_k = pose_ref @ T_ref_cur (paper eq. 2), in the original left camera frame."""

@@ -15,7 +15,9 @@ the all-pairs centroids are wrong, every residual is shifted, and the support co
    max(0, 1 - (difference / rigidity)^2). Correct pairs are all mutually consistent, wrong
    matches only by chance, so a few power iterations of the weight matrix (its leading
    eigenvector, "spectral matching") rank correct pairs first even at 95 % outliers. The
-   O(N^2) pass costs the same at any outlier ratio.
+   O(M^2) pass costs the same at any outlier ratio; it only has to find a small core, so on
+   more than ``graph_pairs`` pairs it is built on a random subset of that size (the same
+   outlier ratio) and the whole call grows linearly with the pairs.
 2. Core and anchor. Greedily taking top-ranked pairs that are consistent with every pair
    already taken gives a small mutually rigid core. Its centroids replace the all-pairs
    centroids (no outlier bias) and its Kabsch rotation seeds the swarm.
@@ -72,11 +74,13 @@ from estimator.geometry import (
     quat_to_rotation_vector,
 )
 from estimator.pso import optimise
+from estimator.refine import refine_pose_mahalanobis, squared_mahalanobis
 from estimator.registration import RegistrationResult, register_method
 
 __all__ = ["PsoSupportEstimator", "rigidity_scores", "rigidity_weights"]
 
 MIN_SUPPORT = 4
+GATE_CHI2 = 16.266  # chi-square quantile 0.999 with 3 degrees of freedom
 # Scale ladder: double the threshold while support grows by at least this fraction.
 LADDER_GAIN = 0.05
 
@@ -100,6 +104,12 @@ class PsoSupportEstimator:
     refits: maximal fit/recount rounds after the swarm (robust only).
     sigmas: (N,) per-pair residual std in metres, e.g. from stereo depth uncertainty
         (robust only; ``pso`` ignores it). Only ratios matter: see the module docstring.
+    source_cov, target_cov: (N, 3, 3) covariances of the points (robust only), e.g. stereo
+        points' ray-aligned covariances: support is then the Mahalanobis test
+        r^T (R C_src R^T + C_tgt)^-1 r < gate_chi2 (see ``_mahalanobis_support``).
+    gate_chi2: that gate; the default keeps 99.9 % of the inliers (chi-square, 3 DOF).
+    graph_pairs: most pairs in the rigidity graph (robust only): larger inputs build it on a
+        random subset, so the cost grows linearly with the pairs instead of quadratically.
     """
 
     robust: bool = True
@@ -116,6 +126,10 @@ class PsoSupportEstimator:
     delta_min: float = 0.005
     delta_max: float = 0.5
     sigmas: np.ndarray | None = None
+    source_cov: np.ndarray | None = None
+    target_cov: np.ndarray | None = None
+    gate_chi2: float = GATE_CHI2
+    graph_pairs: int = 512
 
     def __post_init__(self) -> None:
         for name in ("delta", "particles", "stagnation"):
@@ -131,10 +145,14 @@ class PsoSupportEstimator:
             core_size=self.core_size - 2,  # needs >= 3 pairs
             spread_deg=self.spread_deg,
             refits=self.refits + 1,
+            graph_pairs=self.graph_pairs - 4 * self.core_size + 1,  # room for the core search
             delta_min=self.delta_min,
         )
         if self.delta_max < self.delta_min:
             raise ValueError(f"delta_max {self.delta_max} < delta_min {self.delta_min}")
+        check_positive(gate_chi2=self.gate_chi2)
+        if (self.source_cov is None) != (self.target_cov is None):
+            raise ValueError("source_cov and target_cov must be given together")
 
     @classmethod
     def from_options(cls, robust: bool, options: dict[str, object]) -> PsoSupportEstimator:
@@ -202,13 +220,18 @@ class PsoSupportEstimator:
         rng: np.random.Generator,
         scales: np.ndarray | None,
     ) -> RegistrationResult:
-        weights = rigidity_weights(source, target, self.rigidity, scales)
+        # The O(M^2) graph only has to find a small rigid core: on a random subset of at most
+        # ``graph_pairs`` pairs (same outlier ratio) the cost stops growing with N.
+        sample = _graph_sample(len(source), self.graph_pairs, rng)
+        sample_scales = None if scales is None else scales[sample]
+        weights = rigidity_weights(source[sample], target[sample], self.rigidity, sample_scales)
         # Only the top of the ranking is ever looked at: select it, do not sort all pairs.
         ranking = _top_ranked(rigidity_scores(weights), 4 * self.core_size)
-        core = _rigid_core(weights, ranking, self.core_size)
+        local_core = _rigid_core(weights, ranking, self.core_size)
+        core = sample[local_core]
         if _degenerate_rows(source, target, core):
             return failed_result(len(source), "no rigid, non-collinear core of pairs found")
-        delta = self.delta or self._delta_from_core(weights[core[:, None], core])
+        delta = self.delta or self._delta_from_core(weights[local_core[:, None], local_core])
 
         # Anchor on the core (not all pairs) and search rotations around its Kabsch fit.
         seed_rotation = np.ascontiguousarray(kabsch(source[core], target[core])[0])
@@ -232,6 +255,14 @@ class PsoSupportEstimator:
         supporters, delta, pose = self._refine(pairs, supporters, delta)
         if self.delta is None:
             supporters, delta, pose = self._ladder(pairs, supporters, delta, pose)
+        if self.source_cov is not None and self.target_cov is not None:
+            # The isotropic search has found the rigid majority and its pose; the stereo
+            # metric now decides, pair by pair, who supports it.
+            covariances = _covariances(self.source_cov, self.target_cov, len(source))
+            supporters, pose = _mahalanobis_support(
+                source, target, *covariances, supporters, pose, self.gate_chi2, self.refits
+            )
+            delta = math.sqrt(self.gate_chi2)
         return _finish(source, target, supporters, delta, swarm.iterations, pairs.fit, pose)
 
     def _refine(
@@ -455,6 +486,69 @@ def _finish(
     return pose_result(
         rotation, translation, supporters, cost=cost, iterations=iterations, quaternion=quaternion
     )
+
+
+def _graph_sample(count: int, limit: int, rng: np.random.Generator) -> np.ndarray:
+    """All pair indices, or ``limit`` of them drawn at random (sorted) when there are more."""
+    if count <= limit:
+        return np.arange(count)
+    return np.sort(rng.choice(count, limit, replace=False))
+
+
+def _covariances(
+    source_cov: object, target_cov: object, count: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Both (N, 3, 3) covariance arrays, checked: finite, one per pair."""
+    arrays = []
+    for name, value in (("source_cov", source_cov), ("target_cov", target_cov)):
+        array = np.asarray(value, dtype=float)
+        if array.shape != (count, 3, 3):
+            raise ValueError(f"{name} must have shape ({count}, 3, 3), got {array.shape}")
+        if not np.isfinite(array).all():
+            raise ValueError(f"{name} must be finite")
+        arrays.append(array)
+    return arrays[0], arrays[1]
+
+
+def _mahalanobis_support(
+    source: np.ndarray,
+    target: np.ndarray,
+    source_cov: np.ndarray,
+    target_cov: np.ndarray,
+    supporters: np.ndarray,
+    pose: Pose | None,
+    gate: float,
+    rounds: int,
+) -> tuple[np.ndarray, Pose | None]:
+    """Support as the Mahalanobis test of every pair, refitted by maximum likelihood.
+
+    Stereo noise lies along the viewing ray and grows with depth squared: one isotropic
+    threshold either rejects the near pairs' lateral error or accepts far wrong matches. Here a
+    pair supports the pose when r^T (R C_src R^T + C_tgt)^-1 r < gate; the pose is then fitted
+    to the supporters with those covariances (``refine.refine_pose_mahalanobis``), and the two
+    steps repeat until the set is stable. Starts from the isotropic fit ``pose``.
+    """
+    if pose is None:
+        return supporters, pose
+    rotation, translation = pose[1], pose[2]
+    squared = squared_mahalanobis(source, target, source_cov, target_cov, rotation, translation)
+    for _ in range(rounds):
+        chosen = squared < gate
+        if np.count_nonzero(chosen) < MIN_SUPPORT:
+            break
+        refined = refine_pose_mahalanobis(
+            source[chosen], target[chosen], source_cov[chosen], target_cov[chosen],
+            rotation, translation, iterations=3, robust="cauchy",
+        )  # fmt: skip
+        if refined.success:
+            rotation, translation = refined.rotation, refined.translation
+        squared = squared_mahalanobis(source, target, source_cov, target_cov, rotation, translation)
+        supporters = squared < gate
+        if np.array_equal(supporters, chosen):
+            break
+    if np.count_nonzero(supporters) < MIN_SUPPORT:
+        return supporters, None
+    return supporters, (matrix_to_quat(rotation), rotation, translation, np.sqrt(squared))
 
 
 def _rigid_core(weights: np.ndarray, ranking: np.ndarray, size: int) -> np.ndarray:

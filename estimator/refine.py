@@ -24,7 +24,7 @@ import numpy as np
 
 from estimator.geometry import quat_to_matrix, rotation_vector_to_quat, skew
 
-__all__ = ["RefinementResult", "refine_pose_mahalanobis"]
+__all__ = ["CHI2_3_MEDIAN", "RefinementResult", "refine_pose_mahalanobis", "squared_mahalanobis"]
 
 Robust = Literal["cauchy", "huber", "none"]
 
@@ -35,7 +35,7 @@ _STEP_TOLERANCE = 1e-6  # rad / m: converged, far below any stereo noise
 # A rejected step this small is the limit of Gauss-Newton with the covariances frozen in the
 # linearisation (they depend on R), not a sign that damping would help: stop there.
 _SETTLED_STEP = 1e-5
-_CHI2_3_MEDIAN = 2.365974  # median of a chi-square variable with 3 degrees of freedom
+CHI2_3_MEDIAN = 2.365974  # median of a chi-square variable with 3 degrees of freedom
 # The variance factor is a sample estimate: bounded so that a handful of pairs cannot claim an
 # absurdly small or large covariance.
 _MIN_VARIANCE_FACTOR, _MAX_VARIANCE_FACTOR = 1e-3, 1e3
@@ -96,6 +96,23 @@ def _inverse_symmetric(matrices: np.ndarray) -> np.ndarray:
     inverse[:, 2, 2] = a * d - b * b
     inverse[:, 1, 0], inverse[:, 2, 0], inverse[:, 2, 1] = cofactor_b, cofactor_c, inverse[:, 1, 2]
     return inverse / determinant[:, None, None]
+
+
+def squared_mahalanobis(
+    source: np.ndarray,
+    target: np.ndarray,
+    source_cov: np.ndarray,
+    target_cov: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+) -> np.ndarray:
+    """(N,) r^T (R C_src R^T + C_tgt)^-1 r with r = target - (R source + t): the support test
+    and the noise model's check use the same distance as the refinement."""
+    residual = (target - translation) @ rotation - source  # R^T r: the source frame
+    moved = (target_cov.reshape(-1, 3) @ rotation).reshape(-1, 3, 3)
+    moved = (moved.transpose(0, 2, 1).reshape(-1, 3) @ rotation).reshape(-1, 3, 3)
+    information = _inverse_symmetric(source_cov + moved)
+    return np.einsum("ni,nij,nj->n", residual, information, residual)
 
 
 def _linearise(
@@ -234,7 +251,7 @@ def refine_pose_mahalanobis(
     # large the noise really was. Scaling by the robust variance factor (median squared
     # distance over the median of chi-square with 3 degrees of freedom) makes the covariance
     # match this frame's data, so a consumer weighs it neither too much nor too little.
-    variance_factor = float(np.median(current.squared) / _CHI2_3_MEDIAN)
+    variance_factor = float(np.median(current.squared) / CHI2_3_MEDIAN)
     variance_factor = min(max(variance_factor, _MIN_VARIANCE_FACTOR), _MAX_VARIANCE_FACTOR)
     covariance = variance_factor * np.linalg.inv(current.hessian)
     covariance = 0.5 * (covariance + covariance.T)

@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy.stats import chi2
 
@@ -244,3 +245,134 @@ def oracle(source: np.ndarray, target: np.ndarray, true_inliers: np.ndarray) -> 
     result.elapsed_s = time.perf_counter() - start
     result.method = "oracle"
     return result
+
+
+# ----------------------------------------------------------------------------- whole-pipeline peer
+
+
+@dataclass
+class StereoVoPeerOptions:
+    """Plain OpenCV stereo VO, as a user would first write it (every number a common default)."""
+
+    features: int = 2000
+    row_tolerance_px: float = 1.5
+    min_disparity_px: float = 1.0
+    max_disparity_px: float = 160.0
+    max_hamming: int = 64
+    ransac_reprojection_px: float = 2.0
+    ransac_iterations: int = 200
+    min_points: int = 12
+
+
+def _stereo_features(
+    orb: cv2.ORB, left: np.ndarray, right: np.ndarray, fx: float, cx: float, cy: float,
+    baseline: float, options: StereoVoPeerOptions,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """Left keypoints (N, 2), their descriptors and 3D points from row-constrained matching."""
+    left_kp, left_desc = orb.detectAndCompute(left, None)
+    right_kp, right_desc = orb.detectAndCompute(right, None)
+    if left_desc is None or right_desc is None:
+        return np.empty((0, 2)), np.empty((0, 32), np.uint8), np.empty((0, 3))
+    left_xy = np.array([k.pt for k in left_kp])
+    right_xy = np.array([k.pt for k in right_kp])
+    distances = _hamming(left_desc, right_desc)
+    disparity = left_xy[:, None, 0] - right_xy[None, :, 0]
+    allowed = (np.abs(left_xy[:, None, 1] - right_xy[None, :, 1]) <= options.row_tolerance_px) & (
+        (disparity >= options.min_disparity_px) & (disparity <= options.max_disparity_px)
+    )
+    distances = np.where(allowed, distances, 1 << 20)
+    best = distances.argmin(axis=1)
+    rows = np.arange(len(left_xy))
+    keep = distances[rows, best] <= options.max_hamming
+    rows, best = rows[keep], best[keep]
+    d = disparity[rows, best]
+    depth = fx * baseline / d
+    points = np.column_stack(
+        [(left_xy[rows, 0] - cx) * depth / fx, (left_xy[rows, 1] - cy) * depth / fx, depth]
+    )
+    return left_xy[rows], left_desc[rows], points
+
+
+def _hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(len(a), len(b)) Hamming distances of binary descriptors."""
+    bits = np.unpackbits(a, axis=1).astype(np.int32)
+    other = np.unpackbits(b, axis=1).astype(np.int32)
+    return bits.sum(1)[:, None] + other.sum(1)[None, :] - 2 * bits @ other.T
+
+
+def opencv_stereo_vo(
+    sequence, limit: int | None = None, options: StereoVoPeerOptions | None = None
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Left-camera poses of plain OpenCV stereo VO: ORB, row-constrained stereo matching, then
+    ``cv2.solvePnPRansac`` of the current keypoints against the previous frame's 3D points.
+
+    Returns (timestamps_ns, (N, 4, 4) poses of the original left camera, frames failed); a
+    failed frame keeps the previous pose.
+    """
+    options = options or StereoVoPeerOptions()
+    rect = sequence.rig.rectification
+    camera = np.array([[rect.fx, 0, rect.cx], [0, rect.fx, rect.cy], [0, 0, 1.0]])
+    rect_from_camera = np.eye(4)
+    rect_from_camera[:3, :3] = rect.R_left
+    orb = cv2.ORB_create(options.features)
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
+    count = len(sequence) if limit is None else min(limit, len(sequence))
+    pose = np.eye(4)  # rectified left camera of frame k in that of frame 0
+    poses, stamps, failed, previous = [], [], 0, None
+    for index in range(count):
+        frame = sequence.load(index)
+        left, right = rect.rectify(_grey(frame.left), _grey(frame.right))
+        xy, descriptors, points = _stereo_features(
+            orb, left, right, rect.fx, rect.cx, rect.cy, rect.baseline, options
+        )
+        if previous is not None:
+            motion = _pnp_motion(matcher, previous, xy, descriptors, camera, options)
+            if motion is None:
+                failed += 1
+            else:
+                pose = pose @ motion
+        poses.append(np.linalg.inv(rect_from_camera) @ pose @ rect_from_camera)
+        stamps.append(frame.timestamp_ns)
+        previous = (descriptors, points)
+    return np.array(stamps, dtype=np.int64), np.array(poses), failed
+
+
+def _pnp_motion(
+    matcher: cv2.BFMatcher,
+    previous: tuple[np.ndarray, np.ndarray],
+    xy: np.ndarray,
+    descriptors: np.ndarray,
+    camera: np.ndarray,
+    options: StereoVoPeerOptions,
+) -> np.ndarray | None:
+    """T_prev_cur (rectified) from PnP of the current keypoints on the previous 3D points."""
+    previous_descriptors, previous_points = previous
+    if len(previous_points) < options.min_points or len(xy) < options.min_points:
+        return None
+    matches = matcher.match(previous_descriptors, descriptors)
+    matches = [m for m in matches if m.distance <= options.max_hamming]
+    if len(matches) < options.min_points:
+        return None
+    object_points = previous_points[[m.queryIdx for m in matches]]
+    image_points = xy[[m.trainIdx for m in matches]]
+    found, rvec, tvec, inliers = cv2.solvePnPRansac(
+        object_points, image_points, camera, None,
+        iterationsCount=options.ransac_iterations,
+        reprojectionError=options.ransac_reprojection_px,
+        confidence=0.999, flags=cv2.SOLVEPNP_ITERATIVE,
+    )  # fmt: skip
+    if not found or inliers is None or len(inliers) < options.min_points:
+        return None
+    current_from_previous = np.eye(4)
+    current_from_previous[:3, :3] = cv2.Rodrigues(rvec)[0]
+    current_from_previous[:3, 3] = tvec.ravel()
+    return np.linalg.inv(current_from_previous)
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image)
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.dtype == np.uint16:
+        image = (image // 257).astype(np.uint8)
+    return image

@@ -121,9 +121,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--strict", action="store_true", help="exit 1 when a pso-robust target is missed"
     )
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument(
+        "--mode",
+        choices=("paper", "stereo"),
+        default="paper",
+        help="paper: isotropic 3D noise (Figs. 6-7); stereo: points triangulated from pixel "
+        "noise on the EuRoC and a KITTI-like rig (results in registration-stereo)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.mode == "stereo":
+        from estimator.bench.registration_stereo import run_stereo
+
+        default = args.out == Path("benchmarks/results/registration")
+        return run_stereo(args, args.out.with_name("registration-stereo") if default else args.out)
     sigmas = args.sigmas or (QUICK_SIGMAS if args.quick else SIGMAS)
     ratios = args.outlier_ratios or (QUICK_OUTLIER_RATIOS if args.quick else OUTLIER_RATIOS)
     trials = args.trials or (QUICK_TRIALS if args.quick else TRIALS)

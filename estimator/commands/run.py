@@ -128,6 +128,8 @@ class RunResult:
     skipped_ns: list[int] = field(default_factory=list)
     # Frontend settings derived from the rig and frame rate (config holds the values used).
     derived: list[DerivedSetting] = field(default_factory=list)
+    # The session's estimated stereo noise level and how well it fits (stereo_noise.py).
+    noise: dict[str, Any] = field(default_factory=dict)
 
     @property
     def timestamps_ns(self) -> np.ndarray:
@@ -222,7 +224,8 @@ def run_sequence(
     smoothed = dict(pose for report in reports for pose in report.final_poses)
     smoothed.update(odometry.finish())
     elapsed = time.perf_counter() - start
-    return RunResult(sequence, config, reports, elapsed, smoothed, skipped_ns, derived)
+    noise = odometry.noise.summary()
+    return RunResult(sequence, config, reports, elapsed, smoothed, skipped_ns, derived, noise)
 
 
 def frame_interval_s(sequence: Sequence) -> float | None:
@@ -275,6 +278,7 @@ def summarize(
             f"frontend.{s.name}": {"value": s.value, "configured": s.overridden}
             for s in result.derived
         },
+        "noise": result.noise or None,
     }
     evaluations: dict[str, TrajectoryEvaluation] = {}
     ground_truth = result.sequence.ground_truth

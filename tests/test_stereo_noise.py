@@ -1,0 +1,102 @@
+"""The session's stereo noise model: recovers a known pixel / disparity noise, measures tails."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimator.calibration import StereoRig
+from estimator.geometry import quat_to_matrix, rotation_vector_to_quat
+from estimator.refine import CHI2_3_MEDIAN
+from estimator.stereo_noise import NoiseLevel, StereoNoiseModel
+
+F, CX, CY, BASELINE = 450.0, 376.0, 240.0, 0.11
+PRIOR = NoiseLevel(1.0, 1.0, 0.5)
+
+
+def _rectification():
+    camera = {
+        "width": 752, "height": 480, "fx": F, "fy": F, "cx": CX, "cy": CY,
+        "distortion_model": "none", "distortion": [],
+    }  # fmt: skip
+    right = np.eye(4)
+    right[0, 3] = BASELINE
+    rig = StereoRig.from_dict(
+        {
+            "left": {**camera, "T_BS": np.eye(4).tolist()},
+            "right": {**camera, "T_BS": right.tolist()},
+        }
+    )
+    return rig.rectification
+
+
+def _triangulate(uvd: np.ndarray) -> np.ndarray:
+    depth = F * BASELINE / uvd[:, 2]
+    return np.column_stack([(uvd[:, 0] - CX) * depth / F, (uvd[:, 1] - CY) * depth / F, depth])
+
+
+def _measured(points: np.ndarray, sigmas: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Stereo points re-triangulated from (u, v, d) with Gaussian noise of per-point sigmas."""
+    uvd = np.column_stack(
+        [F * points[:, 0] / points[:, 2] + CX, F * points[:, 1] / points[:, 2] + CY,
+         F * BASELINE / points[:, 2]]
+    )  # fmt: skip
+    return _triangulate(uvd + rng.normal(size=uvd.shape) * sigmas)
+
+
+def _frame(level: NoiseLevel, rng: np.random.Generator, count: int = 300, wild: float = 0.0):
+    """Inlier pairs of one frame: reference ~ R current + t, both measured with ``level``;
+    a fraction ``wild`` of the points has ten times the noise (blur, edges)."""
+    depth = rng.uniform(1.5, 20.0, count)
+    pixels = rng.uniform([20, 20], [732, 460], size=(count, 2))
+    reference = np.column_stack([(pixels - [CX, CY]) * depth[:, None] / F, depth])
+    rotation = quat_to_matrix(rotation_vector_to_quat(rng.normal(0, np.radians(1.5), 3)))
+    translation = rng.normal(0, 0.03, 3)
+    current = (reference - translation) @ rotation  # R^T (p - t)
+    sigmas = np.tile(level.as_tuple(), (count, 1))
+    sigmas[rng.random(count) < wild] *= 10.0
+    return _measured(reference, sigmas, rng), _measured(current, sigmas, rng), rotation, translation
+
+
+def test_a_known_noise_level_is_recovered() -> None:
+    rng = np.random.default_rng(4)
+    truth = NoiseLevel(0.3, 0.2, 0.15)
+    model = StereoNoiseModel(_rectification(), PRIOR)
+    for _ in range(20):
+        model.update(*_frame(truth, rng))
+    # Within 15 %: the point covariances linearise Z = f b / d (far points are skewed).
+    np.testing.assert_allclose(model.level.as_tuple(), truth.as_tuple(), rtol=0.15)
+    summary = model.summary()
+    assert abs(summary["median_squared_mahalanobis"] / CHI2_3_MEDIAN - 1.0) < 0.15
+    assert model.tail < 1.3  # Gaussian noise: the gate stays near the chi-square one
+    assert model.gate_chi2 < 16.3 * 1.3**2
+
+
+def test_heavy_tails_widen_the_gate_but_not_the_level() -> None:
+    rng = np.random.default_rng(5)
+    truth = NoiseLevel(0.2, 0.2, 0.1)
+    gaussian = StereoNoiseModel(_rectification(), PRIOR)
+    heavy = StereoNoiseModel(_rectification(), PRIOR)
+    for _ in range(15):
+        gaussian.update(*_frame(truth, rng))
+        heavy.update(*_frame(truth, rng, wild=0.05))
+    assert heavy.gate_chi2 > 3.0 * gaussian.gate_chi2
+    # The level is the typical feature's, not inflated by the wild 5 %.
+    np.testing.assert_allclose(heavy.level.as_tuple(), truth.as_tuple(), rtol=0.3)
+
+
+def test_the_prior_holds_until_there_are_enough_pairs() -> None:
+    rng = np.random.default_rng(6)
+    model = StereoNoiseModel(_rectification(), PRIOR)
+    reference, current, rotation, translation = _frame(NoiseLevel(0.3, 0.3, 0.3), rng, count=5)
+    assert model.update(reference, current, rotation, translation) is None
+    assert model.level == PRIOR
+    assert model.summary()["median_squared_mahalanobis"] is None
+
+
+@pytest.mark.parametrize(
+    ("option", "value"), [("memory", 1.0), ("memory", -0.1), ("prior_pairs", 0)]
+)
+def test_bad_settings_are_rejected(option: str, value: float) -> None:
+    with pytest.raises(ValueError, match=option):
+        StereoNoiseModel(_rectification(), PRIOR, **{option: value})
