@@ -268,11 +268,12 @@ def test_rendered_broken_frames_fused_with_the_imu_beats_the_front_end(tmp_path:
                     sequence.rig.left.T_BS,
                 ).metrics  # fmt: skip
                 values.append(metrics["ate_rmse_m"])
-    # Gyro + accelerometer: at least 30 % below the front end on every seed, with either front
-    # end (measured: refined -61 / -84 / -55 %, isotropic -50 / -61 / -53 %).
+    # Gyro + accelerometer: below the front end on every seed, by at least 30 % with the refined
+    # front end, 15 % with the isotropic one (measured: isotropic -20 / -56 / -54 % since
+    # positions relinearise at 5 mm, which the real clip's vision gaps need).
     for refine, errors in ate.items():
         fused, frontend = np.array(errors["pose"]), np.array(errors["frontend_pose"])
-        assert np.all(fused < 0.7 * frontend), (refine, ate)
+        assert np.all(fused < (0.7 if refine else 0.85) * frontend), (refine, ate)
         # The smoother's final estimates revise the online answers with later frames
         # (measured 5-49 % lower).
         assert np.sum(errors["smoothed"]) < np.sum(errors["pose"]), (refine, ate)
