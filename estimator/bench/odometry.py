@@ -26,13 +26,14 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from estimator.bench.readme import write_block
 from estimator.commands.run import build_config, run_sequence, write_outputs
 from estimator.datasets import Sequence, open_sequence
 from estimator.evaluation import evaluate_trajectory
 from estimator.registration import available_methods
 from estimator.synthetic import SynthOptions, synthesize
 
-__all__ = ["add_arguments", "run", "update_readme"]
+__all__ = ["add_arguments", "run"]
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared/data"
 REAL = {name: DATA / name for name in ("euroc_mh01_moving", "euroc_v101_micro")}
@@ -343,20 +344,5 @@ def run(args: argparse.Namespace) -> int:
     table = save()
     print("\n" + table)
     if args.readme is not None:
-        update_readme(args.readme, table)
+        write_block(args.readme, "odometry", table)
     return 0
-
-
-README_BEGIN = "<!-- odometry-results: begin (written by swarmvo bench odometry --readme) -->"
-README_END = "<!-- odometry-results: end -->"
-
-
-def update_readme(path: Path, table: str) -> None:
-    """Replace the block between the markers of ``path`` with ``table`` (the result files'
-    numbers, never typed by hand)."""
-    text = path.read_text()
-    start, end = text.find(README_BEGIN), text.find(README_END)
-    if start < 0 or end < start:
-        raise ValueError(f"{path} has no {README_BEGIN!r} ... {README_END!r} block")
-    block = f"{README_BEGIN}\n\n{table.strip()}\n\n"
-    path.write_text(text[:start] + block + text[end:])
