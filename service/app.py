@@ -112,27 +112,29 @@ def refusal_kind(error: StarletteHTTPException) -> str | None:
     return _KIND_BY_STATUS.get(error.status_code, f"http_{error.status_code}")
 
 
-# ----------------------------------------------------------------------------- request size
+# ----------------------------------------------------------------------------- request body
 
 
 class BodyLimit:
-    """Refuse oversized request bodies early: by Content-Length, and while streaming in."""
+    """Refuse oversized or stalled request bodies: by Content-Length, and while streaming in.
 
-    def __init__(self, app: ASGIApp, max_bytes: int, metrics: Metrics) -> None:
+    A body larger than ``max_bytes`` gets a 413; a client that stops sending its body for
+    ``timeout_s`` gets a 408, so half-sent requests do not hold connections forever.
+    """
+
+    def __init__(self, app: ASGIApp, max_bytes: int, timeout_s: float, metrics: Metrics) -> None:
         self.app = app
         self.max_bytes = max_bytes
+        self.timeout_s = timeout_s
         self.metrics = metrics
 
-    async def _refuse(self, send: Send, counted: bool = False) -> None:
-        if not counted:
-            self.metrics.errors.labels("too_large").inc()
-        body = json.dumps(
-            {"detail": f"request body exceeds the limit of {self.max_bytes} bytes"}
-        ).encode()
+    async def _refuse(self, send: Send, refusal: Refusal) -> None:
+        self.metrics.errors.labels(refusal.kind or "too_large").inc()
+        body = json.dumps({"detail": refusal.detail}).encode()
         await send(
             {
                 "type": "http.response.start",
-                "status": 413,
+                "status": refusal.status_code,
                 "headers": [
                     (b"content-type", b"application/json"),
                     (b"content-length", str(len(body)).encode()),
@@ -153,18 +155,24 @@ class BodyLimit:
                 except ValueError:
                     declared = -1
                 if declared < 0 or declared > self.max_bytes:
-                    await self._refuse(send)
+                    await self._refuse(send, _TooLarge(self.max_bytes))
                     return
         received = 0
+        body_done = False
         started = False
 
         async def limited_receive() -> Message:
-            nonlocal received
-            message = await receive()
+            nonlocal received, body_done
+            if body_done:  # afterwards only a disconnect can come: no time limit
+                return await receive()
+            try:
+                message = await asyncio.wait_for(receive(), self.timeout_s)
+            except TimeoutError:
+                raise _BodyTimeout(self.timeout_s) from None
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
+                body_done = not message.get("more_body", False)
                 if received > self.max_bytes:
-                    self.metrics.errors.labels("too_large").inc()
                     raise _TooLarge(self.max_bytes)
             return message
 
@@ -176,16 +184,25 @@ class BodyLimit:
 
         try:
             await self.app(scope, limited_receive, tracking_send)
-        except _TooLarge:
+        except _BodyRefusal as refusal:
             if not started:
-                await self._refuse(send, counted=True)
+                await self._refuse(send, refusal)
 
 
-class _TooLarge(Refusal):
-    """Raised from ``receive``; an HTTPException so body parsers pass it through as 413."""
+class _BodyRefusal(Refusal):
+    """Raised from ``receive``; an HTTPException, so body parsers pass it through."""
 
+
+class _TooLarge(_BodyRefusal):
     def __init__(self, max_bytes: int) -> None:
-        super().__init__(413, f"request body exceeds the limit of {max_bytes} bytes", None)
+        super().__init__(413, f"request body exceeds the limit of {max_bytes} bytes", "too_large")
+
+
+class _BodyTimeout(_BodyRefusal):
+    def __init__(self, seconds: float) -> None:
+        super().__init__(
+            408, f"request body not received: nothing arrived for {seconds:g} s", "timeout"
+        )
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -483,7 +500,8 @@ def create_app(
         docs_url=None,
         redoc_url=None,
     )
-    app.add_middleware(BodyLimit, max_bytes=settings.max_request_bytes, metrics=metrics)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_request_bytes,
+                       timeout_s=settings.request_body_timeout_s, metrics=metrics)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_request: Request, error: RequestValidationError) -> JSONResponse:

@@ -6,8 +6,9 @@ frames. Every option that scales the work of a frame therefore has an upper boun
 at creation beyond it); the per-frame CPU budget of the workers (``frame_cpu_budget_s``) is the
 backstop for what the bounds cannot foresee, such as very large images.
 
-The bounds keep the most expensive session within about 2x the CPU of a default one on the
-EuRoC clips (752x480); docs/service.md lists them.
+The bounds keep the most expensive session within about 1.3x (descriptor matching) to 2x
+(KLT tracking) the CPU of a default one on the EuRoC clips (752x480); docs/service.md lists
+them with the measurements behind them.
 """
 
 from __future__ import annotations
@@ -28,16 +29,17 @@ class Bound:
 
 
 CONFIG_BOUNDS: tuple[Bound, ...] = (
-    Bound("frontend", "max_features", 2000),
-    Bound("frontend", "detection_oversampling", 3),
+    Bound("frontend", "max_features", 1600),
+    Bound("frontend", "detection_oversampling", 2.5),
     Bound("frontend", "grid_rows", 16),
     Bound("frontend", "grid_cols", 16),
-    Bound("frontend", "orb_levels", 3),
+    # Each extra pyramid level costs about half a default frame (docs/service.md).
+    Bound("frontend", "orb_levels", 1),
     Bound("frontend", "klt_window", 10),
     Bound("frontend", "klt_levels", 3),
-    Bound("frontend", "subpixel_window", 8),
-    Bound("frontend", "temporal_refine_window", 8),
-    Bound("registration", "refine_iterations", 10),
+    Bound("frontend", "subpixel_window", 6),
+    Bound("frontend", "temporal_refine_window", 6),
+    Bound("registration", "refine_iterations", 8),
     Bound("backend", "smoother_lag_s", 1.0),
     Bound("backend", "extra_iterations", 2),
 )
@@ -47,12 +49,12 @@ ALLOWED_DETECTORS = ("orb",)
 
 # registration.options of each method that scale its work (other options are checked by the
 # estimator itself when the session is created).
-_SWARM = {"particles": 48, "max_iterations": 100, "stagnation": 100, "refits": 16,
-          "core_size": 16}
+_SWARM = {"particles": 32, "max_iterations": 60, "stagnation": 60, "refits": 12,
+          "core_size": 12}
 OPTION_BOUNDS: dict[str, dict[str, float]] = {
     "pso": _SWARM,
     "pso-robust": _SWARM,
-    "msac": {"max_iterations": 5000, "batch_size": 256, "refits": 5},
+    "msac": {"max_iterations": 20000, "batch_size": 128, "refits": 5},
     "svd": {},
 }
 
