@@ -631,7 +631,11 @@ def create_app(
     async def delete_session(session_id: str, owner: Owner, state: State) -> Response:
         await run_in_threadpool(_lookup, state, session_id, owner)
         await state.manager.remove(session_id)
-        await run_in_threadpool(state.store.delete_session, session_id, owner)
+        try:
+            await run_in_threadpool(state.store.delete_session, session_id, owner)
+        except Exception:
+            state.manager.deleted.pop(session_id, None)  # still stored: a retry may delete it
+            raise
         return Response(status_code=204)
 
     # -- frames and IMU
