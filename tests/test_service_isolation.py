@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from fastapi.testclient import TestClient
 from test_service_units import A, B, PidPipeline, new_session, send, settings_for
 
@@ -36,6 +37,9 @@ class BurningPipeline(PidPipeline):
 class BurningFactory(EstimatorFactory):
     """Picklable (module level), so worker processes can build its pipelines."""
 
+    def warm_up(self) -> None:  # nothing of the real estimator runs in the workers
+        return None
+
     def create(self, prepared: PreparedSession, initial_pose, first_index):  # type: ignore[override]
         return BurningPipeline(initial_pose, first_index, 0.0)
 
@@ -46,6 +50,7 @@ def _timed(client: TestClient, sid: str, t: int, headers: dict) -> tuple[float, 
     return time.perf_counter() - start, response.json(), response.status_code
 
 
+@pytest.mark.slow
 def test_a_session_over_its_cpu_budget_fails_alone_on_a_shared_worker(tmp_path: Path) -> None:
     settings = settings_for(tmp_path, executor="process", workers=1, frame_cpu_budget_s=BUDGET_S)
     app = create_app(settings, BurningFactory())
