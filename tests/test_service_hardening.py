@@ -220,8 +220,9 @@ def test_every_refusal_is_counted_by_kind(client: TestClient) -> None:
 
 def test_the_schema_documents_the_text_trajectory(client: TestClient) -> None:
     schema = client.get("/openapi.json").json()
-    answers = schema["paths"]["/v1/sessions/{session_id}/trajectory"]["get"]["responses"]
-    assert {"application/json", "text/plain"} <= set(answers["200"]["content"])
+    for path in ("/v1/sessions/{session_id}/trajectory", "/v1/sessions/{session_id}/smoothed"):
+        answers = schema["paths"][path]["get"]["responses"]
+        assert {"application/json", "text/plain"} <= set(answers["200"]["content"]), path
     sid = new_session(client)
     send(client, sid, 1)
     tum = client.get(f"/v1/sessions/{sid}/trajectory?format=tum", headers=A)
