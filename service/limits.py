@@ -50,7 +50,7 @@ ALLOWED_DETECTORS = ("orb",)
 # registration.options of each method that scale its work (other options are checked by the
 # estimator itself when the session is created).
 _SWARM = {"particles": 32, "max_iterations": 60, "stagnation": 60, "refits": 12,
-          "core_size": 12}
+          "core_size": 12, "graph_pairs": 512}
 OPTION_BOUNDS: dict[str, dict[str, float]] = {
     "pso": _SWARM,
     "pso-robust": _SWARM,
