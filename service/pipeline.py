@@ -123,7 +123,7 @@ class EstimatorFactory:
         """
         from estimator.calibration import StereoRig
         from estimator.config import SwarmvoConfig
-        from estimator.odometry import _METHODS_WITH_SIGMAS, Odometry, frame_seed
+        from estimator.odometry import _METHODS_WITH_COVARIANCES, Odometry, frame_seed
         from estimator.registration import register
 
         config = SwarmvoConfig.model_validate(prepared.config)
@@ -139,8 +139,9 @@ class EstimatorFactory:
         target[:, 0] += 0.05
         registration = config.registration
         options: dict[str, Any] = dict(registration.options)
-        if registration.use_point_sigmas and registration.method in _METHODS_WITH_SIGMAS:
-            options["sigmas"] = np.full(len(source), 0.01)
+        if registration.use_point_sigmas and registration.method in _METHODS_WITH_COVARIANCES:
+            covariance = np.tile(np.eye(3) * 1e-4, (len(source), 1, 1))
+            options["source_cov"], options["target_cov"] = covariance, covariance
         try:
             register(source, target, method=registration.method, seed=seed, **options)
         except (TypeError, ValueError) as error:
