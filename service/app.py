@@ -17,6 +17,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import Depends, FastAPI, HTTPException, Query, Request, Response, WebSocket
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -24,11 +25,14 @@ from pydantic import ValidationError
 from sqlalchemy.exc import OperationalError
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import FormData, UploadFile
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.formparsers import MultiPartException
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from starlette.websockets import WebSocketDisconnect
 
 from service.auth import AuthError, bearer_token, owner_for
+from service.limits import image_size_problems, work_limit_problems
 from service.metrics import Metrics
 from service.pipeline import (
     EstimatorFactory,
@@ -50,13 +54,22 @@ from service.schemas import (
     SmoothedPose,
     TrajectoryOut,
 )
-from service.sessions import FrameDropped, FrameRejected, ImuSamples, SessionManager
+from service.sessions import (
+    FrameDropped,
+    FrameRejected,
+    ImuSamples,
+    SessionGone,
+    SessionManager,
+    SessionWorker,
+)
 from service.settings import ServiceSettings
 from service.storage import SessionRecord, Store
 
 logger = logging.getLogger("swarmvo.service")
 
 SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
+# Plain ASCII digits only: int() would also take "1_000", " 5 " and non-ASCII digits.
+DIGITS = re.compile(r"[0-9]{1,19}")
 MAX_CALIBRATION_FILE = 1024 * 1024
 MAX_TEXT_FIELD = 4 * 1024 * 1024
 # Answers (poses, refusals, errors) a WebSocket client may leave unread before the server
@@ -73,27 +86,55 @@ class ServiceState:
     factory: PipelineFactory
 
 
-# ----------------------------------------------------------------------------- request size
+class Refusal(HTTPException):
+    """A refused request, counted in ``swarmvo_errors_total`` by ``kind`` when it is answered.
+
+    ``kind`` None: already counted where it was detected (e.g. by the session's consumer).
+    """
+
+    def __init__(
+        self, status_code: int, detail: str, kind: str | None,
+        headers: dict[str, str] | None = None,
+    ) -> None:
+        super().__init__(status_code, detail, headers=headers)
+        self.kind = kind
+
+
+# Kinds of refusals raised without one (FastAPI's own 404/405, form parsing, ...).
+_KIND_BY_STATUS = {400: "malformed", 401: "auth", 404: "not_found", 405: "method",
+                   408: "timeout", 409: "conflict", 413: "too_large", 415: "media_type",
+                   422: "validation", 429: "limit"}
+
+
+def refusal_kind(error: StarletteHTTPException) -> str | None:
+    if isinstance(error, Refusal):
+        return error.kind
+    return _KIND_BY_STATUS.get(error.status_code, f"http_{error.status_code}")
+
+
+# ----------------------------------------------------------------------------- request body
 
 
 class BodyLimit:
-    """Refuse oversized request bodies early: by Content-Length, and while streaming in."""
+    """Refuse oversized or stalled request bodies: by Content-Length, and while streaming in.
 
-    def __init__(self, app: ASGIApp, max_bytes: int, metrics: Metrics) -> None:
+    A body larger than ``max_bytes`` gets a 413; a client that stops sending its body for
+    ``timeout_s`` gets a 408, so half-sent requests do not hold connections forever.
+    """
+
+    def __init__(self, app: ASGIApp, max_bytes: int, timeout_s: float, metrics: Metrics) -> None:
         self.app = app
         self.max_bytes = max_bytes
+        self.timeout_s = timeout_s
         self.metrics = metrics
 
-    async def _refuse(self, send: Send, counted: bool = False) -> None:
-        if not counted:
-            self.metrics.errors.labels("too_large").inc()
-        body = json.dumps(
-            {"detail": f"request body exceeds the limit of {self.max_bytes} bytes"}
-        ).encode()
+    async def _refuse(self, send: Send, refusal: Refusal) -> None:
+        self.metrics.errors.labels(refusal.kind or "too_large").inc()
+        body = json.dumps({"detail": refusal.detail}).encode()
         await send(
             {
                 "type": "http.response.start",
-                "status": 413,
+                "status": refusal.status_code,
                 "headers": [
                     (b"content-type", b"application/json"),
                     (b"content-length", str(len(body)).encode()),
@@ -114,18 +155,24 @@ class BodyLimit:
                 except ValueError:
                     declared = -1
                 if declared < 0 or declared > self.max_bytes:
-                    await self._refuse(send)
+                    await self._refuse(send, _TooLarge(self.max_bytes))
                     return
         received = 0
+        body_done = False
         started = False
 
         async def limited_receive() -> Message:
-            nonlocal received
-            message = await receive()
+            nonlocal received, body_done
+            if body_done:  # afterwards only a disconnect can come: no time limit
+                return await receive()
+            try:
+                message = await asyncio.wait_for(receive(), self.timeout_s)
+            except TimeoutError:
+                raise _BodyTimeout(self.timeout_s) from None
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
+                body_done = not message.get("more_body", False)
                 if received > self.max_bytes:
-                    self.metrics.errors.labels("too_large").inc()
                     raise _TooLarge(self.max_bytes)
             return message
 
@@ -137,16 +184,25 @@ class BodyLimit:
 
         try:
             await self.app(scope, limited_receive, tracking_send)
-        except _TooLarge:
+        except _BodyRefusal as refusal:
             if not started:
-                await self._refuse(send, counted=True)
+                await self._refuse(send, refusal)
 
 
-class _TooLarge(HTTPException):
-    """Raised from ``receive``; an HTTPException so body parsers pass it through as 413."""
+class _BodyRefusal(Refusal):
+    """Raised from ``receive``; an HTTPException, so body parsers pass it through."""
 
+
+class _TooLarge(_BodyRefusal):
     def __init__(self, max_bytes: int) -> None:
-        super().__init__(413, f"request body exceeds the limit of {max_bytes} bytes")
+        super().__init__(413, f"request body exceeds the limit of {max_bytes} bytes", "too_large")
+
+
+class _BodyTimeout(_BodyRefusal):
+    def __init__(self, seconds: float) -> None:
+        super().__init__(
+            408, f"request body not received: nothing arrived for {seconds:g} s", "timeout"
+        )
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -167,8 +223,7 @@ def current_owner(
     try:
         return owner_for(bearer_token(request.headers.get("authorization")), state.settings)
     except AuthError as error:
-        state.metrics.errors.labels("auth").inc()
-        raise HTTPException(401, str(error), headers={"WWW-Authenticate": "Bearer"}) from error
+        raise Refusal(401, str(error), "auth", headers={"WWW-Authenticate": "Bearer"}) from error
 
 
 Owner = Annotated[str, Depends(current_owner)]
@@ -176,14 +231,15 @@ State = Annotated[ServiceState, Depends(_state)]
 
 
 def _unknown(session_id: str) -> HTTPException:
-    return HTTPException(404, f"unknown session {session_id!r}")
+    return Refusal(404, f"unknown session {session_id!r}", "unknown_session")
 
 
 def _lookup(state: ServiceState, session_id: str, owner: str) -> SessionRecord:
     """The owner's session or 404 (another key's session is indistinguishable from none)."""
+    if session_id in state.manager.deleted:
+        raise _unknown(session_id)
     record = state.store.get_session(session_id, owner) if SESSION_ID.match(session_id) else None
     if record is None:
-        state.metrics.errors.labels("unknown_session").inc()
         raise _unknown(session_id)
     return record
 
@@ -195,6 +251,14 @@ async def _lookup_async(state: ServiceState, session_id: str, owner: str) -> Ses
     return await run_in_threadpool(_lookup, state, session_id, owner)
 
 
+def _live(state: ServiceState, record: SessionRecord) -> SessionWorker:
+    """The session's worker, or 404 when it was deleted after it was looked up."""
+    try:
+        return state.manager.worker(record)
+    except SessionGone as error:
+        raise _unknown(record.id) from error
+
+
 def parse_imu(text: str | bytes | dict[str, Any], settings: ServiceSettings) -> ImuSamples:
     """Validated IMU samples (finite numbers, bounded count) as arrays."""
     try:
@@ -203,12 +267,13 @@ def parse_imu(text: str | bytes | dict[str, Any], settings: ServiceSettings) -> 
         else:
             batch = ImuBatchIn.model_validate_json(text)
     except ValidationError as error:
-        raise HTTPException(422, f"invalid IMU samples: {_brief(error)}") from error
+        raise Refusal(422, f"invalid IMU samples: {_brief(error)}", "validation") from error
     if len(batch.samples) > settings.max_imu_batch:
-        raise HTTPException(
+        raise Refusal(
             413,
             f"{len(batch.samples)} IMU samples in one batch; the limit is "
             f"{settings.max_imu_batch}",
+            "too_large",
         )
     return ImuSamples(
         np.array([s.timestamp_ns for s in batch.samples], dtype=np.int64),
@@ -235,9 +300,9 @@ async def _form(request: Request, max_files: int, max_fields: int) -> FormData:
             max_files=max_files, max_fields=max_fields, max_part_size=MAX_TEXT_FIELD
         )
     except MultiPartException as error:
-        raise HTTPException(400, f"malformed multipart body: {error.message}") from error
+        raise Refusal(400, f"malformed multipart body: {error.message}", "malformed") from error
     except (ValueError, KeyError) as error:
-        raise HTTPException(400, f"malformed multipart body: {error}") from error
+        raise Refusal(400, f"malformed multipart body: {error}", "malformed") from error
 
 
 async def _file(form: FormData, name: str, limit: int | None = None) -> bytes:
@@ -268,10 +333,11 @@ def _text(form: FormData, name: str, required: bool = True) -> str | None:
 def _int_field(form: FormData, name: str, low: int, high: int) -> int:
     text = _text(form, name)
     assert text is not None
-    try:
-        value = int(text.strip())
-    except ValueError as error:
-        raise HTTPException(422, f"form field {name!r} must be an integer") from error
+    if not DIGITS.fullmatch(text):
+        raise HTTPException(
+            422, f"form field {name!r} must be a non-negative integer in plain ASCII digits"
+        )
+    value = int(text)
     if not low <= value <= high:
         raise HTTPException(422, f"form field {name!r} must be in [{low}, {high}]")
     return value
@@ -298,25 +364,28 @@ def _create_session(
     imu_noise: dict[str, Any] | None,
 ) -> SessionOut:
     if state.store.count_sessions(owner) >= state.settings.max_sessions_per_key:
-        state.metrics.errors.labels("too_many_sessions").inc()
-        raise HTTPException(
+        raise Refusal(
             429,
             f"session limit reached ({state.settings.max_sessions_per_key} per API key); "
             "delete sessions you no longer need",
+            "too_many_sessions",
         )
     try:
         prepared = state.factory.prepare(calibration, config, imu_noise)
+        problems = work_limit_problems(prepared.config) + image_size_problems(
+            prepared.image_size, state.settings
+        )
+        if problems:
+            raise ValueError("; ".join(problems))
+        check = getattr(state.factory, "check", None)
+        if callable(check):
+            check(prepared)
     except ValueError as error:
-        state.metrics.errors.labels("bad_session").inc()
-        raise HTTPException(422, str(error)) from error
+        raise Refusal(422, str(error), "bad_session") from error
     record = state.store.create_session(
         owner, name, prepared.calibration, prepared.config, prepared.imu_noise, prepared.image_size
     )
     return SessionOut.of(record)
-
-
-def _frame_error(error: FrameRejected) -> HTTPException:
-    return HTTPException(error.status_code, error.detail)
 
 
 def _multipart_body(required: list[str], properties: dict[str, Any]) -> dict[str, Any]:
@@ -366,6 +435,18 @@ _MULTIPART_KITTI = _multipart_body(
         "config": _CONFIG_FIELD,
     },
 )
+
+# format=json answers TrajectoryOut (added by FastAPI); tum and kitti answer plain text.
+_TRAJECTORY_CONTENT: dict[str, Any] = {
+    "description": "JSON for format=json; text for format=tum (t x y z qx qy qz qw per line) "
+    "and format=kitti (12 numbers of the 3x4 pose per line)",
+    "content": {"text/plain": {"schema": {"type": "string"}}},
+}
+
+_SMOOTHED_CONTENT: dict[str, Any] = {
+    "description": "JSON for format=json; text for format=tum (t x y z qx qy qz qw per line)",
+    "content": {"text/plain": {"schema": {"type": "string"}}},
+}
 
 _ERRORS: dict[int | str, dict[str, Any]] = {
     code: {"model": ErrorOut} for code in (400, 401, 404, 409, 413, 415, 422, 429)
@@ -419,7 +500,8 @@ def create_app(
         docs_url=None,
         redoc_url=None,
     )
-    app.add_middleware(BodyLimit, max_bytes=settings.max_request_bytes, metrics=metrics)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_request_bytes,
+                       timeout_s=settings.request_body_timeout_s, metrics=metrics)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_request: Request, error: RequestValidationError) -> JSONResponse:
@@ -429,6 +511,22 @@ def create_app(
             location = ".".join(str(p) for p in item.get("loc", ()))
             parts.append(f"{location}: {item.get('msg')}")
         return JSONResponse({"detail": "; ".join(parts) or "invalid request"}, status_code=422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _refused(request: Request, error: StarletteHTTPException) -> Response:
+        kind = refusal_kind(error)
+        if kind is not None:
+            metrics.errors.labels(kind).inc()
+        return await http_exception_handler(request, error)
+
+    @app.exception_handler(ClientDisconnect)
+    async def _client_left(request: Request, _error: ClientDisconnect) -> Response:
+        """An expected client-side event: one line, no traceback, not an internal error."""
+        client = request.client.host if request.client else "?"
+        logger.info("client %s disconnected during %s %s", client, request.method,
+                    request.url.path)
+        metrics.errors.labels("client_disconnect").inc()
+        return Response(status_code=400)
 
     @app.exception_handler(OperationalError)
     async def _database_down(_request: Request, error: OperationalError) -> JSONResponse:
@@ -455,7 +553,8 @@ def create_app(
         try:
             await run_in_threadpool(state.store.ping)
         except Exception as error:
-            raise HTTPException(503, f"database unavailable: {error}") from error
+            logger.error("health check: database unavailable: %s", str(error).splitlines()[:1])
+            raise Refusal(503, "database unavailable", "storage") from error
         runner = state.manager.runner
         return Health(status="ok", sessions_active=len(state.manager.workers), database="ok",
                       executor=runner.mode, workers=settings.workers)
@@ -490,8 +589,7 @@ def create_app(
             calibration = await run_in_threadpool(euroc_calibration, cam0, cam1)
             noise = None if imu0 is None else await run_in_threadpool(euroc_imu_noise, imu0)
         except ValueError as error:
-            metrics.errors.labels("bad_session").inc()
-            raise HTTPException(422, str(error)) from error
+            raise Refusal(422, str(error), "bad_session") from error
         return await run_in_threadpool(
             _create_session, state, owner, name[:200], calibration, config, noise
         )
@@ -511,8 +609,7 @@ def create_app(
         try:
             calibration = await run_in_threadpool(kitti_calibration, calib, (width, height))
         except ValueError as error:
-            metrics.errors.labels("bad_session").inc()
-            raise HTTPException(422, str(error)) from error
+            raise Refusal(422, str(error), "bad_session") from error
         return await run_in_threadpool(
             _create_session, state, owner, name[:200], calibration, config, None
         )
@@ -534,7 +631,11 @@ def create_app(
     async def delete_session(session_id: str, owner: Owner, state: State) -> Response:
         await run_in_threadpool(_lookup, state, session_id, owner)
         await state.manager.remove(session_id)
-        await run_in_threadpool(state.store.delete_session, session_id, owner)
+        try:
+            await run_in_threadpool(state.store.delete_session, session_id, owner)
+        except Exception:
+            state.manager.deleted.pop(session_id, None)  # still stored: a retry may delete it
+            raise
         return Response(status_code=204)
 
     # -- frames and IMU
@@ -552,14 +653,16 @@ def create_app(
         timestamp_ns = _int_field(form, "timestamp_ns", 0, 2**63 - 1)
         imu_text = _text(form, "imu", required=False)
         imu = parse_imu(imu_text, settings) if imu_text and imu_text.strip() else None
-        worker = state.manager.worker(record)
+        worker = _live(state, record)
+        try:
+            future = worker.submit(timestamp_ns, left, right, imu)
+        except FrameRejected as error:
+            raise Refusal(error.status_code, error.detail, error.kind) from error
         try:
             # Shielded: a client that hangs up does not cancel a frame already accepted.
-            result = await asyncio.shield(worker.submit(timestamp_ns, left, right, imu))
-        except FrameRejected as error:
-            if error.kind in ("timestamp_order", "queue_full"):
-                metrics.errors.labels(error.kind).inc()
-            raise _frame_error(error) from error
+            result = await asyncio.shield(future)
+        except FrameRejected as error:  # counted by the session's consumer
+            raise Refusal(error.status_code, error.detail, None) from error
         return PoseOut.of(
             result.session_id, result.record, result.imu_samples, result.odometry, result.smoothed
         )
@@ -574,19 +677,18 @@ def create_app(
         """Buffer IMU samples; each frame consumes those up to its timestamp."""
         record = await _lookup_async(state, session_id, owner)
         samples = parse_imu(body.model_dump(), settings)
-        worker = state.manager.worker(record)
+        worker = _live(state, record)
         try:
             buffered = worker.add_imu(samples)
         except FrameRejected as error:
-            metrics.errors.labels(error.kind).inc()
-            raise _frame_error(error) from error
+            raise Refusal(error.status_code, error.detail, error.kind) from error
         return ImuBatchOut(accepted=len(samples), buffered=buffered)
 
     # -- trajectory
 
     @app.get(
-        "/v1/sessions/{session_id}/trajectory", tags=["sessions"], responses=_ERRORS,
-        response_model=TrajectoryOut,
+        "/v1/sessions/{session_id}/trajectory", tags=["sessions"],
+        responses={**_ERRORS, 200: _TRAJECTORY_CONTENT}, response_model=TrajectoryOut,
     )
     def get_trajectory(
         session_id: str,
@@ -621,8 +723,8 @@ def create_app(
         )
 
     @app.get(
-        "/v1/sessions/{session_id}/smoothed", tags=["sessions"], responses=_ERRORS,
-        response_model=SmoothedOut,
+        "/v1/sessions/{session_id}/smoothed", tags=["sessions"],
+        responses={**_ERRORS, 200: _SMOOTHED_CONTENT}, response_model=SmoothedOut,
     )
     def get_smoothed(
         session_id: str,
@@ -693,6 +795,32 @@ class StreamConnection:
         self.received = 0
         self.sender: asyncio.Task[None] | None = None
         self.image_size = (0, 0)  # the session's (width, height), known once accepted
+        # Set by terminate() (the session was deleted): close code and reason to send.
+        self.ending: tuple[int, str] | None = None
+        self.stop = asyncio.Event()
+
+    def terminate(self, code: int, reason: str) -> None:
+        """End this stream from outside: its loop stops reading and closes with ``code``."""
+        if self.ending is None:
+            self.ending = (code, reason)
+        self.stop.set()
+        if self.sender is not None:
+            self.sender.cancel()
+
+    async def _receive(self) -> Message | None:
+        """The next client message, or None once the stream was terminated."""
+        if self.stop.is_set():
+            return None
+        receive = asyncio.ensure_future(self.websocket.receive())
+        stop = asyncio.ensure_future(self.stop.wait())
+        await asyncio.wait({receive, stop}, return_when=asyncio.FIRST_COMPLETED)
+        stop.cancel()
+        if receive.done():
+            return receive.result()
+        receive.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await receive
+        return None
 
     async def _deny(self, status: int, detail: str) -> None:
         self.state.metrics.errors.labels("auth" if status == 401 else "unknown_session").inc()
@@ -709,12 +837,21 @@ class StreamConnection:
             return
         try:
             record = await _lookup_async(self.state, self.session_id, owner)
-        except HTTPException as error:
-            await self._deny(error.status_code, str(error.detail))
+            worker = _live(self.state, record)
+            self.state.manager.attach(record.id, self)
+        except (HTTPException, SessionGone) as error:
+            await self._deny(404 if isinstance(error, SessionGone) else error.status_code,
+                             str(error.detail))
             return
+        try:
+            await self._serve(record, worker)
+        finally:
+            self.state.manager.detach(record.id, self)
+
+    async def _serve(self, record: SessionRecord, worker: SessionWorker) -> None:
+        websocket = self.websocket
         await websocket.accept()
         self.image_size = (record.image_width, record.image_height)
-        worker = self.state.manager.worker(record)
         await websocket.send_json(
             {
                 "type": "hello",
@@ -730,8 +867,8 @@ class StreamConnection:
         graceful = False
         try:
             while True:
-                message = await websocket.receive()
-                if message["type"] == "websocket.disconnect":
+                message = await self._receive()
+                if message is None or message["type"] == "websocket.disconnect":
                     break
                 if message.get("text") is not None:
                     if await self._on_text(message["text"], record):
@@ -743,7 +880,12 @@ class StreamConnection:
             pass
         finally:
             await self.outbox.put(None)
-            if graceful:
+            if self.ending is not None:
+                sender.cancel()
+                await asyncio.wait({sender})
+                with contextlib.suppress(Exception):
+                    await websocket.close(*self.ending)
+            elif graceful:
                 with contextlib.suppress(Exception):
                     await asyncio.wait_for(sender, timeout=120)
                 with contextlib.suppress(Exception):
@@ -773,7 +915,7 @@ class StreamConnection:
         elif kind == "imu":
             try:
                 samples = parse_imu({"samples": message.get("samples")}, self.settings)
-                self.state.manager.worker(record).add_imu(samples)
+                _live(self.state, record).add_imu(samples)
             except HTTPException as error:
                 await self._reply({"type": "error", "detail": str(error.detail)})
             except FrameRejected as error:
@@ -874,16 +1016,17 @@ class StreamConnection:
             )
             return
         await self._acquire_credit()
-        worker = self.state.manager.worker(record)
         try:
-            future = worker.submit(
+            future = _live(self.state, record).submit(
                 header["timestamp_ns"], blob[:left_size], blob[left_size:], header["imu"],
                 raw=header["raw"],
             )
-        except FrameRejected as error:
-            self.state.metrics.errors.labels(error.kind).inc()
+        except (FrameRejected, HTTPException) as error:
+            refusal = error if isinstance(error, FrameRejected) else FrameRejected(
+                error.status_code, str(error.detail), "unknown_session")
+            self.state.metrics.errors.labels(refusal.kind).inc()
             self.outbox.put_nowait({"type": "rejected", "timestamp_ns": header["timestamp_ns"],
-                                    "status": error.status_code, "detail": error.detail})
+                                    "status": refusal.status_code, "detail": refusal.detail})
             return
         self.outbox.put_nowait((future, header["timestamp_ns"]))
 

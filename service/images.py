@@ -2,8 +2,8 @@
 
 Dimensions are read from the PNG/JPEG headers first, so a small file that claims a huge image
 (a decompression bomb) is refused before any pixel buffer is allocated. Truncated files are
-refused structurally (PNG without IEND, JPEG without EOI), because decoders would otherwise
-quietly fill the missing rows with grey.
+refused structurally (PNG whose chunks end before IEND, JPEG without EOI), because decoders
+would otherwise quietly fill the missing rows with grey.
 """
 
 from __future__ import annotations
@@ -39,9 +39,20 @@ def _png_size(data: bytes, name: str) -> tuple[int, int]:
     if len(data) < 33 or data[12:16] != b"IHDR":
         raise ImageError(f"{name}: truncated PNG (no IHDR header)")
     width, height = struct.unpack(">II", data[16:24])
-    if b"IEND" not in data[-12:]:
+    if not _png_complete(data):
         raise ImageError(f"{name}: truncated PNG (no IEND chunk at the end)")
     return width, height
+
+
+def _png_complete(data: bytes) -> bool:
+    """Walk the chunks (length, type, data, CRC) to IEND; bytes after it are ignored."""
+    position = len(PNG_SIGNATURE)
+    while position + 12 <= len(data):
+        (length,) = struct.unpack(">I", data[position : position + 4])
+        if data[position + 4 : position + 8] == b"IEND":
+            return True
+        position += 12 + length
+    return False
 
 
 def _jpeg_size(data: bytes, name: str) -> tuple[int, int]:

@@ -47,6 +47,12 @@ class PipelineFactory(Protocol):
     ) -> Pipeline: ...
 
 
+class SessionChecker(Protocol):
+    """Optional: a factory that can try a session out before it is stored."""
+
+    def check(self, prepared: PreparedSession) -> None: ...
+
+
 def reject_non_finite(value: Any, where: str) -> None:
     """NaN/inf anywhere in a JSON document is an input error, not a number to compute with."""
     if isinstance(value, float) and not math.isfinite(value):
@@ -106,6 +112,40 @@ class EstimatorFactory:
             imu_noise=normalise_imu_noise(imu_noise),
             image_size=rig.size,
         )
+
+    def check(self, prepared: PreparedSession) -> None:
+        """Dry run at creation: what would fail every frame must fail here, with its reason.
+
+        Builds the real ``Odometry`` (rig and config cross-checks: camera models, depth range),
+        draws the first frame seed and runs the configured registration once on a few
+        synthetic pairs (unknown or invalid ``registration.options``). Call it only after the
+        work limits were checked: the registration runs with the session's options.
+        """
+        from estimator.calibration import StereoRig
+        from estimator.config import SwarmvoConfig
+        from estimator.odometry import _METHODS_WITH_COVARIANCES, Odometry, frame_seed
+        from estimator.registration import register
+
+        config = SwarmvoConfig.model_validate(prepared.config)
+        noise = None if prepared.imu_noise is None else ImuNoise(**prepared.imu_noise)
+        try:
+            Odometry(StereoRig.from_dict(prepared.calibration), config=config, imu_noise=noise)
+            seed = frame_seed(config.seed, 0)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"the session cannot run: {error}") from error
+        source = np.random.default_rng(0).uniform(-2.0, 2.0, (24, 3))
+        source[:, 2] += 5.0
+        target = source.copy()
+        target[:, 0] += 0.05
+        registration = config.registration
+        options: dict[str, Any] = dict(registration.options)
+        if registration.use_point_sigmas and registration.method in _METHODS_WITH_COVARIANCES:
+            covariance = np.tile(np.eye(3) * 1e-4, (len(source), 1, 1))
+            options["source_cov"], options["target_cov"] = covariance, covariance
+        try:
+            register(source, target, method=registration.method, seed=seed, **options)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"invalid registration.options: {error}") from error
 
     def warm_up(self) -> None:
         """Prepare a new worker process: imports, lazily loaded modules and compiled kernels.

@@ -5,12 +5,14 @@ from __future__ import annotations
 import datetime as dt
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, Strict
 
 from service.storage import PoseRecord, SessionRecord
 
-TimestampNs = Annotated[int, Field(ge=0, le=2**63 - 1, description="nanoseconds")]
-Vector3 = tuple[float, float, float]
+# Strict: JSON numbers only (no booleans, no numeric strings).
+TimestampNs = Annotated[int, Strict(), Field(ge=0, le=2**63 - 1, description="nanoseconds")]
+Number = Annotated[float, Strict()]
+Vector3 = tuple[Number, Number, Number]
 Matrix4 = list[list[float]]
 
 

@@ -1,14 +1,92 @@
-"""Run the app under uvicorn (what ``swarmvo serve`` calls)."""
+"""Run the app under uvicorn (what ``swarmvo serve`` calls), with three adjustments.
+
+- Logs never carry an API key (``service.redact``): uvicorn's records go to the root handler,
+  whose filter redacts keys, bearer tokens and ``?token=`` query values.
+- A connection that does not complete its request headers in ``request_header_timeout_s`` is
+  answered 408 and closed (uvicorn only times out idle keep-alive connections).
+- A WebSocket handshake is one log line (accepted, or the 401/404 of a refusal): uvicorn's
+  sans-I/O protocol would add an "ASGI callable returned without completing handshake" error
+  to each refusal, and the websockets library its own line to each handshake.
+"""
 
 from __future__ import annotations
 
+import asyncio
 import logging
+from typing import Any
 
 import uvicorn
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 from service.app import create_app
 from service.redact import redact_logs
 from service.settings import ServiceSettings
+
+
+class HeaderTimeoutProtocol(HttpToolsProtocol):
+    """HTTP/1.1 that closes connections whose request headers do not arrive in time."""
+
+    header_timeout_s = 10.0
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._header_timer: asyncio.TimerHandle | None = None
+
+    def _arm(self) -> None:
+        self._disarm()
+        self._header_timer = self.loop.call_later(self.header_timeout_s, self._headers_late)
+
+    def _disarm(self) -> None:
+        if self._header_timer is not None:
+            self._header_timer.cancel()
+            self._header_timer = None
+
+    def _headers_late(self) -> None:
+        self._header_timer = None
+        if self.transport.is_closing():
+            return
+        if self.cycle is None or self.cycle.response_complete:
+            body = b'{"detail": "request headers not received in time"}'
+            self.transport.write(
+                b"HTTP/1.1 408 Request Timeout\r\ncontent-type: application/json\r\n"
+                b"connection: close\r\ncontent-length: %d\r\n\r\n%s" % (len(body), body)
+            )
+        self.transport.close()
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._arm()
+
+    def on_message_begin(self) -> None:
+        super().on_message_begin()
+        self._arm()
+
+    def on_headers_complete(self) -> None:
+        self._disarm()
+        super().on_headers_complete()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm()
+        super().connection_lost(exc)
+
+
+# The websockets library's own lines ("connection open", "connection rejected", frames at
+# debug) repeat uvicorn's one line per handshake: only its warnings and errors are kept.
+HANDSHAKE_LOGGER = logging.getLogger("swarmvo.websockets")
+
+
+class DenialLoggedOnce(WebSocketsSansIOProtocol):
+    """A handshake answered with an HTTP denial is complete: no extra error line for it."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.conn.logger = HANDSHAKE_LOGGER
+
+    async def send(self, message: Any) -> None:
+        await super().send(message)
+        if message["type"] == "websocket.http.response.body" and not message.get("more_body"):
+            self.handshake_complete = True
 
 
 def serve(settings: ServiceSettings, log_level: str = "info") -> int:
@@ -22,20 +100,27 @@ def serve(settings: ServiceSettings, log_level: str = "info") -> int:
             settings.host,
             settings.port,
         )
+    protocol = type("HttpProtocol", (HeaderTimeoutProtocol,),
+                    {"header_timeout_s": settings.request_header_timeout_s})
     config = uvicorn.Config(
         create_app(settings),
         host=settings.host,
         port=settings.port,
         log_level=log_level,
+        # uvicorn's records go to the root handler configured above (and its redaction).
+        log_config=None,
+        http=protocol,
+        ws=DenialLoggedOnce,
         ws_max_size=settings.ws_max_message_bytes,
         # Frames are PNG/JPEG already: deflating them again costs CPU on the event loop for
         # nothing (about 0.2 s per EuRoC pair on a busy core).
         ws_per_message_deflate=False,
+        timeout_keep_alive=settings.timeout_keep_alive_s,
         # Queued frames get this long to be processed and stored on SIGTERM/SIGINT.
         timeout_graceful_shutdown=15,
         access_log=log_level == "debug",
     )
-    # After uvicorn.Config: it installs the handlers the filter goes on.
     redact_logs(k.strip() for k in settings.api_keys.split(","))
+    HANDSHAKE_LOGGER.setLevel(logging.WARNING)
     uvicorn.Server(config).run()
     return 0

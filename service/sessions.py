@@ -17,7 +17,7 @@ from collections import OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -41,6 +41,10 @@ logger = logging.getLogger("swarmvo.service")
 # Smoothed poses a live session keeps for GET .../smoothed (the newest; they are not stored).
 SMOOTHED_KEEP = 20_000
 
+# WebSocket close code (application range 4000-4999) sent to streams of a deleted session.
+STREAM_CLOSE_DELETED = 4404
+MAX_REMEMBERED_DELETIONS = 10_000
+
 
 class FrameRejected(Exception):
     """A frame the service will not process; carries the HTTP status that explains why."""
@@ -50,6 +54,19 @@ class FrameRejected(Exception):
         self.status_code = status_code
         self.detail = detail
         self.kind = kind
+
+
+class SessionGone(FrameRejected):
+    """The session was deleted: everything sent for it afterwards is answered 404."""
+
+    def __init__(self) -> None:
+        super().__init__(404, "session was deleted", "unknown_session")
+
+
+class StreamHandle(Protocol):
+    """An open stream of a session (a WebSocket), ended when the session is deleted."""
+
+    def terminate(self, code: int, reason: str) -> None: ...
 
 
 class FrameDropped(FrameRejected):
@@ -155,6 +172,8 @@ class SessionWorker:
 
     def add_imu(self, samples: ImuSamples) -> int:
         """Buffer IMU samples for the next frames; returns the buffered count."""
+        if self.closed:
+            raise SessionGone()
         with self._imu_lock:
             if self._imu_count + len(samples) > self.settings.max_imu_buffer:
                 raise FrameRejected(
@@ -177,7 +196,7 @@ class SessionWorker:
     ) -> asyncio.Future[FrameResult]:
         """Queue one frame; the future resolves once its pose is stored (or it is refused)."""
         if self.closed:
-            raise FrameRejected(404, "session was deleted", "unknown_session")
+            raise SessionGone()
         last = self.last_submitted_ns
         if last is not None and timestamp_ns <= last:
             raise FrameRejected(
@@ -308,6 +327,7 @@ class SessionWorker:
             request = FrameRequest(
                 self.session_id, job.timestamp_ns, job.left, job.right, self.limits,
                 self.prepared.image_size, take.batch, job.raw, spec,
+                self.settings.frame_cpu_budget_s,
             )
             sent = time.perf_counter()
             outcome = await self.runner.run(self.slot, request)
@@ -326,7 +346,7 @@ class SessionWorker:
         assert outcome is not None
         if isinstance(outcome, FrameFailure):
             if outcome.kind not in ("bad_image", "worker_died", "worker_timeout",
-                                    "pipeline_missing"):
+                                    "pipeline_missing", "cpu_budget"):
                 self._consume_imu(take)  # the estimator saw these samples
             if outcome.trace:
                 logger.error("frame %s of session %s failed in its worker:\n%s",
@@ -361,8 +381,13 @@ class SessionWorker:
             # The estimator has moved on but the pose is not stored: rebuild from the last
             # stored pose on the next frame so the stored trajectory stays the source of truth.
             self.pipeline_ready = False
-            logger.exception("storing a pose of session %s failed", self.session_id)
-            raise FrameRejected(503, f"the pose could not be stored: {error}", "storage") from error
+            if self.closed:
+                raise SessionGone() from error
+            # The database's own message (statement, parameters) stays in the log.
+            logger.error("storing a pose of session %s failed: %s", self.session_id,
+                         str(error).splitlines()[0] if str(error) else repr(error))
+            raise FrameRejected(503, "the pose could not be stored (database error); retry "
+                                "the frame", "storage") from error
         done = time.perf_counter()
         timings["persist"] = done - stored
         timings["total"] = done - job.received
@@ -380,8 +405,13 @@ class SessionWorker:
             outcome.smoothed,
         )
 
-    async def close(self, reason: str, drain_seconds: float = 0.0) -> None:
-        """Stop the consumer; queued frames are processed first for up to ``drain_seconds``."""
+    async def close(
+        self, reason: str, drain_seconds: float = 0.0, deleted: bool = False
+    ) -> None:
+        """Stop the consumer; queued frames are processed first for up to ``drain_seconds``.
+
+        Frames still queued are refused with 503 (``reason``), or 404 when ``deleted``.
+        """
         self.closed = True
         if drain_seconds > 0:
             deadline = time.monotonic() + drain_seconds
@@ -390,7 +420,9 @@ class SessionWorker:
         while not self.queue.empty():
             job = self.queue.get_nowait()
             if not job.future.done():
-                job.future.set_exception(FrameRejected(503, reason, "shutdown"))
+                job.future.set_exception(
+                    SessionGone() if deleted else FrameRejected(503, reason, "shutdown")
+                )
         # Let a frame already in a worker finish and store its pose.
         while self.busy:
             await asyncio.sleep(0.01)
@@ -426,6 +458,10 @@ class SessionManager:
             max(2, min(settings.workers, 8)), thread_name_prefix="swarmvo-io"
         )
         self.workers: OrderedDict[str, SessionWorker] = OrderedDict()
+        # Recently deleted ids (uuid4: never reused), so that a request that looked the session
+        # up just before its deletion cannot bring it back to life.
+        self.deleted: OrderedDict[str, None] = OrderedDict()
+        self.streams: dict[str, set[StreamHandle]] = {}
         self._on_change: Callable[[], None] = lambda: metrics.sessions_active.set(
             len(self.workers)
         )
@@ -439,6 +475,9 @@ class SessionManager:
             raise
 
     def worker(self, record: SessionRecord) -> SessionWorker:
+        """The session's live state, created on first use; SessionGone once it was deleted."""
+        if record.id in self.deleted:
+            raise SessionGone()
         worker = self.workers.get(record.id)
         if worker is not None:
             self.workers.move_to_end(record.id)
@@ -463,11 +502,30 @@ class SessionManager:
             self.runner.release(worker.slot, victim)
             asyncio.get_running_loop().create_task(worker.close("session unloaded"))
 
+    def attach(self, session_id: str, stream: StreamHandle) -> None:
+        """Register an open stream; SessionGone when the session was deleted meanwhile."""
+        if session_id in self.deleted:
+            raise SessionGone()
+        self.streams.setdefault(session_id, set()).add(stream)
+
+    def detach(self, session_id: str, stream: StreamHandle) -> None:
+        streams = self.streams.get(session_id)
+        if streams is not None:
+            streams.discard(stream)
+            if not streams:
+                del self.streams[session_id]
+
     async def remove(self, session_id: str) -> None:
+        """Delete the live state: open streams are closed, queued frames refused with 404."""
+        self.deleted[session_id] = None
+        while len(self.deleted) > MAX_REMEMBERED_DELETIONS:
+            self.deleted.popitem(last=False)
+        for stream in self.streams.pop(session_id, set()):
+            stream.terminate(STREAM_CLOSE_DELETED, "session deleted")
         worker = self.workers.pop(session_id, None)
         if worker is not None:
             self._on_change()
-            await worker.close("session was deleted")
+            await worker.close("session was deleted", deleted=True)
             self.runner.release(worker.slot, session_id)
 
     async def shutdown(self, drain_seconds: float = 10.0) -> None:

@@ -43,6 +43,14 @@ class ServiceSettings(BaseSettings):
     # Process mode: a frame not answered by its worker within this time gets a 503 and the
     # worker is killed and replaced (an estimator stuck in a loop must not hold a session).
     frame_timeout_s: float = Field(60.0, gt=0, le=3600)
+    # Process mode: CPU seconds one frame (decode + odometry) may use. A frame beyond it fails
+    # with a 422 and only its own session restarts from its last stored pose; the other
+    # sessions of the worker keep their state. 0 = no budget.
+    frame_cpu_budget_s: float = Field(0.5, ge=0, le=3600)
+    # Connections: idle keep-alive, request headers, and the gap between two body chunks.
+    timeout_keep_alive_s: int = Field(5, ge=1, le=3600)
+    request_header_timeout_s: float = Field(10.0, gt=0, le=3600)
+    request_body_timeout_s: float = Field(30.0, gt=0, le=3600)
 
     # Limits (each produces a clear 4xx answer).
     max_request_bytes: int = Field(16 * 1024 * 1024, ge=1024)

@@ -28,7 +28,7 @@ import signal
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
@@ -66,6 +66,7 @@ class FrameRequest:
     imu: ImuBatch | None = None
     raw: bool = False  # 8-bit grey pixels, row-major, image_size; no PNG/JPEG container
     create: PipelineSpec | None = None  # build the pipeline first (new, resumed or lost)
+    cpu_budget_s: float = 0.0  # CPU seconds for decode + odometry; 0 = unlimited
 
 
 @dataclass(frozen=True)
@@ -101,6 +102,37 @@ class FrameFailure:
     trace: str = ""
 
 
+class CpuBudgetExceeded(BaseException):
+    """Raised into a frame that used up its CPU budget.
+
+    A BaseException, so that no ``except Exception`` inside the estimator swallows it.
+    """
+
+
+def _out_of_budget(_signum: int, _frame: Any) -> None:
+    raise CpuBudgetExceeded()
+
+
+@contextlib.contextmanager
+def cpu_budget(seconds: float) -> Iterator[None]:
+    """Interrupt the block once this process has used ``seconds`` of CPU time in it.
+
+    A profiling timer (SIGPROF counts CPU time, not waiting) whose handler raises; signals reach
+    only the main thread, which is where a worker process runs its frames. Elsewhere (thread
+    mode), or with 0, the block runs unbounded.
+    """
+    if seconds <= 0 or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGPROF, _out_of_budget)
+    signal.setitimer(signal.ITIMER_PROF, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_PROF, 0)
+        signal.signal(signal.SIGPROF, previous)
+
+
 def _flat(matrix: np.ndarray) -> list[float]:
     return [float(v) for v in np.asarray(matrix, dtype=float).reshape(16)]
 
@@ -108,7 +140,27 @@ def _flat(matrix: np.ndarray) -> list[float]:
 def compute_frame(
     pipelines: dict[str, Pipeline], factory: PipelineFactory, request: FrameRequest
 ) -> FrameOutcome | FrameFailure:
-    """Decode and run the odometry of one frame; never raises, so any worker can report it."""
+    """Decode and run the odometry of one frame within its CPU budget; never raises."""
+    try:
+        with cpu_budget(request.cpu_budget_s):
+            return _compute_frame(pipelines, factory, request)
+    except CpuBudgetExceeded:
+        # Interrupted anywhere: the session's pipeline state is unknown, so only it is dropped
+        # (it resumes from its last stored pose); other sessions' pipelines are untouched.
+        pipelines.pop(request.session_id, None)
+        return FrameFailure(
+            422,
+            f"the frame used more than its CPU budget of {request.cpu_budget_s:g} s "
+            "(frame_cpu_budget_s) and was abandoned; the session resumes from its last stored "
+            "pose. Lighter options (fewer features, smaller images) keep frames within it.",
+            "cpu_budget",
+            pipeline_lost=True,
+        )
+
+
+def _compute_frame(
+    pipelines: dict[str, Pipeline], factory: PipelineFactory, request: FrameRequest
+) -> FrameOutcome | FrameFailure:
     started = time.perf_counter()
     try:
         if request.raw:
