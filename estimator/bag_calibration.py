@@ -21,7 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.calibration import CameraModel, StereoRig, load_euroc_rig, load_rig
+from estimator.calibration import (
+    CameraModel,
+    StereoRig,
+    load_euroc_rig,
+    load_rig,
+    pinhole_camera,
+)
 from estimator.datasets import euroc_root, read_euroc_imu_noise, read_opencv_yaml
 from estimator.geometry import invert_pose
 from estimator.types import ImuNoise
@@ -29,9 +35,6 @@ from estimator.types import ImuNoise
 __all__ = ["BagCalibration", "load_bag_calibration", "load_kalibr_rig"]
 
 # Kalibr distortion model names -> the project's.
-_KALIBR_MODELS = {"radtan": "radtan", "equidistant": "equidistant", "none": "none"}
-
-
 @dataclass(frozen=True)
 class BagCalibration:
     rig: StereoRig
@@ -81,26 +84,8 @@ def load_kalibr_rig(path: Path) -> tuple[StereoRig, tuple[str | None, str | None
                 camera_from_body = np.asarray(entry["T_cam_imu"], dtype=float)
             elif name != "cam0":
                 camera_from_body = np.asarray(entry["T_cn_cnm1"], dtype=float) @ camera_from_body
-            if entry.get("camera_model", "pinhole") != "pinhole":
-                raise ValueError(f"unsupported camera_model {entry['camera_model']!r}")
-            model = str(entry.get("distortion_model", "none"))
-            if model not in _KALIBR_MODELS:
-                raise ValueError(f"unsupported distortion_model {model!r}")
-            width, height = entry["resolution"]
-            fu, fv, cu, cv = entry["intrinsics"]
-            cameras.append(
-                CameraModel(
-                    width=width,
-                    height=height,
-                    fx=fu,
-                    fy=fv,
-                    cx=cu,
-                    cy=cv,
-                    distortion_model=_KALIBR_MODELS[model],  # type: ignore[arg-type]
-                    distortion=tuple(entry.get("distortion_coeffs", ())),
-                    T_BS=invert_pose(camera_from_body.reshape(4, 4)),
-                )
-            )
+            body_from_camera = invert_pose(camera_from_body.reshape(4, 4))
+            cameras.append(pinhole_camera(entry, "distortion_coeffs", body_from_camera))
         except (KeyError, TypeError) as error:
             raise ValueError(f"{path}: malformed Kalibr {name} ({error!r})") from error
         except ValueError as error:

@@ -401,31 +401,37 @@ def _read_yaml(path: Path) -> Any:
         raise ValueError(f"{path} is not valid YAML: {error}") from error
 
 
+def pinhole_camera(entry: dict, coefficients_key: str, T_BS: np.ndarray) -> CameraModel:
+    """A pinhole camera from a EuRoC / Kalibr style description (``resolution``, ``intrinsics``
+    fu fv cu cv, ``distortion_model`` and its coefficients under ``coefficients_key``)."""
+    if entry.get("camera_model", "pinhole") != "pinhole":
+        raise ValueError(f"unsupported camera_model {entry['camera_model']!r}")
+    model_name = str(entry.get("distortion_model", "none"))
+    if model_name not in _EUROC_MODEL_NAMES:
+        raise ValueError(f"unsupported distortion_model {model_name!r}")
+    width, height = entry["resolution"]
+    fu, fv, cu, cv = entry["intrinsics"]
+    return CameraModel(
+        width=width,
+        height=height,
+        fx=fu,
+        fy=fv,
+        cx=cu,
+        cy=cv,
+        distortion_model=_EUROC_MODEL_NAMES[model_name],  # type: ignore[arg-type]
+        distortion=tuple(entry.get(coefficients_key, ())),
+        T_BS=np.asarray(T_BS, dtype=float),
+    )
+
+
 def _euroc_camera(path: Path) -> CameraModel:
     data = _read_yaml(path)
     if not isinstance(data, dict):
         raise ValueError(f"{path} does not hold a camera description")
     try:
-        if data.get("camera_model", "pinhole") != "pinhole":
-            raise ValueError(f"unsupported camera_model {data['camera_model']!r}")
-        width, height = data["resolution"]
-        fu, fv, cu, cv = data["intrinsics"]
-        model_name = str(data.get("distortion_model", "none"))
-        if model_name not in _EUROC_MODEL_NAMES:
-            raise ValueError(f"unsupported distortion_model {model_name!r}")
         transform = data["T_BS"]
         matrix = transform["data"] if isinstance(transform, dict) else transform
-        return CameraModel(
-            width=width,
-            height=height,
-            fx=fu,
-            fy=fv,
-            cx=cu,
-            cy=cv,
-            distortion_model=_EUROC_MODEL_NAMES[model_name],  # type: ignore[arg-type]
-            distortion=tuple(data.get("distortion_coefficients", ())),
-            T_BS=np.asarray(matrix, dtype=float),
-        )
+        return pinhole_camera(data, "distortion_coefficients", matrix)
     except (KeyError, TypeError) as error:
         raise ValueError(f"{path}: malformed EuRoC camera description ({error!r})") from error
     except ValueError as error:
