@@ -13,6 +13,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 
 # README block name -> the table file its benchmark writes
 BLOCKS = {
+    "driving": RESULTS / "driving" / "driving.md",
     "odometry": RESULTS / "odometry" / "odometry.md",
     "perturbations": RESULTS / "perturbations" / "perturbations.md",
 }
