@@ -704,22 +704,11 @@ def create_app(
                 session_id=session_id, poses=[PoseOut.of(session_id, r) for r in records]
             )
             return JSONResponse(body.model_dump(mode="json"))
-        from estimator.trajectory_io import write_kitti, write_tum
-
-        poses = np.array([r.pose for r in records], dtype=float).reshape(-1, 4, 4)
-        times = np.array([r.timestamp_ns for r in records], dtype=np.int64)
-        with tempfile.TemporaryDirectory(prefix="swarmvo-export-") as folder:
-            path = Path(folder) / f"trajectory.{format}"
-            if format == "tum":
-                write_tum(path, times, poses)
-            else:
-                write_kitti(path, poses)
-            text = path.read_text()
-        return PlainTextResponse(
-            text,
-            headers={
-                "content-disposition": f'attachment; filename="{session_id}.{format}.txt"'
-            },
+        return _trajectory_file(
+            format,
+            np.array([r.timestamp_ns for r in records], dtype=np.int64),
+            np.array([r.pose for r in records], dtype=float).reshape(-1, 4, 4),
+            f"{session_id}.{format}.txt",
         )
 
     @app.get(
@@ -745,19 +734,11 @@ def create_app(
                        for t, p in smoothed],
             )
             return JSONResponse(body.model_dump(mode="json"))
-        from estimator.trajectory_io import write_tum
-
-        with tempfile.TemporaryDirectory(prefix="swarmvo-export-") as folder:
-            path = Path(folder) / "smoothed.tum"
-            write_tum(
-                path,
-                np.array([t for t, _ in smoothed], dtype=np.int64),
-                np.array([p for _, p in smoothed], dtype=float).reshape(-1, 4, 4),
-            )
-            text = path.read_text()
-        name = f"{session_id}.smoothed.tum.txt"
-        return PlainTextResponse(
-            text, headers={"content-disposition": f'attachment; filename="{name}"'}
+        return _trajectory_file(
+            "tum",
+            np.array([t for t, _ in smoothed], dtype=np.int64),
+            np.array([p for _, p in smoothed], dtype=float).reshape(-1, 4, 4),
+            f"{session_id}.smoothed.tum.txt",
         )
 
     # -- streaming
@@ -770,6 +751,24 @@ def create_app(
 
     install_web_view(app)
     return app
+
+
+def _trajectory_file(
+    format: Literal["tum", "kitti"], times: np.ndarray, poses: np.ndarray, filename: str
+) -> PlainTextResponse:
+    """Poses as a TUM or KITTI text download, written by the same writers as ``swarmvo run``."""
+    from estimator.trajectory_io import write_kitti, write_tum
+
+    with tempfile.TemporaryDirectory(prefix="swarmvo-export-") as folder:
+        path = Path(folder) / f"trajectory.{format}"
+        if format == "tum":
+            write_tum(path, times, poses)
+        else:
+            write_kitti(path, poses)
+        text = path.read_text()
+    return PlainTextResponse(
+        text, headers={"content-disposition": f'attachment; filename="{filename}"'}
+    )
 
 
 # ----------------------------------------------------------------------------- WebSocket
