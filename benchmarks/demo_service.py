@@ -69,14 +69,14 @@ def main(argv: list[str] | None = None) -> int:
             dataset = Path(folder) / "synthetic"
             print(f"rendering {args.frames} frames ({args.length_m} m) with swarmvo synth ...")
             subprocess.run(
-                [sys.executable, "-m", "estimator.cli", "synth", str(dataset), "--frames",
+                [sys.executable, "-m", "estimator.cli.main", "synth", str(dataset), "--frames",
                  str(args.frames), "--length-m", str(args.length_m), "--seed", str(args.seed),
                  "--quiet"],
                 cwd=PROJECT_ROOT, check=True, timeout=300,
             )
         env = {**os.environ, "SWARMVO_API_KEYS": key}
         server = subprocess.Popen(
-            [sys.executable, "-m", "estimator.cli", "serve", "--host", "127.0.0.1", "--port",
+            [sys.executable, "-m", "estimator.cli.main", "serve", "--host", "127.0.0.1", "--port",
              str(port), "--data-dir", str(Path(folder) / "data"), "--log-level", "warning"],
             cwd=PROJECT_ROOT, env=env,
         )

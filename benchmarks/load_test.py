@@ -297,7 +297,7 @@ def start_server(workers: int | None, queue_size: int, policy: str, executor: st
     port = _free_port()
     env = {**os.environ, "SWARMVO_API_KEYS": API_KEY, "SWARMVO_QUEUE_SIZE": str(queue_size),
            "SWARMVO_QUEUE_POLICY": policy, "SWARMVO_EXECUTOR": executor}
-    command = [sys.executable, "-m", "estimator.cli", "serve", "--host", "127.0.0.1",
+    command = [sys.executable, "-m", "estimator.cli.main", "serve", "--host", "127.0.0.1",
                "--port", str(port), "--data-dir", str(data_dir), "--log-level", "warning"]
     if workers:
         command += ["--workers", str(workers)]

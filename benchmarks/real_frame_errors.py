@@ -23,12 +23,12 @@ from pathlib import Path
 import numpy as np
 
 from estimator import odometry as odometry_module
-from estimator.commands.run import build_config, run_sequence
-from estimator.datasets import open_sequence
-from estimator.evaluation import camera_ground_truth
+from estimator.cli.commands.run import build_config, run_sequence
+from estimator.evaluation.metrics import camera_ground_truth
+from estimator.formats.datasets import open_sequence
 from estimator.geometry import rotation_angle_deg
-from estimator.refine import refine_pose_mahalanobis
-from estimator.registration import register
+from estimator.registration.refine import refine_pose_mahalanobis
+from estimator.registration.registry import register
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT = ROOT.parent / "shared/data/euroc_mh01_moving"

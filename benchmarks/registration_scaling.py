@@ -24,8 +24,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from estimator.geometry import rotation_angle_deg
-from estimator.registration import register
-from estimator.simulation import simulate_pair
+from estimator.registration.registry import register
+from estimator.rendered.simulation import simulate_pair
 
 OUT = Path(__file__).resolve().parents[1] / "benchmarks/results/registration-scaling"
 DRAWN = (400, 1000, 2000, 4000, 6000, 8000)  # points drawn; about 70 % are visible pairs

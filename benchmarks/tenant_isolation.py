@@ -55,7 +55,7 @@ def start_server(folder: Path) -> tuple[subprocess.Popen, str]:
     port = _free_port()
     env = {**os.environ, "SWARMVO_API_KEYS": f"{KEY_A},{KEY_B}", "OMP_NUM_THREADS": "1"}
     process = subprocess.Popen(
-        [sys.executable, "-m", "estimator.cli", "serve", "--port", str(port), "--data-dir",
+        [sys.executable, "-m", "estimator.cli.main", "serve", "--port", str(port), "--data-dir",
          str(folder), "--workers", "1", "--log-level", "warning"],
         cwd=PROJECT_ROOT, env=env, stdout=(folder / "server.log").open("wb"),
         stderr=subprocess.STDOUT,

@@ -79,7 +79,7 @@ class Service:
         self.url = f"http://127.0.0.1:{self.port}"
         env = {**os.environ, "SWARMVO_API_KEYS": key, "OMP_NUM_THREADS": "1"}
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "estimator.cli", "serve", "--port", str(self.port),
+            [sys.executable, "-m", "estimator.cli.main", "serve", "--port", str(self.port),
              "--data-dir", str(data), "--workers", "1", "--log-level", "warning"],
             cwd=PROJECT_ROOT, env=env,
         )
@@ -272,7 +272,7 @@ def screenshots(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="swarmvo-webshots-") as folder:
         rendered = Path(folder) / "rendered"
         subprocess.run(
-            [sys.executable, "-m", "estimator.cli", "synth", str(rendered), "--frames", "160",
+            [sys.executable, "-m", "estimator.cli.main", "synth", str(rendered), "--frames", "160",
              "--length-m", "6", "--seed", "4", "--broken-fraction", "0.04", "--quiet"],
             cwd=PROJECT_ROOT, check=True, timeout=900,
         )

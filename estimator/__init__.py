@@ -1,6 +1,6 @@
 """swarmvo estimator: robust rigid registration and stereo visual odometry."""
 
-from estimator.registration import RegistrationResult, available_methods, register
+from estimator.registration.registry import RegistrationResult, available_methods, register
 
 __all__ = ["RegistrationResult", "available_methods", "register"]
 __version__ = "0.1.0"

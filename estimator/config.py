@@ -23,23 +23,23 @@ class RegistrationConfig(_Section):
     method: Literal["pso-robust", "pso", "msac", "svd"] = "pso-robust"
     # Extra keyword options passed to the estimator (e.g. {"particles": 48}).
     options: dict[str, float | int | str | bool] = Field(default_factory=dict)
-    # Hand each stereo point's 3x3 covariance (at the noise level measured on the session's
-    # inlier residuals, estimator/stereo_noise.py) to estimators that weigh it: pso-robust's
+    # Hand each stereo point's 3x3 covariance (at the noise level measured on the session's inlier
+    # residuals, estimator/frontend/stereo_noise.py) to estimators that weigh it: pso-robust's
     # support is then a Mahalanobis test (noise along the viewing ray, growing with depth).
     use_point_sigmas: bool = True
     # "measured": the pixel / disparity noise is estimated online from the inlier residuals;
     # "fixed": the frontend constants throughout (no state carried from frame to frame).
     noise_model: Literal["measured", "fixed"] = "measured"
-    # Final maximum-likelihood refinement of the pose on the inliers, each point weighed by its
-    # full stereo covariance (ray-aligned: depth is far less certain than direction); see
-    # estimator/refine.py. The inlier set stays the estimator's; it cuts the front-end error
-    # 3-7x for ~0.6 ms per frame, and its 6x6 covariance is what the back end then uses.
+    # Final maximum-likelihood refinement of the pose on the inliers, each point weighed by its full
+    # stereo covariance (ray-aligned: depth is far less certain than direction); see
+    # estimator/registration/refine.py. The inlier set stays the estimator's; it cuts the front-end
+    # error 3-7x for ~0.6 ms per frame, and its 6x6 covariance is what the back end then uses.
     mahalanobis_refine: bool = True
     refine_iterations: int = Field(5, ge=1, le=50)
     # Robust weight on the Mahalanobis distance of each pair (leftover outliers).
     refine_robust: Literal["cauchy", "huber", "none"] = "cauchy"
-    # In standard deviations of the measured noise level (estimator/stereo_noise.py): at 3 the
-    # kernel, now at the right scale, biased rendered rotations (4 standard errors about the
+    # In standard deviations of the measured noise level (estimator/frontend/stereo_noise.py): at 3
+    # the kernel, now at the right scale, biased rendered rotations (4 standard errors about the
     # optical axis); 6 removes that and is as accurate on the real clip.
     refine_robust_scale: float = Field(6.0, gt=0)
 
@@ -75,7 +75,7 @@ class FrontendConfig(_Section):
     disparity_sigma_px: float = Field(0.5, gt=0)  # disparity noise behind depth_sigma
     # Pixel noise of a stereo point's image position, for its full covariance (disparity noise
     # is disparity_sigma_px). Only the prior of the first frames: the odometry measures the
-    # session's own level on its inlier residuals (estimator/stereo_noise.py).
+    # session's own level on its inlier residuals (estimator/frontend/stereo_noise.py).
     pixel_sigma_u_px: float = Field(1.0, gt=0)
     pixel_sigma_v_px: float = Field(1.0, gt=0)
     min_depth_m: float = Field(0.2, gt=0)

@@ -30,9 +30,13 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from estimator.calibration import StereoRig
 from estimator.config import SwarmvoConfig
-from estimator.features import FeatureDetector
+from estimator.formats.calibration import StereoRig
+from estimator.frontend.features import FeatureDetector
+from estimator.frontend.photometric import normalise_contrast
+from estimator.frontend.stereo import StereoMatcher, StereoPoints
+from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel
+from estimator.frontend.temporal import Correspondences, match_temporal
 from estimator.geometry import (
     invert_pose,
     make_pose,
@@ -40,12 +44,8 @@ from estimator.geometry import (
     scale_motion,
     transform_points,
 )
-from estimator.photometric import normalise_contrast
-from estimator.refine import refine_pose_mahalanobis
-from estimator.registration import RegistrationResult, register
-from estimator.stereo import StereoMatcher, StereoPoints
-from estimator.stereo_noise import NoiseLevel, StereoNoiseModel
-from estimator.temporal import Correspondences, match_temporal
+from estimator.registration.refine import refine_pose_mahalanobis
+from estimator.registration.registry import RegistrationResult, register
 from estimator.types import FrameReport, FrameStatus, ImuBatch, ImuNoise, StereoFrame
 
 if TYPE_CHECKING:

@@ -21,8 +21,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from estimator.calibration import StereoRig
 from estimator.config import FrontendConfig, SwarmvoConfig
+from estimator.formats.calibration import StereoRig
 
 __all__ = [
     "MAX_RELATIVE_DEPTH_ERROR",

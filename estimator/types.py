@@ -81,8 +81,8 @@ class FrameReport:
     # Earlier frames the back end's smoother has finished with at this frame, each once:
     # (timestamp_ns, left camera pose) with its final, smoothed estimate.
     final_poses: tuple[tuple[int, np.ndarray], ...] = ()
-    # Uncertainty, for the odometry message (``estimator.odometry_msg``). Covariances are 6x6 in
-    # GTSAM's tangent order (rotation, translation), right perturbation:
+    # Uncertainty, for the odometry message (``estimator.formats.odometry_msg``). Covariances are
+    # 6x6 in GTSAM's tangent order (rotation, translation), right perturbation:
     # the front end's T_ref_cur (left camera frame) against the frame stamped
     # ``reference_timestamp_ns``, calibrated as the back end uses it (None when it failed);
     measurement_covariance: np.ndarray | None = None

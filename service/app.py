@@ -757,7 +757,7 @@ def _trajectory_file(
     format: Literal["tum", "kitti"], times: np.ndarray, poses: np.ndarray, filename: str
 ) -> PlainTextResponse:
     """Poses as a TUM or KITTI text download, written by the same writers as ``swarmvo run``."""
-    from estimator.trajectory_io import write_kitti, write_tum
+    from estimator.formats.trajectory_io import write_kitti, write_tum
 
     with tempfile.TemporaryDirectory(prefix="swarmvo-export-") as folder:
         path = Path(folder) / f"trajectory.{format}"

@@ -93,8 +93,8 @@ class EstimatorFactory:
         config: dict[str, Any],
         imu_noise: dict[str, Any] | None,
     ) -> PreparedSession:
-        from estimator.calibration import StereoRig
         from estimator.config import SwarmvoConfig
+        from estimator.formats.calibration import StereoRig
 
         reject_non_finite(calibration, "calibration")
         reject_non_finite(config, "config")
@@ -121,10 +121,10 @@ class EstimatorFactory:
         synthetic pairs (unknown or invalid ``registration.options``). Call it only after the
         work limits were checked: the registration runs with the session's options.
         """
-        from estimator.calibration import StereoRig
         from estimator.config import SwarmvoConfig
+        from estimator.formats.calibration import StereoRig
         from estimator.odometry import _METHODS_WITH_COVARIANCES, Odometry, frame_seed
-        from estimator.registration import register
+        from estimator.registration.registry import register
 
         config = SwarmvoConfig.model_validate(prepared.config)
         noise = None if prepared.imu_noise is None else ImuNoise(**prepared.imu_noise)
@@ -154,7 +154,7 @@ class EstimatorFactory:
         default configuration, so this one-off cost (a few hundred ms) is not paid by the
         first frames of a robot. Best effort: a failure here only means a slower first frame.
         """
-        for module in ("estimator.calibration", "estimator.config", "estimator.odometry"):
+        for module in ("estimator.formats.calibration", "estimator.config", "estimator.odometry"):
             importlib.import_module(module)
         try:
             _synthetic_run(self)
@@ -164,8 +164,8 @@ class EstimatorFactory:
     def create(
         self, prepared: PreparedSession, initial_pose: np.ndarray | None, first_index: int
     ) -> Pipeline:
-        from estimator.calibration import StereoRig
         from estimator.config import SwarmvoConfig
+        from estimator.formats.calibration import StereoRig
         from estimator.odometry import Odometry
 
         noise = None if prepared.imu_noise is None else ImuNoise(**prepared.imu_noise)
@@ -182,7 +182,7 @@ class EstimatorFactory:
 
 
 class OdometryAnswers:
-    """``Odometry`` plus the odometry message of each frame (``estimator.odometry_msg``).
+    """``Odometry`` plus the odometry message of each frame (``estimator.formats.odometry_msg``).
 
     The odom frame follows the library's rule from the session's first frame and its IMU
     samples. A pipeline resumed from a stored pose continues in the world of the stored poses:
@@ -203,7 +203,7 @@ class OdometryAnswers:
         self.last_odometry: dict[str, Any] | None = None
 
     def process(self, frame: StereoFrame, imu: ImuBatch | None = None) -> FrameReport:
-        from estimator.odometry_msg import OdometryBuilder
+        from estimator.formats.odometry_msg import OdometryBuilder
 
         report = self.odometry.process(frame, imu)
         if self._builder is None:
@@ -283,7 +283,7 @@ def _with_files(files: dict[str, bytes], read: Any) -> Any:
 
 def euroc_calibration(cam0_yaml: bytes, cam1_yaml: bytes) -> dict[str, Any]:
     """Plain calibration from EuRoC ``cam0/sensor.yaml`` and ``cam1/sensor.yaml`` contents."""
-    from estimator.calibration import load_euroc_rig
+    from estimator.formats.calibration import load_euroc_rig
 
     rig = _with_files(
         {"cam0.yaml": cam0_yaml, "cam1.yaml": cam1_yaml},
@@ -294,7 +294,7 @@ def euroc_calibration(cam0_yaml: bytes, cam1_yaml: bytes) -> dict[str, Any]:
 
 def euroc_imu_noise(imu_yaml: bytes) -> dict[str, Any]:
     """IMU noise from EuRoC ``imu0/sensor.yaml`` contents (read exactly as offline runs do)."""
-    from estimator.datasets import read_euroc_imu_noise
+    from estimator.formats.datasets import read_euroc_imu_noise
 
     noise = _with_files({"imu0.yaml": imu_yaml}, lambda p: read_euroc_imu_noise(p["imu0.yaml"]))
     return asdict(noise)
@@ -302,7 +302,7 @@ def euroc_imu_noise(imu_yaml: bytes) -> dict[str, Any]:
 
 def kitti_calibration(calib_txt: bytes, image_size: tuple[int, int]) -> dict[str, Any]:
     """Plain calibration from a KITTI ``calib.txt`` and the image size (width, height)."""
-    from estimator.calibration import load_kitti_rig
+    from estimator.formats.calibration import load_kitti_rig
 
     rig = _with_files(
         {"calib.txt": calib_txt}, lambda p: load_kitti_rig(p["calib.txt"], image_size)

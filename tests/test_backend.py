@@ -11,7 +11,10 @@ from scipy.spatial.transform import Rotation
 
 from estimator.backend import FusedEstimate, FusionBackend
 from estimator.backend.noise import fit_covariance, relative_pose_sigmas
-from estimator.backend.scenario import (
+from estimator.cli.main import main
+from estimator.config import BackendConfig
+from estimator.geometry import invert_pose, kabsch, make_pose, rotation_angle_deg
+from estimator.rendered.scenario import (
     CAMERA_MOUNT,
     PERFECT_IMU,
     FrontendMeasurement,
@@ -20,9 +23,6 @@ from estimator.backend.scenario import (
     simulate_frontend,
     smooth_trajectory,
 )
-from estimator.cli import main
-from estimator.config import BackendConfig
-from estimator.geometry import invert_pose, kabsch, make_pose, rotation_angle_deg
 from estimator.types import FrameStatus, ImuBatch, ImuNoise
 
 BODY_FROM_CAMERA = CAMERA_MOUNT

@@ -11,8 +11,8 @@ import pytest
 from estimator import available_methods
 from estimator.bench import registration as bench
 from estimator.bench.peers import PEERS, inlier_threshold, oracle, run_peer
-from estimator.cli import main
-from estimator.simulation import rotation_error_deg, simulate_pair, translation_error
+from estimator.cli.main import main
+from estimator.rendered.simulation import rotation_error_deg, simulate_pair, translation_error
 
 SIGMA = 0.02
 RATIOS = (0.0, 0.6)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from estimator.calibration import (
+from estimator.formats.calibration import (
     CameraModel,
     StereoRig,
     load_euroc_rig,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from estimator.cli import main
+from estimator.cli.main import main
 from estimator.config import SwarmvoConfig
 
 

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estimator.cli import main
-from estimator.datasets import open_sequence
+from estimator.cli.main import main
+from estimator.formats.datasets import open_sequence
+from estimator.formats.trajectory_io import read_tum, write_kitti
 from estimator.geometry import invert_pose
-from estimator.trajectory_io import read_tum, write_kitti
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 REQUIRED_KEYS = (
@@ -110,7 +110,7 @@ def test_run_on_euroc_micro_standstill(euroc_v101_micro, tmp_path):
 
 @pytest.mark.parametrize("imu", [True, False])
 def test_a_run_levels_its_world_with_gravity_from_the_imu_before_the_first_frame(rendered, imu):
-    from estimator.commands.run import build_config, run_sequence
+    from estimator.cli.commands.run import build_config, run_sequence
 
     sequence = open_sequence(rendered)
     assert sequence.imu is not None

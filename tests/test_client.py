@@ -100,7 +100,7 @@ def test_frame_request_shape() -> None:
 
 
 def test_tum_output_reads_back_exactly_with_the_estimator_reader(tmp_path: Path) -> None:
-    from estimator.trajectory_io import read_tum
+    from estimator.formats.trajectory_io import read_tum
 
     rng = np.random.default_rng(4)
     rotations = Rotation.random(50, random_state=5).as_matrix()
@@ -136,7 +136,7 @@ def test_ate_of_a_rigidly_moved_copy_is_zero_and_noise_shows() -> None:
 
 
 def test_kitti_folder_reader_agrees_with_the_estimator(tmp_path: Path) -> None:
-    from estimator.datasets import open_sequence
+    from estimator.formats.datasets import open_sequence
 
     for folder in ("image_0", "image_1"):
         (tmp_path / folder).mkdir()

@@ -11,16 +11,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimator.datasets import (
+from estimator.formats.datasets import (
     GroundTruth,
     detect_format,
     open_sequence,
     read_euroc_ground_truth,
     read_euroc_imu,
 )
-from estimator.geometry import make_pose, rotation_angle_deg
-from estimator.synthetic import SynthOptions, synthesize
-from estimator.trajectory_io import (
+from estimator.formats.trajectory_io import (
     format_seconds,
     parse_seconds,
     read_kitti,
@@ -28,6 +26,8 @@ from estimator.trajectory_io import (
     write_kitti,
     write_tum,
 )
+from estimator.geometry import make_pose, rotation_angle_deg
+from estimator.rendered.synthetic import SynthOptions, synthesize
 
 # ----------------------------------------------------------------------------- EuRoC (real)
 

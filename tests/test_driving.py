@@ -10,22 +10,22 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimator.calibration import CameraModel, StereoRig
-from estimator.cli import main
-from estimator.commands.run import build_config, load_config
+from estimator.cli.commands.run import build_config, load_config
+from estimator.cli.main import main
 from estimator.config import SwarmvoConfig
-from estimator.datasets import open_sequence
-from estimator.evaluation import kitti_segment_errors
+from estimator.evaluation.metrics import kitti_segment_errors
+from estimator.formats.calibration import CameraModel, StereoRig
+from estimator.formats.datasets import open_sequence
+from estimator.formats.trajectory_io import read_kitti, read_tum
 from estimator.geometry import invert_pose, make_pose, rotation_angle_deg
+from estimator.rendered.synthetic import KITTI_CAMERA, SynthOptions
+from estimator.rendered.synthetic_driving import driving_for_length
 from estimator.rig_settings import (
     MAX_RELATIVE_DEPTH_ERROR,
     SEARCH_RADIUS_PER_FOCAL_SECOND,
     apply_rig_settings,
     derive_rig_settings,
 )
-from estimator.synthetic import KITTI_CAMERA, SynthOptions
-from estimator.synthetic_driving import driving_for_length
-from estimator.trajectory_io import read_kitti, read_tum
 
 FRAMES = 30
 
@@ -227,7 +227,7 @@ def test_bad_driving_options_are_rejected(tmp_path):
 
 
 def test_driving_in_the_euroc_layout_has_a_100_hz_imu_consistent_with_the_motion(tmp_path):
-    from estimator.synthetic import synthesize
+    from estimator.rendered.synthetic import synthesize
 
     options = SynthOptions.driving(frames=4, length_m=3.3, seed=2, imu_noise_scale=0.0)
     result = synthesize(tmp_path / "drive", options)

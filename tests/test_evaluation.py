@@ -8,8 +8,8 @@ from evo.core import metrics
 from evo.core.trajectory import PoseTrajectory3D
 from scipy.spatial.transform import Rotation
 
-from estimator.datasets import GroundTruth
-from estimator.evaluation import eq20_errors, evaluate_trajectory
+from estimator.evaluation.metrics import eq20_errors, evaluate_trajectory
+from estimator.formats.datasets import GroundTruth
 from estimator.geometry import invert_pose, kabsch, make_pose
 
 START = 1_500_000_000_000_000_000

@@ -13,26 +13,26 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.calibration import StereoRig
 from estimator.config import FrontendConfig
-from estimator.features import (
+from estimator.formats.calibration import StereoRig
+from estimator.frontend.features import (
     FeatureDetector,
     Features,
     descriptor_distances,
     grid_select,
     match_candidates,
 )
-from estimator.geometry import invert_pose, make_pose
-from estimator.photometric import normalise_contrast
-from estimator.stereo import (
+from estimator.frontend.photometric import normalise_contrast
+from estimator.frontend.stereo import (
     StereoMatcher,
     point_covariances,
     row_band_pairs,
     triangulate,
     triangulation_jacobian,
 )
-from estimator.synthetic import CAMERA, T_BS_CAM0, T_BS_CAM1, build_world, loop_for_length
-from estimator.temporal import match_temporal, project
+from estimator.frontend.temporal import match_temporal, project
+from estimator.geometry import invert_pose, make_pose
+from estimator.rendered.synthetic import CAMERA, T_BS_CAM0, T_BS_CAM1, build_world, loop_for_length
 
 WIDTH, HEIGHT, FOCAL, BASELINE = 640, 480, 400.0, 0.12
 
@@ -446,7 +446,7 @@ def test_temporal_search_radius_uses_prediction() -> None:
 def test_frontend_benchmark_writes_its_report(euroc_v101_micro, tmp_path) -> None:
     import json
 
-    from estimator.cli import main
+    from estimator.cli.main import main
 
     out = tmp_path / "bench"
     arguments = ["--data", str(euroc_v101_micro), "--frames", "8", "--repeat", "1"]

@@ -8,17 +8,17 @@ import cv2
 import numpy as np
 import pytest
 
-from estimator.calibration import CameraModel
 from estimator.config import SwarmvoConfig
-from estimator.datasets import open_sequence
-from estimator.evaluation import camera_ground_truth, relative_to_first
+from estimator.evaluation.image_reference import bearing_vectors, image_rotations
+from estimator.evaluation.metrics import camera_ground_truth, relative_to_first
+from estimator.formats.calibration import CameraModel
+from estimator.formats.datasets import open_sequence
 from estimator.geometry import (
     invert_pose,
     quat_to_matrix,
     rotation_angle_deg,
     rotation_vector_to_quat,
 )
-from estimator.image_reference import bearing_vectors, image_rotations
 from estimator.odometry import Odometry
 
 WIDTH, HEIGHT, FOCAL = 752, 480, 460.0

@@ -17,7 +17,7 @@ from estimator.backend.imu import (
     rotation_params,
     sample_segments,
 )
-from estimator.datasets import read_euroc_ground_truth, read_euroc_imu, read_euroc_imu_noise
+from estimator.formats.datasets import read_euroc_ground_truth, read_euroc_imu, read_euroc_imu_noise
 from estimator.geometry import rotation_angle_deg
 from estimator.types import ImuBatch, ImuNoise
 
@@ -204,7 +204,7 @@ def _rest_imu(
 
 def test_standstill_detector_accepts_rest_and_rejects_motion():
     from estimator.backend.rest import RestWindow, at_rest
-    from estimator.synthetic import loop_for_length, simulate_imu, start_after_rest
+    from estimator.rendered.synthetic import loop_for_length, simulate_imu, start_after_rest
 
     noise = ImuNoise()
     rng = np.random.default_rng(0)

@@ -19,7 +19,9 @@ from estimator.backend.inertial import (
     predict_position,
     velocity_change_error,
 )
-from estimator.backend.scenario import (
+from estimator.config import BackendConfig
+from estimator.geometry import invert_pose
+from estimator.rendered.scenario import (
     CAMERA_MOUNT,
     PERFECT_IMU,
     FrontendMeasurement,
@@ -27,8 +29,6 @@ from estimator.backend.scenario import (
     simulate_frontend,
     smooth_trajectory,
 )
-from estimator.config import BackendConfig
-from estimator.geometry import invert_pose
 from estimator.types import ImuBatch, ImuNoise
 
 BODY_FROM_CAMERA = CAMERA_MOUNT
@@ -251,7 +251,7 @@ def test_real_clip_fused_bridges_black_frames_close_to_vision(euroc_mh01_moving)
     import warnings
 
     from estimator.bench.perturbations import run_one
-    from estimator.datasets import open_sequence
+    from estimator.formats.datasets import open_sequence
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # unpaired camera rows of the recording

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimator.calibration import StereoRig
 from estimator.config import SwarmvoConfig
-from estimator.datasets import open_sequence
-from estimator.evaluation import camera_ground_truth, eq20_errors, relative_to_first
+from estimator.evaluation.metrics import camera_ground_truth, eq20_errors, relative_to_first
+from estimator.formats.calibration import StereoRig
+from estimator.formats.datasets import open_sequence
 from estimator.geometry import (
     invert_pose,
     make_pose,
@@ -23,7 +23,7 @@ from estimator.geometry import (
     scale_motion,
 )
 from estimator.odometry import Odometry, frame_seed, to_grey8
-from estimator.synthetic import CAMERA, T_BS_CAM0, build_world, loop_for_length
+from estimator.rendered.synthetic import CAMERA, T_BS_CAM0, build_world, loop_for_length
 from estimator.types import FrameStatus, StereoFrame
 
 FRAME_NS = 50_000_000  # 20 Hz
@@ -248,9 +248,9 @@ def test_euroc_standstill_stays_still(euroc_v101_micro: Path) -> None:
 @pytest.mark.slow
 def test_rendered_broken_frames_fused_with_the_imu_beats_the_front_end(tmp_path: Path) -> None:
     """Rendered 8 m flights, 20 % broken frames (black, blurred, shuffled), simulated IMU."""
-    from estimator.commands.run import run_sequence
-    from estimator.evaluation import evaluate_trajectory
-    from estimator.synthetic import SynthOptions, synthesize
+    from estimator.cli.commands.run import run_sequence
+    from estimator.evaluation.metrics import evaluate_trajectory
+    from estimator.rendered.synthetic import SynthOptions, synthesize
 
     ate = {refine: {"frontend_pose": [], "pose": [], "smoothed": []} for refine in (False, True)}
     for seed in (0, 1, 2):

@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from estimator.calibration import StereoRig
-from estimator.datasets import FrameRecord, GroundTruth, Sequence
+from estimator.formats.calibration import StereoRig
+from estimator.formats.datasets import FrameRecord, GroundTruth, Sequence
 from estimator.geometry import make_pose
-from estimator.perturb import PERTURBATIONS, Perturbation, perturb_sequence
+from estimator.rendered.perturb import PERTURBATIONS, Perturbation, perturb_sequence
 
 WIDTH, HEIGHT, FOCAL = 320, 240, 300.0
 FRAME_NS = 50_000_000
@@ -160,9 +160,9 @@ def test_real_clip_with_gain_flicker_keeps_every_frame(euroc_mh01_moving: Path) 
     front end still tracks every frame with most of its temporal matches."""
     import warnings
 
-    from estimator.commands.run import run_sequence
+    from estimator.cli.commands.run import run_sequence
     from estimator.config import SwarmvoConfig
-    from estimator.datasets import open_sequence
+    from estimator.formats.datasets import open_sequence
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # unpaired camera rows of the recording
@@ -187,7 +187,7 @@ def test_perturbation_benchmark_writes_and_compares(
 ) -> None:
     import json
 
-    from estimator.cli import main
+    from estimator.cli.main import main
 
     out = tmp_path / "bench"
     args = ["bench", "perturbations", "--data", str(euroc_mh01_moving), "--out", str(out)]

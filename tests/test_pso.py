@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimator.pso import better, optimise
+from estimator.registration.pso import better, optimise
 
 
 def _sphere(centre: np.ndarray):

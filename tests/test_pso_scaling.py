@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimator.registration import register
-from estimator.simulation import rotation_error_deg, simulate_pair, translation_error
+from estimator.registration.registry import register
+from estimator.rendered.simulation import rotation_error_deg, simulate_pair, translation_error
 
 
 def test_large_problems_build_the_graph_on_a_subset_and_stay_accurate() -> None:

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from estimator.commands.run import build_config, run_sequence, summarize
-from estimator.datasets import open_sequence
-from estimator.refine import CHI2_3_MEDIAN
+from estimator.cli.commands.run import build_config, run_sequence, summarize
+from estimator.formats.datasets import open_sequence
+from estimator.registration.refine import CHI2_3_MEDIAN
 
 
 @pytest.mark.slow

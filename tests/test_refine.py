@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from estimator.geometry import kabsch, rotation_angle_deg
-from estimator.refine import refine_pose_mahalanobis
+from estimator.registration.refine import refine_pose_mahalanobis
 
 # A stereo rig like EuRoC's: 460 px focal length, 11 cm baseline.
 FOCAL, BASELINE = 460.0, 0.11

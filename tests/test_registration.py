@@ -7,8 +7,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator import pso_support
-from estimator.baselines import residual_norms
 from estimator.geometry import (
     horn,
     is_degenerate,
@@ -17,9 +15,11 @@ from estimator.geometry import (
     quat_to_matrix,
     rotation_vector_to_quat,
 )
-from estimator.pso_support import rigidity_scores, rigidity_weights, weighted_horn
-from estimator.registration import available_methods, register
-from estimator.simulation import rotation_error_deg, simulate_pair, translation_error
+from estimator.registration import pso_support
+from estimator.registration.baselines import residual_norms
+from estimator.registration.pso_support import rigidity_scores, rigidity_weights, weighted_horn
+from estimator.registration.registry import available_methods, register
+from estimator.rendered.simulation import rotation_error_deg, simulate_pair, translation_error
 
 METHODS = ["pso-robust", "pso", "msac", "svd"]
 ROBUST = ["pso-robust", "msac"]

@@ -10,21 +10,21 @@ import numpy as np
 import pytest
 import yaml
 
-from estimator.bag_calibration import load_bag_calibration, load_kalibr_rig
-from estimator.calibration import load_euroc_rig
-from estimator.cli import main
-from estimator.datasets import open_sequence
-from estimator.geometry import invert_pose
-from estimator.odometry import to_grey8
-from estimator.rosbag_io import open_bag
-from estimator.rosbag_write import (
+from estimator.cli.main import main
+from estimator.formats.bag_calibration import load_bag_calibration, load_kalibr_rig
+from estimator.formats.calibration import load_euroc_rig
+from estimator.formats.datasets import open_sequence
+from estimator.formats.rosbag_io import open_bag
+from estimator.formats.rosbag_write import (
     CAMERA_POSE_TOPIC,
     ODOMETRY_TOPIC,
     _BagWriter,
     read_pose_topic,
     write_stereo_bag,
 )
-from estimator.trajectory_io import read_tum
+from estimator.formats.trajectory_io import read_tum
+from estimator.geometry import invert_pose
+from estimator.odometry import to_grey8
 
 pytestmark = pytest.mark.euroc
 FRAMES = 20

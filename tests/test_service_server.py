@@ -64,7 +64,7 @@ class Server:
             [
                 sys.executable,
                 "-m",
-                "estimator.cli",
+                "estimator.cli.main",
                 "serve",
                 "--host",
                 "127.0.0.1",
@@ -132,8 +132,8 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
 
 
 def _offline(dataset: Path, limit: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    from estimator.commands.run import build_config, run_sequence
-    from estimator.datasets import open_sequence
+    from estimator.cli.commands.run import build_config, run_sequence
+    from estimator.formats.datasets import open_sequence
 
     result = run_sequence(
         open_sequence(dataset), build_config("pso-robust", SEED, True, True), limit=limit
@@ -143,8 +143,8 @@ def _offline(dataset: Path, limit: int) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 def _offline_odometry(dataset: Path, limit: int) -> tuple[list[dict], dict[int, np.ndarray]]:
     """The offline run's odometry messages (as the service answers them) and smoothed poses."""
-    from estimator.commands.run import build_config, odometry_messages, run_sequence
-    from estimator.datasets import open_sequence
+    from estimator.cli.commands.run import build_config, odometry_messages, run_sequence
+    from estimator.formats.datasets import open_sequence
 
     config = build_config("pso-robust", SEED, True, True)
     result = run_sequence(open_sequence(dataset), config, limit=limit)
@@ -207,7 +207,7 @@ def test_http_and_websocket_replay_equal_the_offline_run(
         assert [stamp for stamp, _ in queried] == [stamp for stamp, _ in finished]
         assert all(np.array_equal(a, b) for (_, a), (_, b) in zip(queried, finished, strict=True))
     # The TUM export reads back as the offline trajectory too.
-    from estimator.trajectory_io import read_tum
+    from estimator.formats.trajectory_io import read_tum
 
     with Client(server.url, KEY) as client:
         tum = client.trajectory(result.session.id, format="tum")
@@ -552,7 +552,7 @@ def test_openapi_fuzzing_finds_no_server_error(server: Server, tmp_path: Path) -
 
 
 def test_client_reader_matches_the_estimator_reader(euroc_v101_micro: Path) -> None:
-    from estimator.datasets import open_sequence
+    from estimator.formats.datasets import open_sequence
 
     with pytest.warns(UserWarning):
         local = open_local_sequence(euroc_v101_micro)
@@ -596,7 +596,7 @@ def test_client_cli_replay_writes_the_acknowledged_trajectory(
     printed = capsys.readouterr().out
     assert "ate_rmse_m" in printed and "frames_acknowledged: 5" in printed
     summary = json.loads((out / "replay.json").read_text())
-    from estimator.trajectory_io import read_tum
+    from estimator.formats.trajectory_io import read_tum
 
     times, poses = read_tum(out / "trajectory.tum")
     stored = _stored(server.url, summary["session_id"])
@@ -633,8 +633,8 @@ def test_client_replays_a_bag_as_the_offline_run(
 
     from swarmvo_client.cli import main as client_main
 
-    from estimator.datasets import open_sequence
-    from estimator.rosbag_write import write_stereo_bag
+    from estimator.formats.datasets import open_sequence
+    from estimator.formats.rosbag_write import write_stereo_bag
 
     frames = 10
     with warnings.catch_warnings():
@@ -649,7 +649,7 @@ def test_client_replays_a_bag_as_the_offline_run(
          "--calibration", str(euroc_v101_micro), "--out", str(out), "--quiet"]
     )
     assert code == 0
-    from estimator.trajectory_io import read_tum
+    from estimator.formats.trajectory_io import read_tum
 
     replay_times, poses = read_tum(out / "trajectory.tum")
     assert replay_times.tolist() == times.tolist()

@@ -608,7 +608,7 @@ def test_migrations_match_the_models_and_render_for_postgresql(tmp_path: Path) -
 def test_serve_refuses_to_start_without_keys(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from estimator.cli import main
+    from estimator.cli.main import main
 
     for name in ("SWARMVO_API_KEYS", "SWARMVO_OPEN"):
         monkeypatch.delenv(name, raising=False)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from estimator.geometry import quat_to_matrix, rotation_vector_to_quat
-from estimator.simulation import (
+from estimator.rendered.simulation import (
     DEFAULT_SCENE,
     camera_matrix,
     rotation_error_deg,

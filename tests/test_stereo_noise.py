@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimator.calibration import StereoRig
+from estimator.formats.calibration import StereoRig
+from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel
 from estimator.geometry import quat_to_matrix, rotation_vector_to_quat
-from estimator.refine import CHI2_3_MEDIAN
-from estimator.stereo_noise import NoiseLevel, StereoNoiseModel
+from estimator.registration.refine import CHI2_3_MEDIAN
 
 F, CX, CY, BASELINE = 450.0, 376.0, 240.0, 0.11
 PRIOR = NoiseLevel(1.0, 1.0, 0.5)

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from estimator.bench.registration_stereo import RIGS, run_stereo_grid, simulate_stereo_pair
-from estimator.cli import main
+from estimator.cli.main import main
 from estimator.geometry import rotation_angle_deg
-from estimator.refine import refine_pose_mahalanobis
-from estimator.registration import register
+from estimator.registration.refine import refine_pose_mahalanobis
+from estimator.registration.registry import register
 
 
 def _oracle_rotation_error(pair) -> float:

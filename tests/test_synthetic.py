@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimator.datasets import open_sequence
+from estimator.formats.datasets import open_sequence
 from estimator.geometry import invert_pose, make_pose, rotation_angle_deg, transform_points
-from estimator.synthetic import (
+from estimator.rendered.synthetic import (
     CAMERA,
     GRAVITY,
     SynthOptions,

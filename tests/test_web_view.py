@@ -212,7 +212,7 @@ def rendered(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A short rendered flight with a few broken frames (so degraded frames get marked)."""
     folder = tmp_path_factory.mktemp("web") / "rendered"
     subprocess.run(
-        [sys.executable, "-m", "estimator.cli", "synth", str(folder), "--frames", str(FRAMES),
+        [sys.executable, "-m", "estimator.cli.main", "synth", str(folder), "--frames", str(FRAMES),
          "--length-m", "1.5", "--seed", "2", "--broken-fraction", "0.1", "--quiet"],
         cwd=PROJECT_ROOT, check=True, timeout=300,
     )

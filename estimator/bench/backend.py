@@ -29,19 +29,19 @@ import numpy as np
 
 from estimator.backend import FusionBackend
 from estimator.backend.imu import preintegrate_gyro, rotation_params
-from estimator.backend.scenario import (
+from estimator.config import BackendConfig
+from estimator.geometry import make_pose, rotation_angle_deg
+from estimator.rendered.scenario import (
     Scenario,
     aligned_ate,
     chain,
     simulate_frontend,
     smooth_trajectory,
 )
-from estimator.config import BackendConfig
-from estimator.geometry import make_pose, rotation_angle_deg
 from estimator.types import ImuNoise
 
 if TYPE_CHECKING:
-    from estimator.commands.run import RunResult
+    from estimator.cli.commands.run import RunResult
 
 __all__ = ["add_arguments", "run"]
 
@@ -130,7 +130,11 @@ def _table(title: str, header: list[str], rows: list[list[str]]) -> str:
 
 
 def _euroc_20hz(root: Path):
-    from estimator.datasets import read_euroc_ground_truth, read_euroc_imu, read_euroc_imu_noise
+    from estimator.formats.datasets import (
+        read_euroc_ground_truth,
+        read_euroc_imu,
+        read_euroc_imu_noise,
+    )
 
     imu = read_euroc_imu(root / "mav0/imu0/data.csv")
     truth = read_euroc_ground_truth(root / "mav0/state_groundtruth_estimate0/data.csv")
@@ -353,8 +357,8 @@ _Runs = dict[tuple[Path, int, bool], "RunResult"]
 
 def _pipeline_run(runs: _Runs, path: Path, seed: int, imu: bool) -> RunResult:
     """``RunResult`` of the default pipeline (pso-robust, back end on) on ``path``."""
-    from estimator.commands.run import build_config, run_sequence
-    from estimator.datasets import open_sequence
+    from estimator.cli.commands.run import build_config, run_sequence
+    from estimator.formats.datasets import open_sequence
 
     key = (path, seed, imu)
     if key not in runs:
@@ -365,7 +369,7 @@ def _pipeline_run(runs: _Runs, path: Path, seed: int, imu: bool) -> RunResult:
 
 def _metrics(run: RunResult, which: str) -> dict[str, Any]:
     """Trajectory metrics of one kind of pose of a run (see ``RunResult.poses``)."""
-    from estimator.evaluation import evaluate_trajectory
+    from estimator.evaluation.metrics import evaluate_trajectory
 
     sequence = run.sequence
     return evaluate_trajectory(
@@ -424,7 +428,7 @@ def _pipeline_runs(
 
 def _rendered(args: argparse.Namespace, seed: int) -> Path:
     """The rendered 20 %-broken sequence of ``seed``, written once into ``--data``."""
-    from estimator.synthetic import SynthOptions, synthesize
+    from estimator.rendered.synthetic import SynthOptions, synthesize
 
     still = f"_still{args.standstill_s:g}s" if args.standstill_s > 0 else ""
     rendered = args.data / f"backend_rendered_{args.rendered_frames}f_broken20{still}_seed{seed}"

@@ -3,7 +3,7 @@
 Runs rendered loops (``--seeds``, rendered once into ``--data``) and the real EuRoC MH_01
 clip through the pipeline in three modes (fused with the IMU, back end without IMU, front end
 only), turns the answers into odometry messages and computes the NEES of the base_link motion
-over consecutive 1 s windows (``estimator.consistency``) with both covariance readings
+over consecutive 1 s windows (``estimator.evaluation.consistency``) with both covariance readings
 (``pose``, ``twist``). A consistent covariance gives a mean NEES per degree of freedom of 1;
 the target is [0.5, 2]. Writes ``consistency.json`` and ``consistency.md`` (the table) under
 ``--out``; ``scale`` is the factor on the reported standard deviations that would make the
@@ -21,10 +21,10 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from estimator.commands.run import build_config, odometry_messages, run_sequence
-from estimator.consistency import relative_nees
-from estimator.datasets import open_sequence
-from estimator.synthetic import SynthOptions, synthesize
+from estimator.cli.commands.run import build_config, odometry_messages, run_sequence
+from estimator.evaluation.consistency import relative_nees
+from estimator.formats.datasets import open_sequence
+from estimator.rendered.synthetic import SynthOptions, synthesize
 
 __all__ = ["add_arguments", "run"]
 

@@ -66,7 +66,7 @@ def summarise(timings: list[dict[str, float]]) -> dict[str, dict[str, float]]:
 
 
 def _drift(sequence, reports) -> dict[str, float] | None:
-    from estimator.evaluation import camera_ground_truth, eq20_errors, relative_to_first
+    from estimator.evaluation.metrics import camera_ground_truth, eq20_errors, relative_to_first
     from estimator.geometry import invert_pose, rotation_angle_deg
 
     if sequence.ground_truth is None:
@@ -93,13 +93,14 @@ def _drift(sequence, reports) -> dict[str, float] | None:
 
 
 def _against_images(sequence, reports, covered: np.ndarray, truth: np.ndarray) -> dict:
-    """Final attitude change measured from the raw left images alone (estimator.image_reference).
+    """Final attitude change measured from the raw left images alone
+    (estimator.evaluation.image_reference).
 
     A referee independent of stereo, the estimator and the ground truth's sensors: where the
     ground truth and the images disagree, this says which one the estimate follows.
     """
+    from estimator.evaluation.image_reference import image_rotations
     from estimator.geometry import invert_pose, rotation_angle_deg
-    from estimator.image_reference import image_rotations
 
     first, last = np.flatnonzero(covered)[[0, -1]]
     try:
@@ -123,7 +124,7 @@ def _against_images(sequence, reports, covered: np.ndarray, truth: np.ndarray) -
 
 
 def run(args: argparse.Namespace) -> int:
-    from estimator.datasets import open_sequence
+    from estimator.formats.datasets import open_sequence
 
     if args.repeat < 1:
         raise ValueError(f"--repeat must be >= 1, got {args.repeat}")

@@ -2,13 +2,13 @@
 
 Part ``real`` (when ``../shared/data`` is present): the EuRoC MH_01 clip (hand-carried, 3.3 m,
 145 degrees) and the V1_01 standstill, each run with every registered estimator
-(``estimator.registration.available_methods``) x the Mahalanobis refinement on / off x vision
-alone (back end without IMU, ``--no-imu``) / fused with the clip's IMU, plus the plain OpenCV
-stereo VO peer (``estimator.bench.peers.opencv_stereo_vo``). Each run also reports how well
+(``estimator.registration.registry.available_methods``) x the Mahalanobis refinement on / off
+x vision alone (back end without IMU, ``--no-imu``) / fused with the clip's IMU, plus the plain
+OpenCV stereo VO peer (``estimator.bench.peers.opencv_stereo_vo``). Each run also reports how well
 the stereo noise model fits the data: the median squared Mahalanobis residual of the inliers,
 which is 2.366 (chi-square, 3 DOF) when the estimated pixel and disparity noise is right.
 
-Part ``rendered``: a loop rendered once with exact ground truth (``estimator.synthetic``:
+Part ``rendered``: a loop rendered once with exact ground truth (``estimator.rendered.synthetic``:
 default 200 frames, 21 m body path, EuRoC-like rig and IMU), clean and with sensor effects, each
 estimator fused with the IMU (the default run), fused and front-end accuracy.
 
@@ -27,11 +27,11 @@ from pathlib import Path
 from typing import Any
 
 from estimator.bench.readme import write_block
-from estimator.commands.run import build_config, run_sequence, write_outputs
-from estimator.datasets import Sequence, open_sequence
-from estimator.evaluation import evaluate_trajectory
-from estimator.registration import available_methods
-from estimator.synthetic import SynthOptions, synthesize
+from estimator.cli.commands.run import build_config, run_sequence, write_outputs
+from estimator.evaluation.metrics import evaluate_trajectory
+from estimator.formats.datasets import Sequence, open_sequence
+from estimator.registration.registry import available_methods
+from estimator.rendered.synthetic import SynthOptions, synthesize
 
 __all__ = ["add_arguments", "run"]
 

@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 from scipy.stats import chi2
 
-from estimator.baselines import failed_result, pose_result, residual_norms
 from estimator.geometry import kabsch
-from estimator.registration import RegistrationResult
+from estimator.registration.baselines import failed_result, pose_result, residual_norms
+from estimator.registration.registry import RegistrationResult
 
 __all__ = [
     "INLIER_QUANTILE",

@@ -1,7 +1,7 @@
 """``swarmvo bench perturbations``: the real MH_01 clip as misbehaving cameras record it.
 
-Every perturbation of :data:`estimator.perturb.PERTURBATIONS` (gain flicker per camera, 10 Hz,
-black / blurred / dropped frames, pixel noise, a late right shutter) runs through the whole
+Every perturbation of :data:`estimator.rendered.perturb.PERTURBATIONS` (gain flicker per camera,
+10 Hz, black / blurred / dropped frames, pixel noise, a late right shutter) runs through the whole
 pipeline like ``swarmvo run``: vision alone (back end without the IMU, ``--no-imu``) and fused
 with the clip's real IMU, for each estimator setting. The table lists the left-camera ATE after
 SE(3) alignment, the RMS rotation error per frame and the frames without a vision estimate.
@@ -18,10 +18,10 @@ from pathlib import Path
 from typing import Any
 
 from estimator.bench.readme import write_block
-from estimator.commands.run import build_config, load_config, run_sequence, summarize
+from estimator.cli.commands.run import build_config, load_config, run_sequence, summarize
 from estimator.config import SwarmvoConfig
-from estimator.datasets import Sequence, open_sequence
-from estimator.perturb import PERTURBATIONS, perturb_sequence
+from estimator.formats.datasets import Sequence, open_sequence
+from estimator.rendered.perturb import PERTURBATIONS, perturb_sequence
 
 __all__ = ["SETTINGS", "add_arguments", "run", "run_one"]
 

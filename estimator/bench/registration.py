@@ -1,8 +1,8 @@
 """``swarmvo bench registration``: accuracy and speed of rigid registration under outliers.
 
 The paper's Figures 6 and 7 as a reproducible grid: for every noise sigma x outlier ratio
-cell, ``--trials`` simulated stereo point-pair problems (``estimator.simulation``) are solved
-by every method on the *same* pair, and the cell records success rate, translation and
+cell, ``--trials`` simulated stereo point-pair problems (``estimator.rendered.simulation``) are
+solved by every method on the *same* pair, and the cell records success rate, translation and
 rotation error, time and inlier precision/recall. Outputs: ``registration.json`` (table +
 metadata + per-trial values), ``figure6_position_error.png``, ``figure7_time.png``, a
 Markdown copy of the printed tables, and a PASS/MISS check of pso-robust against its targets.
@@ -29,8 +29,8 @@ import numpy as np
 from tqdm import tqdm
 
 from estimator.bench.peers import INLIER_QUANTILE, PEERS, oracle, peer_missing_package, run_peer
-from estimator.registration import RegistrationResult, available_methods, register
-from estimator.simulation import (
+from estimator.registration.registry import RegistrationResult, available_methods, register
+from estimator.rendered.simulation import (
     SimulatedPair,
     rotation_error_deg,
     simulate_pair,

@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from estimator.geometry import quat_to_matrix, rotation_angle_deg, rotation_vector_to_quat
-from estimator.refine import refine_pose_mahalanobis
-from estimator.registration import available_methods, register
+from estimator.registration.refine import refine_pose_mahalanobis
+from estimator.registration.registry import available_methods, register
 
 __all__ = ["RIGS", "StereoPair", "StereoRigModel", "run_stereo_grid", "simulate_stereo_pair"]
 

@@ -1,6 +1,6 @@
 """Replay input from a ROS bag: the stereo pair (and IMU) of a ROS 1 or ROS 2 bag.
 
-The bag is read with the swarmvo package's own reader (``estimator.rosbag_io``: topics,
+The bag is read with the swarmvo package's own reader (``estimator.formats.rosbag_io``: topics,
 encodings, stamps, calibration), so a bag replays exactly as ``swarmvo run BAG`` processes it:
 each decoded image is sent as a lossless PNG (8 or 16 bit, grey or colour), which the server
 decodes back to the same pixels, and the session is created from the same calibration.
@@ -34,8 +34,8 @@ def open_local_bag(
     try:
         import cv2
 
-        from estimator.bag_calibration import load_bag_calibration
-        from estimator.rosbag_io import open_bag
+        from estimator.formats.bag_calibration import load_bag_calibration
+        from estimator.formats.rosbag_io import open_bag
     except ImportError as error:
         raise ValueError(
             f"replaying a bag needs the swarmvo package beside the client ({error})"

@@ -54,7 +54,7 @@ def available_methods() -> list[str]:
 
 def _load_builtin_methods() -> None:
     # Imported for their @register_method side effect; kept lazy to avoid import cycles.
-    from estimator import baselines, pso_support  # noqa: F401
+    from estimator.registration import baselines, pso_support  # noqa: F401
 
 
 def _validated(points: np.ndarray, name: str) -> np.ndarray:

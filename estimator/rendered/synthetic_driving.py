@@ -25,7 +25,7 @@ from scipy.interpolate import CubicHermiteSpline
 from scipy.spatial import cKDTree
 
 from estimator.geometry import make_pose
-from estimator.synthetic import (
+from estimator.rendered.synthetic import (
     KITTI_CAMERA,
     R_HEADING_CAM,
     Plane,

@@ -9,7 +9,7 @@ e.g. ``cam0``/``cam1`` or ``left``/``right``) and one IMU; otherwise the error l
 
 Images stay in the bag and are decoded frame by frame while the run streams through it, so a
 long recording never sits in memory. The calibration comes from elsewhere
-(``estimator.bag_calibration``): bags carry no camera model the pipeline can trust.
+(``estimator.formats.bag_calibration``): bags carry no camera model the pipeline can trust.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 from rosbags.highlevel import AnyReader, AnyReaderError
 
-from estimator.bag_calibration import BagCalibration
-from estimator.datasets import FrameRecord, Sequence, UnreadableImageError
+from estimator.formats.bag_calibration import BagCalibration
+from estimator.formats.datasets import FrameRecord, Sequence, UnreadableImageError
 from estimator.types import ImuBatch, StereoFrame
 
 __all__ = ["BagSequence", "BagTopics", "decode_image", "is_bag", "open_bag"]

@@ -14,11 +14,11 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from estimator.calibration import Rectification
 from estimator.config import FrontendConfig
-from estimator.features import descriptor_distances, match_candidates
+from estimator.formats.calibration import Rectification
+from estimator.frontend.features import descriptor_distances, match_candidates
+from estimator.frontend.stereo import StereoPoints, triangulate
 from estimator.geometry import transform_points
-from estimator.stereo import StereoPoints, triangulate
 
 __all__ = ["Correspondences", "match_temporal", "project", "refine_pixels"]
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from estimator.calibration import CameraModel
+from estimator.formats.calibration import CameraModel
 from estimator.geometry import wahba
 
 __all__ = ["ImageRotation", "bearing_vectors", "image_rotations"]

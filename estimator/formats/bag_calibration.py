@@ -21,14 +21,14 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.calibration import (
+from estimator.formats.calibration import (
     CameraModel,
     StereoRig,
     load_euroc_rig,
     load_rig,
     pinhole_camera,
 )
-from estimator.datasets import euroc_root, read_euroc_imu_noise, read_opencv_yaml
+from estimator.formats.datasets import euroc_root, read_euroc_imu_noise, read_opencv_yaml
 from estimator.geometry import invert_pose
 from estimator.types import ImuNoise
 

@@ -60,22 +60,22 @@ from dataclasses import dataclass, fields
 import numba
 import numpy as np
 
-from estimator.baselines import (
-    check_positive,
-    failed_result,
-    pose_result,
-    relative_scales,
-    residual_norms,
-)
 from estimator.geometry import (
     is_degenerate,
     kabsch,
     matrix_to_quat,
     quat_to_rotation_vector,
 )
-from estimator.pso import optimise
-from estimator.refine import refine_pose_mahalanobis, squared_mahalanobis
-from estimator.registration import RegistrationResult, register_method
+from estimator.registration.baselines import (
+    check_positive,
+    failed_result,
+    pose_result,
+    relative_scales,
+    residual_norms,
+)
+from estimator.registration.pso import optimise
+from estimator.registration.refine import refine_pose_mahalanobis, squared_mahalanobis
+from estimator.registration.registry import RegistrationResult, register_method
 
 __all__ = ["PsoSupportEstimator", "rigidity_scores", "rigidity_weights"]
 
@@ -87,7 +87,7 @@ LADDER_GAIN = 0.05
 
 @dataclass(frozen=True)
 class PsoSupportEstimator:
-    """Options of both swarm estimators (defaults tuned on ``estimator.simulation``).
+    """Options of both swarm estimators (defaults tuned on ``estimator.rendered.simulation``).
 
     All lengths are in metres and tuned for stereo points at 2-10 m with noise up to ~5 cm.
 

@@ -1,7 +1,7 @@
 """Writing ROS bags with ``rosbags``: the odometry result, and stereo recordings for tests.
 
 ``write_odometry_bag`` stores a run as nav_msgs/Odometry on ``/swarmvo/odometry`` (base_link in
-odom, with covariances: ``estimator.odometry_msg``) and geometry_msgs/PoseStamped on
+odom, with covariances: ``estimator.formats.odometry_msg``) and geometry_msgs/PoseStamped on
 ``/swarmvo/camera_pose`` (the left-camera poses of ``trajectory.tum``, frame ``world``), each
 message at its frame's stamp, which evo reads with ``evo_traj bag``/``bag2``. A path ending in
 ``.bag`` gives a ROS 1 bag, any other a ROS 2 bag folder (sqlite3 by default, or mcap).
@@ -25,9 +25,9 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Ros2Writer
 from rosbags.typesys import Stores, get_typestore
 
-from estimator.datasets import Sequence
+from estimator.formats.datasets import Sequence
+from estimator.formats.odometry_msg import OdometryMessage
 from estimator.geometry import make_pose, matrix_to_quat, quat_to_matrix
-from estimator.odometry_msg import OdometryMessage
 from estimator.types import ImuBatch
 
 __all__ = [

@@ -22,7 +22,7 @@ from estimator.geometry import (
     matrix_to_quat,
     quat_to_matrix,
 )
-from estimator.registration import RegistrationResult, register_method
+from estimator.registration.registry import RegistrationResult, register_method
 
 __all__ = [
     "check_positive",

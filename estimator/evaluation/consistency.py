@@ -25,9 +25,9 @@ from typing import Literal
 import gtsam
 import numpy as np
 
-from estimator.datasets import GroundTruth
+from estimator.formats.datasets import GroundTruth
+from estimator.formats.odometry_msg import OdometryMessage
 from estimator.geometry import invert_pose
-from estimator.odometry_msg import OdometryMessage
 
 __all__ = ["NeesResult", "body_pose_covariance", "relative_nees"]
 

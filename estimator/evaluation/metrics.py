@@ -37,7 +37,7 @@ from evo.core.filters import FilterException
 from evo.core.geometry import GeometryException
 from evo.core.trajectory import PoseTrajectory3D
 
-from estimator.datasets import GroundTruth
+from estimator.formats.datasets import GroundTruth
 from estimator.geometry import invert_pose, kabsch, make_pose, rotation_angle_deg
 
 __all__ = [

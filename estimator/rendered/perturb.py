@@ -3,8 +3,8 @@
 Real stereo cameras change exposure on their own (left and right not in step), run at lower
 frame rates or drop frames, deliver black or motion-blurred frames and get noisy in dim light;
 their left and right shutters may not fire together. :func:`perturb_sequence` wraps a recorded
-:class:`~estimator.datasets.Sequence` so that every loaded frame carries those effects, seeded
-per (frame, camera): the same sequence, perturbation and seed always give the same pixels, in
+:class:`~estimator.formats.datasets.Sequence` so that every loaded frame carries those effects,
+seeded per (frame, camera): the same sequence, perturbation and seed always give the same pixels, in
 any order of loading. Ground truth, calibration and IMU are left as they are.
 """
 
@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from estimator.datasets import Sequence
+from estimator.formats.datasets import Sequence
 from estimator.types import StereoFrame
 
 __all__ = ["PERTURBATIONS", "Perturbation", "PerturbedSequence", "perturb_sequence"]

@@ -33,7 +33,7 @@ from estimator.geometry import invert_pose, make_pose, matrix_to_quat, transform
 from estimator.types import ImuNoise
 
 if TYPE_CHECKING:
-    from estimator.synthetic_driving import DrivingTrajectory
+    from estimator.rendered.synthetic_driving import DrivingTrajectory
 
 __all__ = [
     "BROKEN_KINDS",
@@ -131,7 +131,7 @@ class SynthOptions:
     # ``frames`` of the flight), as EuRoC's drones do: lets a VIO initialise its gyro bias.
     standstill_s: float = 0.0
     # "flight": EuRoC-like drone in a hall; "driving": KITTI-like car in a street
-    # (estimator/synthetic_driving.py). Layout "kitti" writes KITTI's odometry folders.
+    # (estimator/rendered/synthetic_driving.py). Layout "kitti" writes KITTI's odometry folders.
     scenario: Scenario = "flight"
     layout: Layout = "euroc"
 
@@ -933,7 +933,7 @@ class SceneRig:
 
 def _scene(options: SynthOptions, duration: float, rng: np.random.Generator) -> SceneRig:
     if options.scenario == "driving":
-        from estimator.synthetic_driving import (
+        from estimator.rendered.synthetic_driving import (
             DRIVING_T_BS_CAM0,
             build_street,
             driving_for_length,
@@ -1021,7 +1021,7 @@ def _kitti_writer(
     Poses are left-camera poses relative to the first one (KITTI's convention); times are
     seconds since the first frame. KITTI has no IMU, so none is written.
     """
-    from estimator.trajectory_io import format_seconds, write_kitti
+    from estimator.formats.trajectory_io import format_seconds, write_kitti
 
     folders = {"left": out_dir / "image_0", "right": out_dir / "image_1"}
     for folder in folders.values():

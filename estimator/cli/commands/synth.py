@@ -16,7 +16,7 @@ from typing import get_args
 
 from tqdm import tqdm
 
-from estimator.synthetic import Layout, Scenario, SynthOptions, synthesize
+from estimator.rendered.synthetic import Layout, Scenario, SynthOptions, synthesize
 
 
 def _scenario_defaults(scenario: str) -> SynthOptions:

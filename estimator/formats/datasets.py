@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation, Slerp
 
-from estimator.calibration import StereoRig, load_euroc_rig, load_kitti_rig
+from estimator.formats.calibration import StereoRig, load_euroc_rig, load_kitti_rig
 from estimator.types import ImuBatch, ImuNoise, StereoFrame
 
 __all__ = [
@@ -440,7 +440,7 @@ def _kitti_poses_file(path: Path) -> Path | None:
 
 def _open_kitti(path: Path) -> Sequence:
     # Imported here: trajectory_io has no reason to load for EuRoC-only use.
-    from estimator.trajectory_io import read_kitti
+    from estimator.formats.trajectory_io import read_kitti
 
     dirs = _kitti_image_dirs(path)
     if dirs is None:

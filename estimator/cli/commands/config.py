@@ -13,7 +13,7 @@ from pathlib import Path
 
 import yaml
 
-from estimator.commands.run import load_config
+from estimator.cli.commands.run import load_config
 from estimator.config import SwarmvoConfig
 
 

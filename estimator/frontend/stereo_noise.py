@@ -36,9 +36,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimator.calibration import Rectification
-from estimator.refine import CHI2_3_MEDIAN, squared_mahalanobis
-from estimator.stereo import point_covariances
+from estimator.formats.calibration import Rectification
+from estimator.frontend.stereo import point_covariances
+from estimator.registration.refine import CHI2_3_MEDIAN, squared_mahalanobis
 
 __all__ = ["CHI2_3_MEDIAN", "NoiseLevel", "StereoNoiseModel", "squared_mahalanobis"]
 

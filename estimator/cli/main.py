@@ -19,11 +19,14 @@ DESCRIPTION = (
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "bench": ("estimator.commands.bench", "run a benchmark (tables + JSON + PNG)"),
-    "serve": ("estimator.commands.serve", "run the HTTP/WebSocket odometry service"),
-    "run": ("estimator.commands.run", "run the odometry over a EuRoC/KITTI sequence"),
-    "synth": ("estimator.commands.synth", "render a stereo + IMU sequence with ground truth"),
-    "config": ("estimator.commands.config", "print the configuration (defaults or a file) as YAML"),
+    "bench": ("estimator.cli.commands.bench", "run a benchmark (tables + JSON + PNG)"),
+    "serve": ("service.cli", "run the HTTP/WebSocket odometry service"),
+    "run": ("estimator.cli.commands.run", "run the odometry over a EuRoC/KITTI sequence"),
+    "synth": ("estimator.cli.commands.synth", "render a stereo + IMU sequence with ground truth"),
+    "config": (
+        "estimator.cli.commands.config",
+        "print the configuration (defaults or a file) as YAML",
+    ),
 }
 
 

@@ -6,10 +6,10 @@ when the frame arrived, or the front end's without the back end), with the back 
 finished with it), ``metrics.json`` (accuracy against ground truth when the dataset has it:
 ``fused``, ``smoothed`` and ``frontend`` sections; failures, per-stage median times) and
 ``trajectory.png`` into ``--out``, and the odometry in the robotics convention
-(``estimator.odometry_msg``): ``odometry.jsonl`` (one nav_msgs/Odometry-like JSON object per
+(``estimator.formats.odometry_msg``): ``odometry.jsonl`` (one nav_msgs/Odometry-like JSON object per
 frame) and ``odometry.tum`` (base_link in odom). ``DATASET`` may also be a ROS 1 ``.bag`` or a
-ROS 2 bag folder (``--calibration`` and the topic flags; ``estimator.rosbag_io``), and
-``--export-bag`` writes the result as a bag (``estimator.rosbag_write``). For KITTI input
+ROS 2 bag folder (``--calibration`` and the topic flags; ``estimator.formats.rosbag_io``), and
+``--export-bag`` writes the result as a bag (``estimator.formats.rosbag_write``). For KITTI input
 it also writes ``kitti/<sequence>.txt``, the poses in KITTI's format. Before the run it derives
 the frontend settings that follow from the rig and the frame rate (estimator/rig_settings.py)
 and prints them.
@@ -33,13 +33,13 @@ from pydantic import ValidationError
 from tqdm import tqdm
 
 from estimator.config import SwarmvoConfig, explain_validation_error
-from estimator.datasets import Sequence, UnreadableImageError, open_sequence
-from estimator.evaluation import TrajectoryEvaluation, evaluate_trajectory
+from estimator.evaluation.metrics import TrajectoryEvaluation, evaluate_trajectory
+from estimator.formats.datasets import Sequence, UnreadableImageError, open_sequence
 from estimator.rig_settings import DerivedSetting, apply_rig_settings, format_settings
 from estimator.types import FrameReport, FrameStatus
 
 if TYPE_CHECKING:
-    from estimator.odometry_msg import OdometryMessage
+    from estimator.formats.odometry_msg import OdometryMessage
 
 ESTIMATORS = ("pso-robust", "pso", "msac", "svd")
 # IMU samples fed with the first frame: those of this window before it, from which the back end
@@ -310,7 +310,7 @@ def summarize(
 def odometry_messages(result: RunResult) -> list[OdometryMessage]:
     """The run's answers as odometry messages; odom is levelled with the IMU samples before
     the first frame whenever the sequence has them (whatever the flags)."""
-    from estimator.odometry_msg import OdometryBuilder
+    from estimator.formats.odometry_msg import OdometryBuilder
 
     first_ns = result.reports[0].timestamp_ns
     first_imu = result.sequence.imu_between(first_ns - FIRST_FRAME_IMU_WINDOW_NS, first_ns)
@@ -322,7 +322,7 @@ def write_odometry(
     result: RunResult, out: Path, export_bag: Path | None = None, storage: str = "sqlite3"
 ) -> None:
     """odometry.jsonl and odometry.tum, and the bag when asked for."""
-    from estimator.trajectory_io import write_tum
+    from estimator.formats.trajectory_io import write_tum
 
     messages = odometry_messages(result)
     with (out / "odometry.jsonl").open("w") as handle:
@@ -330,7 +330,7 @@ def write_odometry(
             handle.write(json.dumps(message.to_dict()) + "\n")
     write_tum(out / "odometry.tum", result.timestamps_ns, np.array([m.pose for m in messages]))
     if export_bag is not None:
-        from estimator.rosbag_write import write_odometry_bag
+        from estimator.formats.rosbag_write import write_odometry_bag
 
         camera = zip(result.timestamps_ns.tolist(), result.poses("pose"), strict=True)
         write_odometry_bag(export_bag, messages, camera, storage)  # type: ignore[arg-type]
@@ -344,9 +344,9 @@ def kitti_poses_path(result: RunResult, out: Path) -> Path | None:
 
 
 def write_outputs(result: RunResult, out: Path) -> dict[str, Any]:
+    from estimator.evaluation.plots import plot_run
+    from estimator.formats.trajectory_io import write_kitti, write_tum
     from estimator.geometry import invert_pose
-    from estimator.plots import plot_run
-    from estimator.trajectory_io import write_kitti, write_tum
 
     out.mkdir(parents=True, exist_ok=True)
     summary, evaluations = summarize(result)
@@ -374,14 +374,14 @@ def write_outputs(result: RunResult, out: Path) -> dict[str, Any]:
 
 def open_input(args: argparse.Namespace) -> Sequence:
     """The dataset folder, or a bag with its calibration and topics."""
-    from estimator.rosbag_io import is_bag
+    from estimator.formats.rosbag_io import is_bag
 
     if not is_bag(args.dataset):
         if args.calibration is not None:
             raise ValueError("--calibration is for bags; a dataset folder has its own")
         return open_sequence(args.dataset, args.format)
-    from estimator.bag_calibration import load_bag_calibration
-    from estimator.rosbag_io import open_bag
+    from estimator.formats.bag_calibration import load_bag_calibration
+    from estimator.formats.rosbag_io import open_bag
 
     if args.calibration is None:
         raise ValueError(

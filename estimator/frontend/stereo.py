@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from estimator.calibration import Rectification
 from estimator.config import FrontendConfig
-from estimator.features import Features, descriptor_distances, match_candidates
+from estimator.formats.calibration import Rectification
+from estimator.frontend.features import Features, descriptor_distances, match_candidates
 
 __all__ = [
     "StereoMatcher",

@@ -10,7 +10,7 @@ matplotlib.use("Agg")  # files only; never needs a display
 import matplotlib.pyplot as plt
 import numpy as np
 
-from estimator.evaluation import TrajectoryEvaluation
+from estimator.evaluation.metrics import TrajectoryEvaluation
 
 __all__ = ["plot_run"]
 

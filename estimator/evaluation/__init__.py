@@ -1,0 +1,1 @@
+"""Scoring a run: trajectory errors, consistency (NEES), image-only references, plots."""

@@ -1,0 +1,1 @@
+"""Files in and out: datasets, calibration, trajectories, ROS bags, odometry messages."""

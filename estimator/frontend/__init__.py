@@ -1,0 +1,1 @@
+"""Front end: features, stereo matching and triangulation, matching through time, noise."""
