@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from estimator import odometry as odometry_module
-from estimator.cli.commands.run import build_config, run_sequence
 from estimator.evaluation.metrics import camera_ground_truth
 from estimator.formats.datasets import open_sequence
 from estimator.geometry import rotation_angle_deg
+from estimator.pipeline import build_config, run_sequence
 from estimator.registration.refine import refine_pose_mahalanobis
 from estimator.registration.registry import register
 

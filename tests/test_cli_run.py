@@ -110,7 +110,7 @@ def test_run_on_euroc_micro_standstill(euroc_v101_micro, tmp_path):
 
 @pytest.mark.parametrize("imu", [True, False])
 def test_a_run_levels_its_world_with_gravity_from_the_imu_before_the_first_frame(rendered, imu):
-    from estimator.cli.commands.run import build_config, run_sequence
+    from estimator.pipeline import build_config, run_sequence
 
     sequence = open_sequence(rendered)
     assert sequence.imu is not None

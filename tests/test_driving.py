@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimator.cli.commands.run import build_config, load_config
 from estimator.cli.main import main
 from estimator.config import SwarmvoConfig
 from estimator.evaluation.metrics import kitti_segment_errors
@@ -18,6 +17,7 @@ from estimator.formats.calibration import CameraModel, StereoRig
 from estimator.formats.datasets import open_sequence
 from estimator.formats.trajectory_io import read_kitti, read_tum
 from estimator.geometry import invert_pose, make_pose, rotation_angle_deg
+from estimator.pipeline import build_config, load_config
 from estimator.rendered.synthetic import KITTI_CAMERA, SynthOptions
 from estimator.rendered.synthetic_driving import driving_for_length
 from estimator.rig_settings import (

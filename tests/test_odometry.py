@@ -248,8 +248,8 @@ def test_euroc_standstill_stays_still(euroc_v101_micro: Path) -> None:
 @pytest.mark.slow
 def test_rendered_broken_frames_fused_with_the_imu_beats_the_front_end(tmp_path: Path) -> None:
     """Rendered 8 m flights, 20 % broken frames (black, blurred, shuffled), simulated IMU."""
-    from estimator.cli.commands.run import run_sequence
     from estimator.evaluation.metrics import evaluate_trajectory
+    from estimator.pipeline import run_sequence
     from estimator.rendered.synthetic import SynthOptions, synthesize
 
     ate = {refine: {"frontend_pose": [], "pose": [], "smoothed": []} for refine in (False, True)}

@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from estimator.backend.imu import gravity_aligned_rotation
-from estimator.cli.commands.run import (
+from estimator.evaluation.consistency import relative_nees
+from estimator.formats.datasets import open_sequence
+from estimator.formats.odometry_msg import OdometryMessage
+from estimator.pipeline import (
     FIRST_FRAME_IMU_WINDOW_NS,
     build_config,
     odometry_messages,
     run_sequence,
 )
-from estimator.evaluation.consistency import relative_nees
-from estimator.formats.datasets import open_sequence
-from estimator.formats.odometry_msg import OdometryMessage
 from estimator.rendered.synthetic import SynthOptions, synthesize
 
 MODES = {"fused": (True, True), "frontend": (False, False)}

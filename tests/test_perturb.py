@@ -160,9 +160,9 @@ def test_real_clip_with_gain_flicker_keeps_every_frame(euroc_mh01_moving: Path) 
     front end still tracks every frame with most of its temporal matches."""
     import warnings
 
-    from estimator.cli.commands.run import run_sequence
     from estimator.config import SwarmvoConfig
     from estimator.formats.datasets import open_sequence
+    from estimator.pipeline import run_sequence
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # unpaired camera rows of the recording

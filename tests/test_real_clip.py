@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from estimator.cli.commands.run import build_config, run_sequence, summarize
 from estimator.formats.datasets import open_sequence
+from estimator.pipeline import build_config, run_sequence, summarize
 from estimator.registration.refine import CHI2_3_MEDIAN
 
 

@@ -132,8 +132,8 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
 
 
 def _offline(dataset: Path, limit: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    from estimator.cli.commands.run import build_config, run_sequence
     from estimator.formats.datasets import open_sequence
+    from estimator.pipeline import build_config, run_sequence
 
     result = run_sequence(
         open_sequence(dataset), build_config("pso-robust", SEED, True, True), limit=limit
@@ -143,8 +143,8 @@ def _offline(dataset: Path, limit: int) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 def _offline_odometry(dataset: Path, limit: int) -> tuple[list[dict], dict[int, np.ndarray]]:
     """The offline run's odometry messages (as the service answers them) and smoothed poses."""
-    from estimator.cli.commands.run import build_config, odometry_messages, run_sequence
     from estimator.formats.datasets import open_sequence
+    from estimator.pipeline import build_config, odometry_messages, run_sequence
 
     config = build_config("pso-robust", SEED, True, True)
     result = run_sequence(open_sequence(dataset), config, limit=limit)

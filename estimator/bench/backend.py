@@ -41,7 +41,7 @@ from estimator.rendered.scenario import (
 from estimator.types import ImuNoise
 
 if TYPE_CHECKING:
-    from estimator.cli.commands.run import RunResult
+    from estimator.pipeline import RunResult
 
 __all__ = ["add_arguments", "run"]
 
@@ -357,8 +357,8 @@ _Runs = dict[tuple[Path, int, bool], "RunResult"]
 
 def _pipeline_run(runs: _Runs, path: Path, seed: int, imu: bool) -> RunResult:
     """``RunResult`` of the default pipeline (pso-robust, back end on) on ``path``."""
-    from estimator.cli.commands.run import build_config, run_sequence
     from estimator.formats.datasets import open_sequence
+    from estimator.pipeline import build_config, run_sequence
 
     key = (path, seed, imu)
     if key not in runs:

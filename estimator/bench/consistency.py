@@ -21,9 +21,9 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from estimator.cli.commands.run import build_config, odometry_messages, run_sequence
 from estimator.evaluation.consistency import relative_nees
 from estimator.formats.datasets import open_sequence
+from estimator.pipeline import build_config, odometry_messages, run_sequence
 from estimator.rendered.synthetic import SynthOptions, synthesize
 
 __all__ = ["add_arguments", "run"]

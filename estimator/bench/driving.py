@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 
 from estimator.bench.readme import write_block
-from estimator.cli.commands.run import ESTIMATORS, build_config, run_sequence, write_outputs
 from estimator.formats.datasets import open_sequence
+from estimator.pipeline import ESTIMATORS, build_config, run_sequence, write_outputs
 from estimator.rendered.synthetic import SynthOptions, synthesize
 
 __all__ = ["add_arguments", "run"]

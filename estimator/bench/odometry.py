@@ -27,9 +27,9 @@ from pathlib import Path
 from typing import Any
 
 from estimator.bench.readme import write_block
-from estimator.cli.commands.run import build_config, run_sequence, write_outputs
 from estimator.evaluation.metrics import evaluate_trajectory
 from estimator.formats.datasets import Sequence, open_sequence
+from estimator.pipeline import build_config, run_sequence, write_outputs
 from estimator.registration.registry import available_methods
 from estimator.rendered.synthetic import SynthOptions, synthesize
 

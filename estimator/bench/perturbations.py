@@ -18,9 +18,9 @@ from pathlib import Path
 from typing import Any
 
 from estimator.bench.readme import write_block
-from estimator.cli.commands.run import build_config, load_config, run_sequence, summarize
 from estimator.config import SwarmvoConfig
 from estimator.formats.datasets import Sequence, open_sequence
+from estimator.pipeline import build_config, load_config, run_sequence, summarize
 from estimator.rendered.perturb import PERTURBATIONS, perturb_sequence
 
 __all__ = ["SETTINGS", "add_arguments", "run", "run_one"]

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import yaml
 
-from estimator.cli.commands.run import load_config
 from estimator.config import SwarmvoConfig
+from estimator.pipeline import load_config
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
