@@ -16,9 +16,9 @@ from estimator.geometry import (
     rotation_vector_to_quat,
 )
 from estimator.registration import pso_support
-from estimator.registration.baselines import residual_norms
 from estimator.registration.pso_support import rigidity_scores, rigidity_weights, weighted_horn
 from estimator.registration.registry import available_methods, register
+from estimator.registration.result import residual_norms
 from estimator.rendered.simulation import rotation_error_deg, simulate_pair, translation_error
 
 METHODS = ["pso-robust", "pso", "msac", "svd"]

@@ -22,8 +22,8 @@ import numpy as np
 from scipy.stats import chi2
 
 from estimator.geometry import kabsch
-from estimator.registration.baselines import failed_result, pose_result, residual_norms
 from estimator.registration.registry import RegistrationResult
+from estimator.registration.result import failed_result, pose_result, residual_norms
 
 __all__ = [
     "INLIER_QUANTILE",

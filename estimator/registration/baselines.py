@@ -5,8 +5,6 @@
            quadratic cost sum_j min(r_j^2, T^2), adaptive number of hypotheses, Kabsch refit
            on the inliers. Hypotheses are generated and scored in batches (one batched SVD
            and one (B, N) residual matrix per batch) so its timing is a fair comparison.
-
-Also the small result builders every estimator shares.
 """
 
 from __future__ import annotations
@@ -15,82 +13,19 @@ import math
 
 import numpy as np
 
-from estimator.geometry import (
-    is_degenerate,
-    kabsch,
-    kabsch_batched,
-    matrix_to_quat,
-    quat_to_matrix,
+from estimator.geometry import is_degenerate, kabsch, kabsch_batched
+from estimator.registration.methods import register_method
+from estimator.registration.result import (
+    RegistrationResult,
+    check_positive,
+    failed_result,
+    pose_result,
+    reject_unknown_options,
+    relative_scales,
+    residual_norms,
 )
-from estimator.registration.registry import RegistrationResult, register_method
 
-__all__ = [
-    "check_positive",
-    "failed_result",
-    "msac",
-    "pose_result",
-    "reject_unknown_options",
-    "relative_scales",
-    "residual_norms",
-    "svd",
-]
-
-
-def residual_norms(
-    rotation: np.ndarray, translation: np.ndarray, source: np.ndarray, target: np.ndarray
-) -> np.ndarray:
-    """||target_j - (R source_j + t)|| for every pair."""
-    difference = target - source @ rotation.T - translation
-    return np.sqrt(np.einsum("ij,ij->i", difference, difference))
-
-
-def pose_result(
-    rotation: np.ndarray,
-    translation: np.ndarray,
-    inliers: np.ndarray,
-    *,
-    cost: float,
-    iterations: int,
-    quaternion: np.ndarray | None = None,
-    success: bool = True,
-    message: str = "",
-) -> RegistrationResult:
-    """A successful-looking result whose rotation and unit quaternion agree.
-
-    Without ``quaternion`` the rotation is converted and rebuilt from it; with one (a fit
-    that produced both, e.g. ``geometry.horn``) both are taken as they are.
-    """
-    if quaternion is None:
-        quaternion = matrix_to_quat(rotation)
-        rotation = quat_to_matrix(quaternion)
-    return RegistrationResult(
-        rotation=np.asarray(rotation, dtype=float),
-        translation=np.asarray(translation, dtype=float).copy(),
-        quaternion=np.asarray(quaternion, dtype=float),
-        inliers=np.asarray(inliers, dtype=bool),
-        support=int(np.count_nonzero(inliers)),
-        cost=float(cost),
-        iterations=int(iterations),
-        elapsed_s=0.0,
-        success=success,
-        message=message,
-    )
-
-
-def failed_result(count: int, message: str, iterations: int = 0) -> RegistrationResult:
-    """Identity pose, no inliers, ``success=False``: the data cannot support an estimate."""
-    return RegistrationResult(
-        rotation=np.eye(3),
-        translation=np.zeros(3),
-        quaternion=np.array([1.0, 0.0, 0.0, 0.0]),
-        inliers=np.zeros(count, dtype=bool),
-        support=0,
-        cost=math.inf,
-        iterations=iterations,
-        elapsed_s=0.0,
-        success=False,
-        message=message,
-    )
+__all__ = ["msac", "svd"]
 
 
 @register_method("svd")
@@ -204,28 +139,3 @@ def _hypotheses_needed(ratio: float, confidence: float, cap: int) -> int:
     if good >= 1.0:
         return 1
     return min(cap, math.ceil(math.log(1.0 - confidence) / math.log(1.0 - good)))
-
-
-def relative_scales(sigmas: object, count: int) -> np.ndarray:
-    """sigma_j / median(sigma) after checking that ``sigmas`` is N finite positive numbers."""
-    values = np.asarray(sigmas, dtype=float)
-    if values.shape != (count,):
-        raise ValueError(f"sigmas must have shape ({count},) (one per pair), got {values.shape}")
-    if not np.isfinite(values).all():
-        raise ValueError("sigmas must be finite")
-    if not (values > 0.0).all():
-        raise ValueError(f"sigmas must be positive, got min {values.min()}")
-    return values / np.median(values) if count else values
-
-
-def check_positive(**values: float) -> None:
-    """ValueError naming the first option that is not > 0."""
-    for name, value in values.items():
-        if not value > 0:
-            raise ValueError(f"{name} must be positive, got {value}")
-
-
-def reject_unknown_options(method: str, unknown: dict[str, object]) -> None:
-    """A misspelt option must fail loudly, not be silently ignored."""
-    if unknown:
-        raise ValueError(f"{method}: unknown option(s) {sorted(unknown)}")

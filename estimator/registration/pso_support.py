@@ -66,16 +66,17 @@ from estimator.geometry import (
     matrix_to_quat,
     quat_to_rotation_vector,
 )
-from estimator.registration.baselines import (
+from estimator.registration.methods import register_method
+from estimator.registration.pso import optimise
+from estimator.registration.refine import refine_pose_mahalanobis, squared_mahalanobis
+from estimator.registration.result import (
+    RegistrationResult,
     check_positive,
     failed_result,
     pose_result,
     relative_scales,
     residual_norms,
 )
-from estimator.registration.pso import optimise
-from estimator.registration.refine import refine_pose_mahalanobis, squared_mahalanobis
-from estimator.registration.registry import RegistrationResult, register_method
 
 __all__ = ["PsoSupportEstimator", "rigidity_scores", "rigidity_weights"]
 

@@ -8,43 +8,13 @@ estimator registered under ``method``. Estimators register themselves with
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 
+from estimator.registration.methods import METHODS, register_method
+from estimator.registration.result import RegistrationResult
+
 __all__ = ["METHODS", "RegistrationResult", "available_methods", "register", "register_method"]
-
-
-@dataclass
-class RegistrationResult:
-    """target ~ rotation @ source + translation, with the pairs that support it."""
-
-    rotation: np.ndarray  # (3, 3), det +1
-    translation: np.ndarray  # (3,)
-    quaternion: np.ndarray  # (w, x, y, z), unit norm, w >= 0
-    inliers: np.ndarray  # (N,) bool
-    support: int
-    cost: float
-    iterations: int
-    elapsed_s: float
-    success: bool
-    method: str = ""
-    message: str = ""
-
-
-EstimatorFn = Callable[..., RegistrationResult]
-METHODS: dict[str, EstimatorFn] = {}
-
-
-def register_method(name: str) -> Callable[[EstimatorFn], EstimatorFn]:
-    """Decorator: make an estimator reachable as ``register(..., method=name)``."""
-
-    def decorate(function: EstimatorFn) -> EstimatorFn:
-        METHODS[name] = function
-        return function
-
-    return decorate
 
 
 def available_methods() -> list[str]:
@@ -53,7 +23,8 @@ def available_methods() -> list[str]:
 
 
 def _load_builtin_methods() -> None:
-    # Imported for their @register_method side effect; kept lazy to avoid import cycles.
+    # Imported for their @register_method side effect, at the first call: the swarm compiles
+    # its numba kernels on import, which `import estimator` should not pay for.
     from estimator.registration import baselines, pso_support  # noqa: F401
 
 
