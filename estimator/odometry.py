@@ -150,13 +150,8 @@ class Odometry:
         )
 
     def _make_backend(self, imu_noise: ImuNoise | None):
-        try:
-            from estimator.backend import FusionBackend
-        except ImportError as error:  # pragma: no cover - the back end ships with the package
-            raise ValueError(
-                f"backend.enabled is set but the back end cannot be imported ({error}); "
-                "set backend.enabled = false"
-            ) from error
+        from estimator.backend import FusionBackend  # GTSAM loads only when the back end runs
+
         return FusionBackend(
             self.config.backend, body_from_camera=self.rig.left.T_BS, imu_noise=imu_noise
         )

@@ -44,11 +44,6 @@ class GyroPreintegration:
     bias_hat: np.ndarray  # (3,) gyro bias subtracted during integration
     duration_s: float
 
-    def corrected_rotation(self, bias: np.ndarray) -> np.ndarray:
-        """Delta rotation for another bias, to first order (Forster et al. 2017, eq. 44)."""
-        correction = self.bias_jacobian @ (np.asarray(bias, dtype=float) - self.bias_hat)
-        return self.delta_rotation @ gtsam.Rot3.Expmap(correction).matrix()
-
 
 def rotation_params(noise: ImuNoise, noise_scale: float = 1.0) -> gtsam.PreintegratedRotationParams:
     """GTSAM preintegration parameters from the continuous-time gyro noise density.

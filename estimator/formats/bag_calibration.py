@@ -27,8 +27,9 @@ from estimator.formats.calibration import (
     load_euroc_rig,
     load_rig,
     pinhole_camera,
+    read_opencv_yaml,
 )
-from estimator.formats.datasets import euroc_root, read_euroc_imu_noise, read_opencv_yaml
+from estimator.formats.datasets import euroc_root, read_euroc_imu_noise
 from estimator.geometry import invert_pose
 from estimator.types import ImuNoise
 

@@ -29,6 +29,7 @@ __all__ = [
     "load_euroc_rig",
     "load_kitti_rig",
     "load_rig",
+    "read_opencv_yaml",
 ]
 
 DistortionModel = Literal["radtan", "equidistant", "none"]
@@ -386,19 +387,21 @@ class StereoRig:
 # ----------------------------------------------------------------------------- readers
 
 
-def _read_yaml(path: Path) -> Any:
+def read_opencv_yaml(path: Path) -> dict:
+    """A YAML file that may start with OpenCV's ``%YAML:1.0`` line (PyYAML rejects it)."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"calibration file not found: {path}")
-    text = path.read_text()
-    # OpenCV-style files start with a "%YAML:1.0" directive that PyYAML rejects.
-    lines = text.splitlines()
+        raise FileNotFoundError(f"file not found: {path}")
+    lines = path.read_text().splitlines()
     if lines and lines[0].startswith("%YAML"):
-        text = "\n".join(lines[1:])
+        lines = lines[1:]
     try:
-        return yaml.safe_load(text)
+        data = yaml.safe_load("\n".join(lines))
     except yaml.YAMLError as error:
         raise ValueError(f"{path} is not valid YAML: {error}") from error
+    if not isinstance(data, dict):
+        raise ValueError(f"{path} does not hold a YAML mapping")
+    return data
 
 
 def pinhole_camera(entry: dict, coefficients_key: str, T_BS: np.ndarray) -> CameraModel:
@@ -425,9 +428,7 @@ def pinhole_camera(entry: dict, coefficients_key: str, T_BS: np.ndarray) -> Came
 
 
 def _euroc_camera(path: Path) -> CameraModel:
-    data = _read_yaml(path)
-    if not isinstance(data, dict):
-        raise ValueError(f"{path} does not hold a camera description")
+    data = read_opencv_yaml(path)
     try:
         transform = data["T_BS"]
         matrix = transform["data"] if isinstance(transform, dict) else transform
@@ -518,7 +519,7 @@ def load_rig(path: Path) -> StereoRig:
         except json.JSONDecodeError as error:
             raise ValueError(f"{path} is not valid JSON: {error}") from error
     else:
-        data = _read_yaml(path)
+        data = read_opencv_yaml(path)
     try:
         return StereoRig.from_dict(data)
     except ValueError as error:

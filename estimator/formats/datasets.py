@@ -17,10 +17,14 @@ from typing import Literal
 
 import cv2
 import numpy as np
-import yaml
 from scipy.spatial.transform import Rotation, Slerp
 
-from estimator.formats.calibration import StereoRig, load_euroc_rig, load_kitti_rig
+from estimator.formats.calibration import (
+    StereoRig,
+    load_euroc_rig,
+    load_kitti_rig,
+    read_opencv_yaml,
+)
 from estimator.types import ImuBatch, ImuNoise, StereoFrame
 
 __all__ = [
@@ -295,23 +299,6 @@ def read_euroc_ground_truth(csv: Path) -> GroundTruth:
         gyro_bias=values[:, 10:13].copy() if columns >= 14 else None,
         accel_bias=values[:, 13:16].copy() if columns >= 17 else None,
     )
-
-
-def read_opencv_yaml(path: Path) -> dict:
-    """A YAML file that may start with OpenCV's ``%YAML:1.0`` line (PyYAML rejects it)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"file not found: {path}")
-    lines = path.read_text().splitlines()
-    if lines and lines[0].startswith("%YAML"):
-        lines = lines[1:]
-    try:
-        data = yaml.safe_load("\n".join(lines))
-    except yaml.YAMLError as error:
-        raise ValueError(f"{path} is not valid YAML: {error}") from error
-    if not isinstance(data, dict):
-        raise ValueError(f"{path} does not hold a YAML mapping")
-    return data
 
 
 def read_euroc_imu_noise(path: Path) -> ImuNoise:
