@@ -22,8 +22,8 @@ from sqlalchemy.exc import OperationalError
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
-from service.app import SESSION_ID, Owner, ServiceState, State
 from service.auth import AuthError, owner_for
+from service.dependencies import SESSION_ID, Owner, ServiceState, State
 from service.storage import SessionRecord
 from service.web.feed import (
     SessionActivity,

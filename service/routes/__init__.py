@@ -1,0 +1,1 @@
+"""The service's HTTP and WebSocket routes, one router per resource."""

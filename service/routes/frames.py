@@ -1,0 +1,69 @@
+"""Frames and IMU samples sent over REST: one stereo pair per request, answered with its pose."""
+
+from __future__ import annotations
+
+import asyncio
+
+from fastapi import APIRouter, Request
+
+from service.dependencies import ActiveSession, State, live_worker
+from service.errors import ERROR_RESPONSES, Refusal
+from service.imu_input import parse_imu
+from service.multipart import BINARY, file_field, int_field, multipart_body, read_form, text_field
+from service.schemas import ErrorOut, ImuBatchIn, ImuBatchOut, PoseOut
+from service.sessions import FrameRejected
+
+router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["frames"])
+
+_MULTIPART_FRAME = multipart_body(
+    ["left", "right", "timestamp_ns"],
+    {
+        "left": BINARY,
+        "right": BINARY,
+        "timestamp_ns": {"type": "integer", "minimum": 0},
+        "imu": {
+            "type": "string",
+            "description": 'JSON {"samples": [{"timestamp_ns", "gyro", '
+            '"accel"}]}: IMU samples since the previous frame',
+        },
+    },
+)
+
+
+@router.post(
+    "/frames", response_model=PoseOut, openapi_extra=_MULTIPART_FRAME,
+    responses={**ERROR_RESPONSES, 503: {"model": ErrorOut}},
+)
+async def post_frame(record: ActiveSession, request: Request, state: State) -> PoseOut:
+    """Process one stereo pair; answers once its pose is stored."""
+    form = await read_form(request, max_files=2, max_fields=2)
+    left = await file_field(form, "left")
+    right = await file_field(form, "right")
+    timestamp_ns = int_field(form, "timestamp_ns", 0, 2**63 - 1)
+    imu_text = text_field(form, "imu", required=False)
+    imu = parse_imu(imu_text, state.settings) if imu_text and imu_text.strip() else None
+    worker = live_worker(state, record)
+    try:
+        future = worker.submit(timestamp_ns, left, right, imu)
+    except FrameRejected as error:
+        raise Refusal(error.status_code, error.detail, error.kind) from error
+    try:
+        # Shielded: a client that hangs up does not cancel a frame already accepted.
+        result = await asyncio.shield(future)
+    except FrameRejected as error:  # counted by the session's consumer
+        raise Refusal(error.status_code, error.detail, None) from error
+    return PoseOut.of(
+        result.session_id, result.record, result.imu_samples, result.odometry, result.smoothed
+    )
+
+
+@router.post("/imu", response_model=ImuBatchOut, responses=ERROR_RESPONSES)
+async def post_imu(record: ActiveSession, body: ImuBatchIn, state: State) -> ImuBatchOut:
+    """Buffer IMU samples; each frame consumes those up to its timestamp."""
+    samples = parse_imu(body.model_dump(), state.settings)
+    worker = live_worker(state, record)
+    try:
+        buffered = worker.add_imu(samples)
+    except FrameRejected as error:
+        raise Refusal(error.status_code, error.detail, error.kind) from error
+    return ImuBatchOut(accepted=len(samples), buffered=buffered)
