@@ -39,10 +39,7 @@ def create_app(
         database = store or await run_in_threadpool(
             Store.open, settings.resolved_database_url(), settings.sqlite_synchronous
         )
-        mode = settings.executor
-        if mode == "auto":
-            mode = "thread" if factory is not None else "process"
-        manager = SessionManager(settings, database, pipeline_factory, metrics, mode)
+        manager = SessionManager(settings, database, pipeline_factory, metrics)
         try:
             await manager.start()
         except BaseException:

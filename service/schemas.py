@@ -7,6 +7,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, Strict
 
+from service.settings import Executor
 from service.storage import PoseRecord, SessionRecord
 
 # Strict: JSON numbers only (no booleans, no numeric strings).
@@ -237,7 +238,7 @@ class Health(BaseModel):
     status: Literal["ok"]
     sessions_active: int
     database: str
-    executor: Literal["process", "thread"]  # where the odometry runs
+    executor: Executor  # where the odometry runs
     workers: int
 
 

@@ -440,7 +440,6 @@ class SessionManager:
         store: Store,
         factory: PipelineFactory,
         metrics: Metrics,
-        mode: str = "thread",
     ) -> None:
         self.settings = settings
         self.store = store
@@ -450,7 +449,7 @@ class SessionManager:
             ProcessRunner(
                 settings.workers, factory, metrics.worker_restarts.inc, settings.frame_timeout_s
             )
-            if mode == "process"
+            if settings.executor == "process"
             else ThreadRunner(settings.workers, factory)
         )
         # Database reads/writes of the consumers (SQLite serialises writers anyway).

@@ -10,6 +10,11 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+# Where the odometry runs. process: each session's pipeline lives in one worker process (no GIL
+# contention; the pipeline factory must be picklable). thread: everything in the server process
+# (for factories that cannot be sent to another process, or that are inspected in-process).
+Executor = Literal["process", "thread"]
+
 
 def hash_key(key: str) -> str:
     """Stored form of an API key: sessions are owned by this digest, never by the key itself."""
@@ -35,11 +40,7 @@ class ServiceSettings(BaseSettings):
     # Worker processes (or threads) running decode + odometry; frames of one session never
     # overlap and always go to the same worker.
     workers: int = Field(default_factory=lambda: max(1, os.cpu_count() or 1), ge=1, le=256)
-    # process: each session's odometry lives in one worker process (no GIL contention).
-    # thread: everything in the server process. auto: process for the built-in estimator,
-    # thread when the app is given its own pipeline factory (it may not be picklable, and its
-    # caller may inspect it in-process).
-    executor: Literal["auto", "process", "thread"] = "auto"
+    executor: Executor = "process"
     # Process mode: a frame not answered by its worker within this time gets a 503 and the
     # worker is killed and replaced (an estimator stuck in a loop must not hold a session).
     frame_timeout_s: float = Field(60.0, gt=0, le=3600)

@@ -40,6 +40,7 @@ from estimator.geometry import nearest_rigid
 from estimator.types import ImuBatch, StereoFrame
 from service.images import ImageError, ImageLimits, decode_pair, decode_raw_pair
 from service.pipeline import Pipeline, PipelineFactory, PreparedSession
+from service.settings import Executor
 
 logger = logging.getLogger("swarmvo.service")
 
@@ -232,7 +233,7 @@ def _compute_frame(
 class Runner(Protocol):
     """Runs frames of pinned sessions; ``slot`` is the worker a session was assigned."""
 
-    mode: str
+    mode: Executor
     restarts: int
 
     async def start(self) -> None: ...
@@ -251,7 +252,7 @@ class Runner(Protocol):
 class ThreadRunner:
     """All pipelines in this process, frames in a thread pool (GIL-bound, but no pickling)."""
 
-    mode = "thread"
+    mode: Executor = "thread"
     restarts = 0
 
     def __init__(self, workers: int, factory: PipelineFactory) -> None:
@@ -333,7 +334,7 @@ class _Slot:
 class ProcessRunner:
     """``workers`` single-process executors; a session's frames always go to its own one."""
 
-    mode = "process"
+    mode: Executor = "process"
 
     def __init__(
         self,

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from pydantic import ValidationError
 from test_service_server import process_alive
 
 from estimator.types import FrameReport, FrameStatus, ImuBatch, StereoFrame
@@ -114,7 +115,9 @@ def png(width: int = WIDTH, height: int = HEIGHT, value: int = 0, dtype=np.uint8
 
 
 def settings_for(tmp_path: Path, **overrides) -> ServiceSettings:
-    values = {"data_dir": tmp_path, "api_keys": f"{KEY_A},{KEY_B}", "workers": 2}
+    """Thread executor unless overridden: the test doubles are inspected in this process."""
+    values = {"data_dir": tmp_path, "api_keys": f"{KEY_A},{KEY_B}", "workers": 2,
+              "executor": "thread"}
     values.update(overrides)
     return ServiceSettings(**values)
 
@@ -650,7 +653,7 @@ def test_idle_pipelines_are_unloaded_beyond_the_cap_and_resume(tmp_path: Path) -
         assert send(c, first, 1).json()["resumed"] is False
         assert send(c, second, 1).json()["resumed"] is False  # unloads the idle first one
         assert c.get("/healthz").json()["sessions_active"] == 1
-        assert c.get("/healthz").json()["executor"] == "thread"  # injected factory
+        assert c.get("/healthz").json()["executor"] == "thread"  # as set by settings_for
         again = send(c, first, 2).json()
         assert again["resumed"] is True and again["index"] == 1
         assert len(factory.created) == 3
@@ -693,7 +696,8 @@ def _parent_of(pid: int) -> int:
 def test_process_mode_runs_sessions_in_their_own_worker_process_in_order(
     tmp_path: Path,
 ) -> None:
-    settings = settings_for(tmp_path, executor="process", workers=2)
+    # No executor given: the default (process) holds for an injected factory too.
+    settings = ServiceSettings(data_dir=tmp_path, api_keys=f"{KEY_A},{KEY_B}", workers=2)
     app = create_app(settings, ProcessFactory(delay=0.02))
     stamps = [100 + 10 * k for k in range(8)]
     with TestClient(app) as c:
@@ -794,6 +798,12 @@ def test_a_stuck_worker_is_killed_after_the_frame_timeout(tmp_path: Path) -> Non
         assert again.status_code == 200, again.text
         assert again.json()["resumed"] is True and again.json()["index"] == 1
         assert 'swarmvo_errors_total{kind="worker_timeout"} 1.0' in c.get("/metrics").text
+
+
+def test_the_executor_is_a_setting_with_two_kinds() -> None:
+    assert ServiceSettings(open=True).executor == "process"
+    with pytest.raises(ValidationError, match="executor"):
+        ServiceSettings(open=True, executor="auto")
 
 
 def test_process_mode_refuses_to_start_with_a_factory_it_cannot_send(tmp_path: Path) -> None:
