@@ -14,6 +14,9 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 # contention; the pipeline factory must be picklable). thread: everything in the server process
 # (for factories that cannot be sent to another process, or that are inspected in-process).
 Executor = Literal["process", "thread"]
+# What a session's full frame queue does with one more frame: refuse it (429), or drop the
+# oldest queued one.
+QueuePolicy = Literal["reject", "drop_oldest"]
 
 
 def hash_key(key: str) -> str:
@@ -66,7 +69,7 @@ class ServiceSettings(BaseSettings):
     max_active_sessions: int = Field(64, ge=1)
     # Frames waiting for CPU per session, and what happens when a producer outruns it.
     queue_size: int = Field(8, ge=1, le=10_000)
-    queue_policy: Literal["reject", "drop_oldest"] = "reject"
+    queue_policy: QueuePolicy = "reject"
     ws_max_message_bytes: int = Field(16 * 1024 * 1024, ge=1024)
 
     @field_validator("database_url")

@@ -27,6 +27,7 @@ from estimator.types import FrameReport, FrameStatus, ImuBatch, StereoFrame
 from service.app import create_app
 from service.auth import AuthError, owner_for
 from service.images import ImageError, ImageLimits, decode_image, decode_pair, image_size
+from service.messages import SERVER_MESSAGE
 from service.pipeline import EstimatorFactory, PreparedSession
 from service.settings import ServiceSettings, hash_key
 from service.storage import PoseRecord, Store
@@ -491,6 +492,8 @@ def test_websocket_protocol_and_auth(client: TestClient) -> None:
             json.dumps({"type": "frame", "timestamp_ns": "x", "left_bytes": 1, "right_bytes": 1})
         )
         _ws_frame(ws, 30, left=b"garbage!", right=b"garbage!")
+        ws.send_text(json.dumps({"type": "ping"}))
+        ws.send_text(json.dumps({"type": "nope"}))
         ws.send_text(json.dumps({"type": "close"}))
         replies = []
         while True:
@@ -507,8 +510,15 @@ def test_websocket_protocol_and_auth(client: TestClient) -> None:
         "error",
         "rejected",
         "rejected",
+        "pong",
+        "error",
     ]
+    for reply in [hello, *replies]:  # every answer is one of the documented messages
+        SERVER_MESSAGE.validate_python(reply)
     assert replies[4]["status"] == 409
+    assert "samples.0.gyro: Field required" in replies[5]["detail"]
+    assert replies[6]["timestamp_ns"] == "x" and "timestamp_ns: " in replies[6]["detail"]
+    assert "unknown message type 'nope'" in replies[9]["detail"]
     assert replies[7]["status"] == 422 and "PNG or JPEG" in replies[7]["detail"]
     # with a token query parameter, and refused without credentials / for another key
     with client.websocket_connect(f"/v1/sessions/{sid}/stream?token={KEY_A}") as ws:
@@ -842,8 +852,9 @@ def test_raw8_websocket_frames_skip_the_image_container(client: TestClient) -> N
         for extra, words in (
             ({"width": HEIGHT, "height": WIDTH}, "calibration is for"),
             ({"left_bytes": 5}, "width*height"),
-            ({"encoding": "tiff"}, "unknown encoding"),
-            ({"width": "x"}, "positive integer"),
+            ({"encoding": "tiff"}, "encoding: Input should be 'png', 'jpeg', 'image' or 'raw8'"),
+            ({"width": "x"}, "width: Input should be a valid integer"),
+            ({"encoding": "png", "width": 0}, "width: Input should be greater than 0"),
         ):
             ws.send_text(header(20, **extra))
             reply = ws.receive_json()

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Request
 
 from service.dependencies import ActiveSession, State, live_worker
 from service.errors import ERROR_RESPONSES, Refusal
-from service.imu_input import parse_imu
+from service.imu_input import imu_arrays, parse_imu
 from service.multipart import BINARY, file_field, int_field, multipart_body, read_form, text_field
 from service.schemas import ErrorOut, ImuBatchIn, ImuBatchOut, PoseOut
 from service.sessions import FrameRejected
@@ -60,7 +60,7 @@ async def post_frame(record: ActiveSession, request: Request, state: State) -> P
 @router.post("/imu", response_model=ImuBatchOut, responses=ERROR_RESPONSES)
 async def post_imu(record: ActiveSession, body: ImuBatchIn, state: State) -> ImuBatchOut:
     """Buffer IMU samples; each frame consumes those up to its timestamp."""
-    samples = parse_imu(body.model_dump(), state.settings)
+    samples = imu_arrays(body.samples, state.settings)
     worker = live_worker(state, record)
     try:
         buffered = worker.add_imu(samples)

@@ -5,23 +5,48 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+from dataclasses import dataclass
 from typing import Any
 
 from fastapi import APIRouter, HTTPException, WebSocket
 from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ValidationError
 from starlette.types import Message
 from starlette.websockets import WebSocketDisconnect
 
 from service.auth import AuthError, bearer_token, owner_for
 from service.dependencies import live_worker, lookup_live_first, service_state
-from service.imu_input import parse_imu
-from service.schemas import PoseOut
-from service.sessions import FrameDropped, FrameRejected, SessionGone, SessionWorker
+from service.imu_input import brief, imu_arrays
+from service.messages import (
+    CLIENT_MESSAGE,
+    CLIENT_TYPES,
+    DroppedMessage,
+    ErrorMessage,
+    FrameHeader,
+    HelloMessage,
+    ImuMessage,
+    PingMessage,
+    PongMessage,
+    PoseMessage,
+    RejectedMessage,
+    ServerMessage,
+)
+from service.sessions import (
+    FrameDropped,
+    FrameRejected,
+    FrameResult,
+    ImuSamples,
+    SessionGone,
+    SessionWorker,
+)
 from service.storage import SessionRecord
 
 # Answers (poses, refusals, errors) a WebSocket client may leave unread before the server
 # stops reading its socket; each is a small JSON message (images are not kept with them).
 MAX_UNSENT_REPLIES = 64
+
+# Answers in order: a ready message, or (future, timestamp_ns) of a frame being processed.
+_Outgoing = BaseModel | tuple[asyncio.Future[FrameResult], int]
 
 router = APIRouter()
 
@@ -44,9 +69,9 @@ class StreamConnection:
         self.session_id = session_id
         self.state = service_state(websocket)
         self.settings = self.state.settings
-        self.outbox: asyncio.Queue[Any] = asyncio.Queue()
+        self.outbox: asyncio.Queue[_Outgoing | None] = asyncio.Queue()
         self.credit = asyncio.Semaphore(MAX_UNSENT_REPLIES)
-        self.header: dict[str, Any] | None = None
+        self.header: _Pending | None = None
         self.parts: list[bytes] = []
         self.received = 0
         self.sender: asyncio.Task[None] | None = None
@@ -108,16 +133,12 @@ class StreamConnection:
         websocket = self.websocket
         await websocket.accept()
         self.image_size = (record.image_width, record.image_height)
-        await websocket.send_json(
-            {
-                "type": "hello",
-                "session_id": record.id,
-                "next_index": worker.next_index,
-                "last_timestamp_ns": worker.last_submitted_ns,
-                "queue_size": self.settings.queue_size,
-                "queue_policy": self.settings.queue_policy,
-            }
+        hello = HelloMessage(
+            session_id=record.id, next_index=worker.next_index,
+            last_timestamp_ns=worker.last_submitted_ns, queue_size=self.settings.queue_size,
+            queue_policy=self.settings.queue_policy,
         )
+        await websocket.send_json(hello.model_dump(mode="json"))
         sender = asyncio.create_task(self._send_loop())
         self.sender = sender
         graceful = False
@@ -152,139 +173,123 @@ class StreamConnection:
                 sender.cancel()
                 await asyncio.wait({sender})
 
-    async def _reply(self, payload: dict[str, Any]) -> None:
+    async def _reply(self, message: ServerMessage) -> None:
         await self._acquire_credit()
-        self.outbox.put_nowait(payload)
+        self.outbox.put_nowait(message)
 
     async def _on_text(self, text: str, record: SessionRecord) -> bool:
+        """Handle one client message; True when the client closes the stream."""
         try:
-            message = json.loads(text)
+            raw = json.loads(text)
         except json.JSONDecodeError as error:
-            await self._reply({"type": "error", "detail": f"message is not valid JSON: {error}"})
+            await self._reply(ErrorMessage(detail=f"message is not valid JSON: {error}"))
             return False
-        if not isinstance(message, dict):
-            await self._reply({"type": "error", "detail": "messages must be JSON objects"})
+        if not isinstance(raw, dict):
+            await self._reply(ErrorMessage(detail="messages must be JSON objects"))
             return False
-        kind = message.get("type")
-        if kind == "frame":
+        kind = raw.get("type")
+        if kind not in CLIENT_TYPES:
+            await self._reply(ErrorMessage(
+                detail=f"unknown message type {kind!r} ({'|'.join(CLIENT_TYPES)})"))
+            return False
+        try:
+            message = CLIENT_MESSAGE.validate_python(raw)
+        except ValidationError as error:
+            await self._refuse(kind, raw, brief(error, skip=1))
+            return False
+        if isinstance(message, FrameHeader):
             await self._start_frame(message)
-        elif kind == "imu":
+        elif isinstance(message, ImuMessage):
             try:
-                samples = parse_imu({"samples": message.get("samples")}, self.settings)
+                samples = imu_arrays(message.samples, self.settings)
                 live_worker(self.state, record).add_imu(samples)
             except HTTPException as error:
-                await self._reply({"type": "error", "detail": str(error.detail)})
+                await self._reply(ErrorMessage(detail=str(error.detail)))
             except FrameRejected as error:
-                await self._reply({"type": "error", "detail": error.detail})
-        elif kind == "ping":
-            await self._reply({"type": "pong"})
-        elif kind == "close":
-            return True
+                await self._reply(ErrorMessage(detail=error.detail))
+        elif isinstance(message, PingMessage):
+            await self._reply(PongMessage())
         else:
-            await self._reply(
-                {"type": "error", "detail": f"unknown message type {kind!r} (frame|imu|ping|close)"}
-            )
+            return True
         return False
 
-    async def _start_frame(self, message: dict[str, Any]) -> None:
-        if self.header is not None:
-            await self._reply(
-                {
-                    "type": "error",
-                    "detail": "a new frame header arrived before the images of the previous "
-                    "one; the previous frame was discarded",
-                }
-            )
-        self.header, self.parts, self.received = None, [], 0
-        timestamp = message.get("timestamp_ns")
-        sizes = (message.get("left_bytes"), message.get("right_bytes"))
-        problem = None
-        if not isinstance(timestamp, int) or isinstance(timestamp, bool):
-            problem = "timestamp_ns must be an integer"
-        elif not 0 <= timestamp < 2**63:
-            problem = "timestamp_ns is out of range"
-        elif not all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in sizes):
-            problem = "left_bytes and right_bytes must be positive integers"
-        elif sum(sizes) > self.settings.ws_max_message_bytes:  # type: ignore[arg-type]
-            problem = f"images exceed {self.settings.ws_max_message_bytes} bytes"
+    async def _refuse(self, kind: str, raw: dict[str, Any], problem: str) -> None:
+        """A message of a known type that does not validate: a frame header is rejected (with
+        the timestamp it gave, whatever it was), anything else is an error."""
+        if kind == "frame":
+            await self._discard_pending()
+            await self._reply(RejectedMessage(timestamp_ns=raw.get("timestamp_ns"), status=422,
+                                              detail=f"bad frame header: {problem}"))
+        elif kind == "imu":
+            await self._reply(ErrorMessage(detail=f"invalid IMU samples: {problem}"))
         else:
-            problem = self._raw_problem(message, sizes)  # type: ignore[arg-type]
+            await self._reply(ErrorMessage(detail=f"invalid {kind} message: {problem}"))
+
+    async def _discard_pending(self) -> None:
+        """A new frame header ends a frame whose images did not all arrive."""
+        if self.header is not None:
+            await self._reply(ErrorMessage(
+                detail="a new frame header arrived before the images of the previous one; the "
+                "previous frame was discarded"))
+        self.header, self.parts, self.received = None, [], 0
+
+    async def _start_frame(self, header: FrameHeader) -> None:
+        await self._discard_pending()
+        problem = self._size_problem(header)
         imu = None
-        if problem is None and message.get("imu") is not None:
+        if problem is None and header.imu is not None:
             try:
-                imu = parse_imu({"samples": message["imu"]}, self.settings)
+                imu = imu_arrays(header.imu, self.settings)
             except HTTPException as error:
                 problem = str(error.detail)
         if problem is not None:
-            await self._reply(
-                {
-                    "type": "rejected",
-                    "timestamp_ns": timestamp,
-                    "status": 422,
-                    "detail": f"bad frame header: {problem}",
-                }
-            )
+            await self._reply(RejectedMessage(timestamp_ns=header.timestamp_ns, status=422,
+                                              detail=f"bad frame header: {problem}"))
             return
-        self.header = {"timestamp_ns": timestamp, "sizes": sizes, "imu": imu,
-                       "raw": message.get("encoding") == "raw8"}
+        self.header = _Pending(header, imu)
 
-    def _raw_problem(self, message: dict[str, Any], sizes: tuple[int, int]) -> str | None:
-        """Check the optional ``encoding`` of a frame header (``png`` default, or ``raw8``)."""
-        encoding = message.get("encoding", "png")
-        if encoding in ("png", "jpeg", "image"):
-            return None
-        if encoding != "raw8":
-            return f"unknown encoding {encoding!r} (png|raw8)"
-        width, height = message.get("width"), message.get("height")
-        if not all(isinstance(n, int) and not isinstance(n, bool) and n > 0
-                   for n in (width, height)):
-            return "raw8 frames need positive integer width and height"
-        if (width, height) != self.image_size:
-            return (f"raw8 image is {width}x{height} but the session's calibration is for "
-                    f"{self.image_size[0]}x{self.image_size[1]}")
-        if sizes != (width * height, width * height):
-            return (f"raw8 left_bytes and right_bytes must both be width*height = "
-                    f"{width * height}")
+    def _size_problem(self, header: FrameHeader) -> str | None:
+        """What the header's own validation cannot know: this server's limit, the session's size."""
+        if header.left_bytes + header.right_bytes > self.settings.ws_max_message_bytes:
+            return f"images exceed {self.settings.ws_max_message_bytes} bytes"
+        if header.encoding == "raw8" and (header.width, header.height) != self.image_size:
+            return (f"raw8 image is {header.width}x{header.height} but the session's calibration "
+                    f"is for {self.image_size[0]}x{self.image_size[1]}")
         return None
 
     async def _on_bytes(self, data: bytes, record: SessionRecord) -> None:
         if self.header is None:
             await self._reply(
-                {"type": "error", "detail": "binary message without a preceding frame header"}
-            )
+                ErrorMessage(detail="binary message without a preceding frame header"))
             return
         self.parts.append(data)
         self.received += len(data)
-        left_size, right_size = self.header["sizes"]
-        expected = left_size + right_size
+        header, imu = self.header.header, self.header.imu
+        expected = header.left_bytes + header.right_bytes
         if self.received < expected:
             return
-        header, blob = self.header, b"".join(self.parts)
+        blob = b"".join(self.parts)
         self.header, self.parts, self.received = None, [], 0
         if len(blob) != expected:
-            await self._reply(
-                {
-                    "type": "rejected",
-                    "timestamp_ns": header["timestamp_ns"],
-                    "status": 422,
-                    "detail": f"expected {expected} image bytes, received {len(blob)}",
-                }
-            )
+            await self._reply(RejectedMessage(
+                timestamp_ns=header.timestamp_ns, status=422,
+                detail=f"expected {expected} image bytes, received {len(blob)}"))
             return
         await self._acquire_credit()
         try:
             future = live_worker(self.state, record).submit(
-                header["timestamp_ns"], blob[:left_size], blob[left_size:], header["imu"],
-                raw=header["raw"],
+                header.timestamp_ns, blob[:header.left_bytes], blob[header.left_bytes:], imu,
+                raw=header.encoding == "raw8",
             )
         except (FrameRejected, HTTPException) as error:
             refusal = error if isinstance(error, FrameRejected) else FrameRejected(
                 error.status_code, str(error.detail), "unknown_session")
             self.state.metrics.errors.labels(refusal.kind).inc()
-            self.outbox.put_nowait({"type": "rejected", "timestamp_ns": header["timestamp_ns"],
-                                    "status": refusal.status_code, "detail": refusal.detail})
+            self.outbox.put_nowait(RejectedMessage(
+                timestamp_ns=header.timestamp_ns, status=refusal.status_code,
+                detail=refusal.detail))
             return
-        self.outbox.put_nowait((future, header["timestamp_ns"]))
+        self.outbox.put_nowait((future, header.timestamp_ns))
 
     async def _acquire_credit(self) -> None:
         """Wait for room for one more unanswered frame, unless the sender has died."""
@@ -300,21 +305,27 @@ class StreamConnection:
             item = await self.outbox.get()
             if item is None:
                 return
-            if isinstance(item, dict):
-                await self.websocket.send_json(item)
-                self.credit.release()
-                continue
-            future, timestamp = item
-            try:
-                result = await asyncio.shield(future)
-                payload = {"type": "pose", **PoseOut.of(
-                    result.session_id, result.record, result.imu_samples, result.odometry,
-                    result.smoothed,
-                ).model_dump(mode="json")}
-            except FrameDropped as error:
-                payload = {"type": "dropped", "timestamp_ns": timestamp, "detail": error.detail}
-            except FrameRejected as error:
-                payload = {"type": "rejected", "timestamp_ns": timestamp,
-                           "status": error.status_code, "detail": error.detail}
-            await self.websocket.send_json(payload)
+            message = item if isinstance(item, BaseModel) else await self._outcome(*item)
+            await self.websocket.send_json(message.model_dump(mode="json"))
             self.credit.release()
+
+    @staticmethod
+    async def _outcome(future: asyncio.Future[FrameResult], timestamp_ns: int) -> ServerMessage:
+        """The answer to a submitted frame, once its pose is stored (or it was refused)."""
+        try:
+            result = await asyncio.shield(future)
+        except FrameDropped as error:
+            return DroppedMessage(timestamp_ns=timestamp_ns, detail=error.detail)
+        except FrameRejected as error:
+            return RejectedMessage(timestamp_ns=timestamp_ns, status=error.status_code,
+                                   detail=error.detail)
+        return PoseMessage.of(result.session_id, result.record, result.imu_samples,
+                              result.odometry, result.smoothed)
+
+
+@dataclass
+class _Pending:
+    """A frame header whose images are still arriving."""
+
+    header: FrameHeader
+    imu: ImuSamples | None
