@@ -8,7 +8,7 @@ frame, and ``pong``. Unknown fields of client messages are ignored; field types 
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, Field, Strict, TypeAdapter, model_validator
 
@@ -67,7 +67,11 @@ ClientMessage = Annotated[
     FrameHeader | ImuMessage | PingMessage | CloseMessage, Field(discriminator="type")
 ]
 CLIENT_MESSAGE: TypeAdapter[ClientMessage] = TypeAdapter(ClientMessage)
-CLIENT_TYPES = ("frame", "imu", "ping", "close")
+# The ``type`` of each client message, read off the models: the valid kinds, in one place.
+CLIENT_TYPES: tuple[str, ...] = tuple(
+    get_args(model.model_fields["type"].annotation)[0]
+    for model in get_args(get_args(ClientMessage)[0])
+)
 
 # ----------------------------------------------------------------------------- server -> client
 
