@@ -21,6 +21,7 @@ from service.routes import frames, operations, sessions, stream, trajectories
 from service.sessions import SessionManager
 from service.settings import ServiceSettings
 from service.storage import Store
+from service.web import install_web_view
 
 
 def create_app(
@@ -69,8 +70,5 @@ def create_app(
     install_error_handlers(app, metrics)
     for module in (operations, sessions, frames, trajectories, stream):
         app.include_router(module.router)
-
-    from service.web import install_web_view  # imports service.dependencies: not at the top
-
     install_web_view(app)
     return app

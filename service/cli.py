@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+from typing import get_args
+
+from service.settings import Executor
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -20,10 +23,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--executor",
-        choices=("auto", "process", "thread"),
+        choices=get_args(Executor),
         default=None,
-        help="where the odometry runs: worker processes with session affinity (auto for the "
-        "built-in estimator) or threads of the server process",
+        help="where the odometry runs: worker processes with session affinity (default) or "
+        "threads of the server process",
     )
     parser.add_argument(
         "--open",

@@ -46,11 +46,6 @@ KNOWN_CYCLES: dict[frozenset[str], str] = {
         "the flight renderer dispatches to the driving scene, which reuses the flight's world "
         "primitives; it goes when synthetic.py is split into world, trajectory and writer"
     ),
-    frozenset({"service.app", "service.web", "service.web.watch"}): (
-        "the web view's watch socket takes the app's state types while create_app installs the "
-        "web view; it goes when the routes leave service/app.py for routers with shared "
-        "dependencies"
-    ),
 }
 
 
