@@ -33,3 +33,26 @@ def test_write_block_replaces_only_the_block(tmp_path):
     assert path.read_text().startswith("intro\n") and path.read_text().endswith(end + "\noutro\n")
     with pytest.raises(ValueError, match="no"):
         write_block(path, "other", "x")
+
+
+def test_docs_results_equal_the_result_files():
+    """``docs/results.md`` is what ``swarmvo bench report`` makes of the result files now."""
+    from estimator.bench import report
+
+    assert (ROOT / "docs" / "results.md").read_text() == report.full_results(RESULTS), (
+        "docs/results.md is stale: run `swarmvo bench report --docs-only`"
+    )
+
+
+def test_docs_results_follow_a_changed_result_file(tmp_path):
+    """Changing one result number changes the generated text, so a stale file cannot pass."""
+    import shutil
+
+    from estimator.bench import report
+
+    copy = tmp_path / "results"
+    shutil.copytree(RESULTS, copy, ignore=shutil.ignore_patterns("*.png", "seed*", "rendered*"))
+    before = report.full_results(copy)
+    table = copy / "frontend" / "frontend.md"
+    table.write_text(table.read_text() + "\nchanged\n")
+    assert report.full_results(copy) != before

@@ -179,6 +179,9 @@ def load_summary(results: Path) -> str:
     return f"{newest.name}\n\n" + _table(header, rows)
 
 
+NEES_MODES = ("fused pose", "frontend pose")
+
+
 def backend_summary(results: Path) -> str:
     """What the back end adds on the pipeline runs, and whether its covariances are honest."""
     pipeline = _load(results, "backend/backend.json")["pipeline"]
@@ -194,7 +197,7 @@ def backend_summary(results: Path) -> str:
         ])
     table = _table(["sequence", "front end ATE mm", "fused mm", "smoothed mm"], rows)
     nees = [
-        [sequence, *(f"{modes[m]['mean_nees_per_dof']:.2f}" for m in ("fused pose", "frontend pose"))]
+        [sequence, *(f"{modes[m]['mean_nees_per_dof']:.2f}" for m in NEES_MODES)]
         for sequence, modes in consistency.items()
     ]
     header = ["sequence", "NEES/DOF fused pose (1 = honest)", "front end pose"]
@@ -222,7 +225,8 @@ AREAS: dict[str, Area] = {
         ("perturbations/perturbations.md",), "swarmvo bench perturbations",
     ),
     "rendered": Area(
-        "Odometry on rendered loops", rendered_summary, (), "swarmvo bench odometry --parts rendered",
+        "Odometry on rendered loops", rendered_summary, (),
+        "swarmvo bench odometry --parts rendered",
     ),
     "driving": Area(
         "Rendered KITTI-like drives", driving_summary, ("driving/driving.md",),
@@ -279,11 +283,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--check", action="store_true", help="only report whether README and docs are up to date"
     )
+    parser.add_argument(
+        "--docs-only", action="store_true",
+        help="write (or check) only the docs file, not the README's summary blocks",
+    )
 
 
-def stale(readme: Path, docs: Path, results: Path = RESULTS) -> list[str]:
-    """The README blocks and docs file that no longer match the result files."""
-    out = [
+def stale(
+    readme: Path | None, docs: Path, results: Path = RESULTS
+) -> list[str]:
+    """The README blocks (none when ``readme`` is None) and docs file that no longer match the
+    result files."""
+    out = [] if readme is None else [
         f"{readme.name}: {name}" for name, table in summaries(results).items()
         if read_block(readme, name) != table.strip()
     ]
@@ -293,13 +304,24 @@ def stale(readme: Path, docs: Path, results: Path = RESULTS) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    readme = None if args.docs_only else args.readme
+    if readme is not None:
+        try:
+            for name in AREAS:
+                read_block(readme, name)
+        except ValueError as error:
+            print(f"swarmvo bench report: error: {error} (or use --docs-only)")
+            return 2
     if args.check:
-        behind = stale(args.readme, args.docs, args.results)
+        behind = stale(readme, args.docs, args.results)
         for item in behind:
             print(f"out of date: {item} (run `swarmvo bench report`)")
         return 1 if behind else 0
-    for name, table in summaries(args.results).items():
-        write_block(args.readme, name, table)
     args.docs.write_text(full_results(args.results))
-    print(f"wrote {len(summaries(args.results))} summaries into {args.readme} and {args.docs}")
+    if readme is None:
+        print(f"wrote {args.docs}")
+        return 0
+    for name, table in summaries(args.results).items():
+        write_block(readme, name, table)
+    print(f"wrote {len(summaries(args.results))} summaries into {readme} and {args.docs}")
     return 0

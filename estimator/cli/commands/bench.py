@@ -14,6 +14,7 @@ BENCHMARKS: dict[str, str] = {
     "consistency": "estimator.bench.consistency",
     "driving": "estimator.bench.driving",
     "perturbations": "estimator.bench.perturbations",
+    "report": "estimator.bench.report",
 }
 
 
