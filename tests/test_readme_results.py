@@ -56,3 +56,27 @@ def test_docs_results_follow_a_changed_result_file(tmp_path):
     table = copy / "frontend" / "frontend.md"
     table.write_text(table.read_text() + "\nchanged\n")
     assert report.full_results(copy) != before
+
+
+def test_report_docs_only_and_missing_readme_blocks(tmp_path, capsys):
+    """Without the README's summary blocks: one error line, nothing written; --docs-only writes
+    the docs file alone and --check then finds it up to date."""
+    import argparse
+
+    from estimator.bench import report
+
+    readme, docs = tmp_path / "README.md", tmp_path / "results.md"
+    readme.write_text("# no blocks here\n")
+    args = argparse.Namespace(
+        results=RESULTS, readme=readme, docs=docs, check=False, docs_only=False
+    )
+    assert report.run(args) == 2
+    assert "no '<!-- real-results" in capsys.readouterr().out and not docs.exists()
+    args.docs_only = True
+    assert report.run(args) == 0
+    assert docs.read_text() == report.full_results(RESULTS)
+    assert readme.read_text() == "# no blocks here\n"
+    args.check = True
+    assert report.run(args) == 0
+    docs.write_text(docs.read_text() + "edited by hand\n")
+    assert report.run(args) == 1
