@@ -159,6 +159,13 @@ def frontend_summary(results: Path) -> str:
     return _table(header, [row])
 
 
+# load-test settings that change the numbers, shown with the table (key, label)
+LOAD_SETTINGS = (
+    ("executor", "executor"), ("encoding", "frames"), ("workers", "workers"),
+    ("queue_size", "queue"), ("policy", "policy"), ("duration_s", "seconds per level"),
+)
+
+
 def load_summary(results: Path) -> str:
     """The newest service load run: robots streaming over WebSocket, latency and CPU per frame."""
     newest = sorted((results / "load").glob("load_*.json"))[-1]
@@ -176,7 +183,11 @@ def load_summary(results: Path) -> str:
         "robots", "Hz", "frames sent", "answered", "dropped or refused", "p95 ms",
         "CPU ms/frame (server + workers)", "peak RSS MB",
     ]
-    return f"{newest.name}\n\n" + _table(header, rows)
+    settings = runs.get("settings", {})
+    setup = ", ".join(
+        f"{label} {settings[key]}" for key, label in LOAD_SETTINGS if key in settings
+    )
+    return f"{newest.name}: {setup}\n\n" + _table(header, rows)
 
 
 NEES_MODES = ("fused pose", "frontend pose")
