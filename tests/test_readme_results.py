@@ -1,4 +1,5 @@
-"""The README's result tables are the ones the benchmarks last wrote, not numbers typed by hand."""
+"""The README's result tables and docs/results.md are the ones `swarmvo bench report` makes from
+the benchmark result files, not numbers typed by hand."""
 
 from __future__ import annotations
 
@@ -6,22 +7,33 @@ from pathlib import Path
 
 import pytest
 
+from estimator.bench import report
 from estimator.bench.readme import markers, read_block, write_block
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
-
-# README block name -> the table file its benchmark writes
-BLOCKS = {
-    "driving": RESULTS / "driving" / "driving.md",
-    "odometry": RESULTS / "odometry" / "odometry.md",
-    "perturbations": RESULTS / "perturbations" / "perturbations.md",
-}
 
 
-@pytest.mark.parametrize("name", sorted(BLOCKS))
-def test_readme_block_equals_the_result_file(name):
-    assert read_block(ROOT / "README.md", name) == BLOCKS[name].read_text().strip()
+@pytest.mark.parametrize("name", sorted(report.AREAS))
+def test_readme_summary_equals_the_result_files(name):
+    assert read_block(ROOT / "README.md", name) == report.summaries()[name].strip()
+
+
+def test_a_changed_result_file_makes_the_readme_stale(tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    for source in report.RESULTS.rglob("*"):
+        if source.is_file() and source.suffix in {".json", ".md"}:
+            target = results / source.relative_to(report.RESULTS)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(source.read_bytes())
+    readme, docs = tmp_path / "README.md", tmp_path / "results.md"
+    readme.write_text((ROOT / "README.md").read_text())
+    docs.write_text(report.full_results(results))
+    assert report.stale(readme, docs, results) == []
+    odometry = results / "odometry" / "odometry.json"
+    odometry.write_text(odometry.read_text().replace('"ate_rmse_m": 0.00', '"ate_rmse_m": 0.09', 1))
+    assert "README.md: real" in report.stale(readme, docs, results)
+    assert "results.md" in report.stale(readme, docs, results)
 
 
 def test_write_block_replaces_only_the_block(tmp_path):
@@ -39,7 +51,7 @@ def test_docs_results_equal_the_result_files():
     """``docs/results.md`` is what ``swarmvo bench report`` makes of the result files now."""
     from estimator.bench import report
 
-    assert (ROOT / "docs" / "results.md").read_text() == report.full_results(RESULTS), (
+    assert (ROOT / "docs" / "results.md").read_text() == report.full_results(report.RESULTS), (
         "docs/results.md is stale: run `swarmvo bench report --docs-only`"
     )
 
@@ -51,7 +63,8 @@ def test_docs_results_follow_a_changed_result_file(tmp_path):
     from estimator.bench import report
 
     copy = tmp_path / "results"
-    shutil.copytree(RESULTS, copy, ignore=shutil.ignore_patterns("*.png", "seed*", "rendered*"))
+    skip = shutil.ignore_patterns("*.png", "seed*", "rendered*")
+    shutil.copytree(report.RESULTS, copy, ignore=skip)
     before = report.full_results(copy)
     table = copy / "frontend" / "frontend.md"
     table.write_text(table.read_text() + "\nchanged\n")
@@ -68,13 +81,13 @@ def test_report_docs_only_and_missing_readme_blocks(tmp_path, capsys):
     readme, docs = tmp_path / "README.md", tmp_path / "results.md"
     readme.write_text("# no blocks here\n")
     args = argparse.Namespace(
-        results=RESULTS, readme=readme, docs=docs, check=False, docs_only=False
+        results=report.RESULTS, readme=readme, docs=docs, check=False, docs_only=False
     )
     assert report.run(args) == 2
     assert "no '<!-- real-results" in capsys.readouterr().out and not docs.exists()
     args.docs_only = True
     assert report.run(args) == 0
-    assert docs.read_text() == report.full_results(RESULTS)
+    assert docs.read_text() == report.full_results(report.RESULTS)
     assert readme.read_text() == "# no blocks here\n"
     args.check = True
     assert report.run(args) == 0

@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 
-from estimator.bench.readme import write_block
 from estimator.formats.datasets import open_sequence
 from estimator.pipeline import ESTIMATORS, build_config, run_sequence, write_outputs
 from estimator.rendered.synthetic import SynthOptions, synthesize
@@ -61,9 +60,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="where the rendered drives are written once and reused (kept out of --out)",
     )
     parser.add_argument("--quick", action="store_true", help="40 frames / 44 m, one seed")
-    parser.add_argument(
-        "--readme", type=Path, help="also write the table into this file between its markers"
-    )
     parser.add_argument(
         "--no-rig-settings",
         dest="rig_settings",
@@ -146,6 +142,4 @@ def run(args: argparse.Namespace) -> int:
     if not args.quick:
         (out / "driving.md").write_text(table)
         (out / "driving.json").write_text(json.dumps(results, indent=2) + "\n")
-        if args.readme is not None:
-            write_block(args.readme, "driving", table)
     return 0

@@ -26,7 +26,6 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from estimator.bench.readme import write_block
 from estimator.evaluation.metrics import evaluate_trajectory
 from estimator.formats.datasets import Sequence, open_sequence
 from estimator.pipeline import build_config, run_sequence, write_outputs
@@ -83,11 +82,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="real clips: run the OpenCV stereo VO peer",
     )  # fmt: skip
     parser.add_argument("--quick", action="store_true", help="40 frames / 4 m, for a smoke run")
-    parser.add_argument(
-        "--readme",
-        type=Path,
-        help="also write the tables into this file between the odometry-results markers",
-    )
 
 
 def _estimators(args: argparse.Namespace) -> list[str]:
@@ -343,6 +337,4 @@ def run(args: argparse.Namespace) -> int:
         _run_rendered(args, estimators, results["rendered"], save)
     table = save()
     print("\n" + table)
-    if args.readme is not None:
-        write_block(args.readme, "odometry", table)
     return 0

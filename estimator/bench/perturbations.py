@@ -17,7 +17,6 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from estimator.bench.readme import write_block
 from estimator.config import SwarmvoConfig
 from estimator.formats.datasets import Sequence, open_sequence
 from estimator.pipeline import build_config, load_config, run_sequence, summarize
@@ -46,9 +45,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, help="base SwarmvoConfig (JSON/YAML)")
     parser.add_argument("--seed", type=int, default=0, help="estimator and perturbation seed")
     parser.add_argument("--frames", type=int, default=None, help="use only the first N frames")
-    parser.add_argument(
-        "--readme", type=Path, help="also write the tables into this file between its markers"
-    )
     parser.add_argument(
         "--compare",
         type=Path,
@@ -174,6 +170,4 @@ def run(args: argparse.Namespace) -> int:
         table += "\n" + _comparison(json.loads(Path(args.compare).read_text()), results)
     print("\n" + table)
     (out / "perturbations.md").write_text(table)
-    if args.readme is not None:
-        write_block(args.readme, "perturbations", table)
     return 0

@@ -9,7 +9,7 @@ from pathlib import Path
 def markers(name: str) -> tuple[str, str]:
     """The begin and end comment of the README block named ``name``."""
     return (
-        f"<!-- {name}-results: begin (written by swarmvo bench {name} --readme) -->",
+        f"<!-- {name}-results: begin (written by swarmvo bench report) -->",
         f"<!-- {name}-results: end -->",
     )
 
