@@ -216,6 +216,13 @@ class OdometryAnswers:
         self.last_odometry = self._builder.build(report).to_dict()
         return report
 
+    def state(self) -> dict[str, Any]:
+        """The odometry's state after the last frame (stored with its pose)."""
+        return self.odometry.state()
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self.odometry.restore(state)
+
 
 def _synthetic_run(factory: EstimatorFactory, frames: int = 4) -> None:
     """Blurred random texture seen by a stereo pair (8 px disparity) sliding 2 px per frame."""

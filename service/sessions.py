@@ -20,13 +20,15 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
+from sqlalchemy.exc import DBAPIError
 
 from estimator.types import ImuBatch
 from service.images import ImageLimits
+from service.lease import Held, LeaseBook, LeaseHeld, replica_id
 from service.metrics import Metrics
 from service.pipeline import PipelineFactory, PreparedSession
 from service.settings import ServiceSettings
-from service.storage import PoseRecord, SessionRecord, Store
+from service.storage import LeaseLost, PoseRecord, SessionRecord, Store
 from service.workers import (
     FrameFailure,
     FrameOutcome,
@@ -49,11 +51,14 @@ MAX_REMEMBERED_DELETIONS = 10_000
 class FrameRejected(Exception):
     """A frame the service will not process; carries the HTTP status that explains why."""
 
-    def __init__(self, status_code: int, detail: str, kind: str) -> None:
+    def __init__(
+        self, status_code: int, detail: str, kind: str, retry_after_s: float | None = None
+    ) -> None:
         super().__init__(detail)
         self.status_code = status_code
         self.detail = detail
         self.kind = kind
+        self.retry_after_s = retry_after_s  # a 503 that will pass: when to try again
 
 
 class SessionGone(FrameRejected):
@@ -105,6 +110,7 @@ class FrameResult:
     imu_samples: int
     odometry: dict[str, Any] | None = None  # the frame's odometry message (not stored)
     smoothed: list[tuple[int, list[float]]] = field(default_factory=list)  # finalised poses
+    duplicate: bool = False  # a resent frame answered from its stored pose
 
 
 @dataclass
@@ -128,6 +134,7 @@ class SessionWorker:
         slot: int,
         io_pool: ThreadPoolExecutor,
         metrics: Metrics,
+        leases: LeaseBook | None = None,
     ) -> None:
         self.session_id = record.id
         self.record = record
@@ -144,6 +151,10 @@ class SessionWorker:
         self.slot = slot
         self.io_pool = io_pool
         self.metrics = metrics
+        self.leases = leases
+        self.lease: Held | None = None  # this replica's lease on the session, when it has one
+        # Frames queued or in flight by timestamp: a resent one shares the first one's answer.
+        self.pending: dict[int, asyncio.Future[FrameResult]] = {}
         self.limits = ImageLimits(
             settings.max_image_width, settings.max_image_height, settings.max_image_pixels
         )
@@ -197,14 +208,12 @@ class SessionWorker:
         """Queue one frame; the future resolves once its pose is stored (or it is refused)."""
         if self.closed:
             raise SessionGone()
+        if timestamp_ns in self.pending:
+            return self.pending[timestamp_ns]  # resent while still queued or in flight
         last = self.last_submitted_ns
         if last is not None and timestamp_ns <= last:
-            raise FrameRejected(
-                409,
-                f"timestamp_ns {timestamp_ns} does not increase: the session is already at "
-                f"{last}",
-                "timestamp_order",
-            )
+            # Resent after its answer was lost (a reconnect): the stored answer, or a 409.
+            return asyncio.get_running_loop().create_task(self._stored_answer(timestamp_ns))
         if imu is not None and len(imu):
             # Samples sent with a frame join the session buffer at once: they stay valid
             # measurements even if this frame is refused or dropped below.
@@ -233,7 +242,58 @@ class SessionWorker:
                 )
         self.queue.put_nowait(job)
         self.last_submitted_ns = timestamp_ns
+        self.pending[timestamp_ns] = future
+        future.add_done_callback(lambda _f: self.pending.pop(timestamp_ns, None))
         return future
+
+    async def _stored_answer(self, timestamp_ns: int) -> FrameResult:
+        """A frame already processed gets its stored pose; any other old timestamp a 409."""
+        loop = asyncio.get_running_loop()
+        stored = await loop.run_in_executor(
+            self.io_pool, self.store.pose_at, self.session_id, timestamp_ns
+        )
+        if stored is None:
+            raise FrameRejected(
+                409,
+                f"timestamp_ns {timestamp_ns} does not increase: the session is already at "
+                f"{self.last_submitted_ns}",
+                "timestamp_order",
+            )
+        self.metrics.frames.labels("duplicate").inc()
+        return FrameResult(self.session_id, stored, 0, duplicate=True)
+
+    async def _hold_lease(self) -> None:
+        """Own the session before processing: take or renew its lease (PostgreSQL only).
+
+        A new fencing token means another replica may have written meanwhile: the counters are
+        read again and the pipeline is rebuilt from the stored state.
+        """
+        if self.leases is None or not self.leases.enabled:
+            return
+        if self.lease is not None and time.monotonic() < self.lease.renew_after:
+            return
+        loop = asyncio.get_running_loop()
+        try:
+            fence = await loop.run_in_executor(self.io_pool, self.leases.acquire, self.session_id)
+        except LeaseHeld as error:
+            self.lease = None
+            raise FrameRejected(503, str(error), "lease_held", error.retry_after_s) from error
+        assert fence is not None
+        if self.lease is None or self.lease.fence.token != fence.token:
+            record = await loop.run_in_executor(self.io_pool, self.store.get_session,
+                                                self.session_id)
+            if record is None:
+                raise SessionGone()
+            self.next_index = record.frame_count
+            self.last_processed_ns = record.last_timestamp_ns
+            self.pipeline_ready = False
+        self.lease = self.leases.held(fence)
+
+    def release_lease(self) -> None:
+        """Give the lease up (blocking I/O): the session's streams have all ended."""
+        lease, self.lease = self.lease, None
+        if self.leases is not None and lease is not None:
+            self.leases.release(self.session_id, lease.fence)
 
     # -- consumer side
 
@@ -251,6 +311,14 @@ class SessionWorker:
                 self.metrics.errors.labels(error.kind).inc()
                 if not job.future.done():
                     job.future.set_exception(error)
+            except DBAPIError as error:  # the database is away: a pause, not a bug
+                logger.error("database unavailable for session %s: %s", self.session_id,
+                             str(error).splitlines()[0] if str(error) else repr(error))
+                self.metrics.errors.labels("storage").inc()
+                self.lease = None
+                if not job.future.done():
+                    job.future.set_exception(FrameRejected(
+                        503, "database unavailable; retry the frame", "storage", 1.0))
             except Exception as error:  # a bug must not kill the session's consumer
                 logger.exception("frame %s of session %s failed", job.timestamp_ns, self.session_id)
                 self.metrics.errors.labels("internal").inc()
@@ -272,15 +340,19 @@ class SessionWorker:
 
     def _pipeline_spec(self) -> tuple[PipelineSpec, str]:
         """How to build the pipeline: resumed from the last stored pose when there is one."""
-        last = self.store.last_pose(self.session_id)
+        last, state = self.store.resume_point(self.session_id)
         if last is None:
             return PipelineSpec(self.prepared, None, 0), ""
         initial = np.array(last.pose, dtype=float).reshape(4, 4)
+        if state is not None and state.get("timestamp_ns") != last.timestamp_ns:
+            state = None  # not the state of this pose (written by an older server)
+        known = ("its motion and back-end biases carried over" if state is not None
+                 else "motion since then is not known to the estimator")
         message = (
             f"resumed from the stored pose of frame {last.frame_index} "
-            f"(timestamp {last.timestamp_ns}); motion since then is not known to the estimator"
+            f"(timestamp {last.timestamp_ns}); {known}"
         )
-        return PipelineSpec(self.prepared, initial, last.frame_index + 1), message
+        return PipelineSpec(self.prepared, initial, last.frame_index + 1, state), message
 
     def _peek_imu(self, timestamp_ns: int) -> _ImuTake:
         """IMU samples with previous frame < t <= this frame; later ones stay buffered."""
@@ -315,6 +387,9 @@ class SessionWorker:
         loop = asyncio.get_running_loop()
         started = time.perf_counter()
         timings = {"queue_wait": started - job.received}
+        await self._hold_lease()
+        if self.last_processed_ns is not None and job.timestamp_ns <= self.last_processed_ns:
+            return await self._stored_answer(job.timestamp_ns)  # stored by another replica
         take = self._peek_imu(job.timestamp_ns)
         resume_message = ""
         outcome: FrameOutcome | FrameFailure | None = None
@@ -375,8 +450,17 @@ class SessionWorker:
             resumed=resumed,
         )
         stored = time.perf_counter()
+        fence = self.lease.fence if self.lease is not None else None
         try:
-            await loop.run_in_executor(self.io_pool, self.store.add_pose, self.session_id, record)
+            await loop.run_in_executor(self.io_pool, self.store.add_pose, self.session_id,
+                                       record, fence, outcome.state)
+        except LeaseLost as error:
+            # Another replica took the session over: this one must not write, and its
+            # pipeline is out of date; the client resends the frame to the new owner.
+            self.pipeline_ready = False
+            self.lease = None
+            logger.warning("%s", error)
+            raise FrameRejected(503, f"{error}; resend the frame", "lease_lost", 0.2) from error
         except Exception as error:
             # The estimator has moved on but the pose is not stored: rebuild from the last
             # stored pose on the next frame so the stored trajectory stays the source of truth.
@@ -387,12 +471,14 @@ class SessionWorker:
             logger.error("storing a pose of session %s failed: %s", self.session_id,
                          str(error).splitlines()[0] if str(error) else repr(error))
             raise FrameRejected(503, "the pose could not be stored (database error); retry "
-                                "the frame", "storage") from error
+                                "the frame", "storage", 1.0) from error
         done = time.perf_counter()
         timings["persist"] = done - stored
         timings["total"] = done - job.received
         self.next_index += 1
         self.last_processed_ns = job.timestamp_ns
+        if self.lease is not None and self.leases is not None:
+            self.lease = self.leases.held(self.lease.fence)  # the write renewed it
         self.smoothed.extend(outcome.smoothed)
         self.stored_at.append(time.time())
         for stage, seconds in timings.items():
@@ -457,6 +543,7 @@ class SessionManager:
             max(2, min(settings.workers, 8)), thread_name_prefix="swarmvo-io"
         )
         self.workers: OrderedDict[str, SessionWorker] = OrderedDict()
+        self.leases = LeaseBook(store, settings.replica_id or replica_id(), settings.lease_ttl_s)
         # Recently deleted ids (uuid4: never reused), so that a request that looked the session
         # up just before its deletion cannot bring it back to life.
         self.deleted: OrderedDict[str, None] = OrderedDict()
@@ -484,7 +571,8 @@ class SessionManager:
         self._evict_idle()
         slot = self.runner.assign(record.id)
         worker = SessionWorker(
-            record, self.settings, self.store, self.runner, slot, self.io_pool, self.metrics
+            record, self.settings, self.store, self.runner, slot, self.io_pool, self.metrics,
+            self.leases,
         )
         self.workers[record.id] = worker
         self._on_change()
@@ -507,12 +595,28 @@ class SessionManager:
             raise SessionGone()
         self.streams.setdefault(session_id, set()).add(stream)
 
-    def detach(self, session_id: str, stream: StreamHandle) -> None:
+    def detach(self, session_id: str, stream: StreamHandle, finished: bool = False) -> None:
+        """Forget a stream; ``finished`` (the robot said close): give the lease up once idle."""
         streams = self.streams.get(session_id)
         if streams is not None:
             streams.discard(stream)
             if not streams:
                 del self.streams[session_id]
+        worker = self.workers.get(session_id)
+        if finished and worker is not None and session_id not in self.streams:
+            asyncio.get_running_loop().create_task(self._release_when_idle(worker))
+
+    async def _release_when_idle(self, worker: SessionWorker, wait_s: float = 30.0) -> None:
+        deadline = time.monotonic() + wait_s
+        def drained() -> bool:
+            return not worker.busy and worker.queue.empty()
+
+        while not drained() and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
+        if drained() and worker.session_id not in self.streams:
+            with contextlib.suppress(Exception):  # best effort: the lease expires anyway
+                await asyncio.get_running_loop().run_in_executor(
+                    self.io_pool, worker.release_lease)
 
     async def remove(self, session_id: str) -> None:
         """Delete the live state: open streams are closed, queued frames refused with 404."""

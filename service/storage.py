@@ -60,11 +60,24 @@ class SessionRow(Base):
     frame_count: Mapped[int] = mapped_column(Integer, default=0)
     last_timestamp_ns: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
     resume_count: Mapped[int] = mapped_column(Integer, default=0)
+    # Ownership across replicas (service.lease): holder, expiry, and the fencing token that
+    # rises at every change of holder (migration 0003).
+    lease_holder: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    lease_expires_at: Mapped[dt.datetime | None] = mapped_column(
+        DateTime(timezone=True), nullable=True
+    )
+    lease_token: Mapped[int] = mapped_column(BigInteger, default=0, server_default="0")
+    # What the estimator needs to continue from the last stored pose (Odometry.state()).
+    resume_state: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
 
 
 class PoseRow(Base):
     __tablename__ = "poses"
-    __table_args__ = (UniqueConstraint("session_id", "frame_index", name="uq_pose_frame"),)
+    __table_args__ = (
+        UniqueConstraint("session_id", "frame_index", name="uq_pose_frame"),
+        # A resent frame gets the stored answer; a second pose for it is refused.
+        UniqueConstraint("session_id", "timestamp_ns", name="uq_pose_timestamp"),
+    )
 
     # 64-bit on PostgreSQL (migration 0002); SQLite's INTEGER PRIMARY KEY is its 64-bit rowid.
     id: Mapped[int] = mapped_column(
@@ -85,6 +98,26 @@ class PoseRow(Base):
     timings: Mapped[dict[str, float]] = mapped_column(JSON)
     message: Mapped[str] = mapped_column(Text, default="")
     resumed: Mapped[bool] = mapped_column(Boolean, default=False)
+    # The lease token and replica the pose was written under (None without leases: SQLite).
+    fence_token: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    writer: Mapped[str | None] = mapped_column(String(64), nullable=True)
+
+
+class LeaseLost(Exception):
+    """A pose write by a replica whose lease token is no longer the session's."""
+
+
+@dataclass(frozen=True)
+class Fence:
+    """A writer's lease: its holder id, fencing token and how long a write renews it for."""
+
+    holder: str
+    token: int
+    ttl_s: float
+
+    def expiry(self) -> Any:
+        """The new expiry on the database's clock (replicas' clocks never enter the lease)."""
+        return func.now() + dt.timedelta(seconds=self.ttl_s)
 
 
 @dataclass(frozen=True)
@@ -307,9 +340,40 @@ class Store:
 
     # -- poses
 
-    def add_pose(self, session_id: str, pose: PoseRecord) -> None:
-        """Store one answered pose and advance the session counters in the same transaction."""
+    def add_pose(
+        self,
+        session_id: str,
+        pose: PoseRecord,
+        fence: Fence | None = None,
+        resume_state: dict[str, Any] | None = None,
+    ) -> None:
+        """Store one answered pose and advance the session counters in the same transaction.
+
+        With a ``fence`` (the writer's lease) the counters are only advanced while the session's
+        lease token and holder are still the writer's, checked by the database in that UPDATE
+        (which also renews the lease): otherwise :class:`LeaseLost` and nothing is written.
+        """
+        counters: dict[str, Any] = {
+            "frame_count": pose.frame_index + 1, "last_timestamp_ns": pose.timestamp_ns,
+        }
+        if resume_state is not None:
+            counters["resume_state"] = resume_state
         with self._sessions.begin() as db:
+            if fence is not None:
+                renewed = db.execute(
+                    update(SessionRow)
+                    .where(
+                        SessionRow.id == session_id,
+                        SessionRow.lease_token == fence.token,
+                        SessionRow.lease_holder == fence.holder,
+                    )
+                    .values(**counters, lease_expires_at=fence.expiry())
+                )
+                if renewed.rowcount != 1:
+                    raise LeaseLost(
+                        f"replica {fence.holder} no longer holds the lease of session "
+                        f"{session_id} (token {fence.token}); the pose was not stored"
+                    )
             db.add(
                 PoseRow(
                     session_id=session_id,
@@ -325,13 +389,36 @@ class Store:
                     timings=pose.timings,
                     message=pose.message,
                     resumed=pose.resumed,
+                    fence_token=None if fence is None else fence.token,
+                    writer=None if fence is None else fence.holder,
                 )
             )
-            db.execute(
-                update(SessionRow)
-                .where(SessionRow.id == session_id)
-                .values(frame_count=pose.frame_index + 1, last_timestamp_ns=pose.timestamp_ns)
-            )
+            if fence is None:
+                db.execute(update(SessionRow).where(SessionRow.id == session_id).values(**counters))
+
+    def pose_at(self, session_id: str, timestamp_ns: int) -> PoseRecord | None:
+        """The stored pose of the frame taken at ``timestamp_ns`` (a resent frame's answer)."""
+        with self._sessions() as db:
+            row = db.scalars(
+                select(PoseRow).where(
+                    PoseRow.session_id == session_id, PoseRow.timestamp_ns == timestamp_ns
+                )
+            ).first()
+            return None if row is None else _pose_record(row)
+
+    def resume_point(self, session_id: str) -> tuple[PoseRecord | None, dict[str, Any] | None]:
+        """The last stored pose and the estimator state stored with it, read together."""
+        with self._sessions() as db:
+            state = db.scalar(select(SessionRow.resume_state).where(SessionRow.id == session_id))
+            row = db.scalars(
+                select(PoseRow)
+                .where(PoseRow.session_id == session_id)
+                .order_by(PoseRow.frame_index.desc())
+                .limit(1)
+            ).first()
+            if row is None:
+                return None, None
+            return _pose_record(row), state
 
     def last_pose(self, session_id: str) -> PoseRecord | None:
         with self._sessions() as db:

@@ -52,6 +52,8 @@ class PipelineSpec:
     prepared: PreparedSession
     initial_pose: np.ndarray | None
     first_index: int
+    # The estimator state stored with the last pose (Odometry.state()), when there is one.
+    state: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,9 @@ class FrameOutcome:
     odometry: dict[str, Any] | None = None  # OdometryMessage.to_dict() of this frame
     # Earlier frames the back end finished with at this frame: (timestamp_ns, flat 4x4 pose).
     smoothed: list[tuple[int, list[float]]] = field(default_factory=list)
+    # The pipeline's state after this frame, stored with the pose so that any replica can
+    # continue the session (pipelines without state() give None).
+    state: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -190,6 +195,12 @@ def _compute_frame(
                     spec.prepared, nearest_rigid(spec.initial_pose), spec.first_index
                 )
                 note = "the stored pose was not exactly rigid; resumed from its nearest rotation"
+            if spec.state is not None and hasattr(pipeline, "restore"):
+                try:
+                    pipeline.restore(spec.state)
+                except (KeyError, TypeError, ValueError) as error:
+                    note = f"the stored state was not usable ({error}); resumed from the pose"
+                    pipeline = factory.create(spec.prepared, spec.initial_pose, spec.first_index)
         except Exception as error:
             return FrameFailure(500, f"internal error building the pipeline: {error!r}",
                                 "internal", pipeline_lost=True, trace=traceback.format_exc())
@@ -227,7 +238,13 @@ def _compute_frame(
         worker_pid=os.getpid(),
         odometry=getattr(pipeline, "last_odometry", None),
         smoothed=[(int(stamp), _flat(pose)) for stamp, pose in report.final_poses],
+        state=_pipeline_state(pipeline),
     )
+
+
+def _pipeline_state(pipeline: Pipeline) -> dict[str, Any] | None:
+    state = getattr(pipeline, "state", None)
+    return state() if callable(state) else None
 
 
 class Runner(Protocol):

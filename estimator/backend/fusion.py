@@ -40,6 +40,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -278,6 +279,27 @@ class FusionBackend:
             return self._start(timestamp_ns)
         return self._advance(timestamp_ns, relative_pose, covariance, reference_ns)
 
+    def state(self) -> dict[str, Any]:
+        """The estimates a continuation in another process starts from (JSON-ready)."""
+        return {
+            "gyro_bias": self._bias.tolist(),
+            "accel_bias": self._accel_bias.tolist(),
+            "gravity": self._gravity.tolist(),
+        }
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Start from another instance's biases instead of looking for rest (before frame 0).
+
+        The smoother itself starts afresh at the next frame (its world is levelled again from
+        that frame's accelerometer samples); the gyro bias is its prior mean.
+        """
+        if self._index >= 0:
+            raise ValueError("restore() must come before the first frame")
+        self._bias = np.asarray(state["gyro_bias"], dtype=float).reshape(3)
+        self._accel_bias = np.asarray(state["accel_bias"], dtype=float).reshape(3)
+        self._gravity = np.asarray(state["gravity"], dtype=float).reshape(3)
+        self._starting = False
+
     # ------------------------------------------------------------------ graph building
 
     def _make_smoother(self) -> gtsam.ISAM2 | gtsam.IncrementalFixedLagSmoother:
@@ -360,7 +382,7 @@ class FusionBackend:
                     message = f"world = first body pose ({error})"
             else:
                 message = "world = first body pose (no accelerometer samples with frame 0)"
-        bias_mean = np.zeros(3)
+        bias_mean = self._bias.copy()  # zero unless restored from another instance
         bias_sigma = self.config.gyro_bias_prior_sigma
         if self._starting:
             bias_mean, bias_sigma, note = self._rest_before(timestamp_ns + self._offset_ns)
