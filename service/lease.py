@@ -55,11 +55,11 @@ class Held:
 class LeaseBook:
     """Leases of the sessions this replica processes (no-op unless the store is PostgreSQL)."""
 
-    def __init__(self, store: Store, holder: str, ttl_s: float) -> None:
+    def __init__(self, store: Store, holder: str, ttl_s: float, enabled: bool = True) -> None:
         self.store = store
         self.holder = holder
         self.ttl_s = ttl_s
-        self.enabled = store.engine.dialect.name == "postgresql"
+        self.enabled = enabled and store.engine.dialect.name == "postgresql"
 
     def acquire(self, session_id: str) -> Fence | None:
         """Take or renew the lease (blocking I/O); None when leases are off, else LeaseHeld.

@@ -311,14 +311,19 @@ class SessionWorker:
                 self.metrics.errors.labels(error.kind).inc()
                 if not job.future.done():
                     job.future.set_exception(error)
+                if error.retry_after_s is not None:
+                    self._refuse_queued(error)
             except DBAPIError as error:  # the database is away: a pause, not a bug
                 logger.error("database unavailable for session %s: %s", self.session_id,
                              str(error).splitlines()[0] if str(error) else repr(error))
                 self.metrics.errors.labels("storage").inc()
                 self.lease = None
+                refusal = FrameRejected(
+                    503, "database unavailable; retry the frame", "storage", 1.0
+                )
                 if not job.future.done():
-                    job.future.set_exception(FrameRejected(
-                        503, "database unavailable; retry the frame", "storage", 1.0))
+                    job.future.set_exception(refusal)
+                self._refuse_queued(refusal)
             except Exception as error:  # a bug must not kill the session's consumer
                 logger.exception("frame %s of session %s failed", job.timestamp_ns, self.session_id)
                 self.metrics.errors.labels("internal").inc()
@@ -337,6 +342,17 @@ class SessionWorker:
                 # A refused frame must not block a retry with the same timestamp.
                 if failed and self.queue.empty():
                     self.last_submitted_ns = self.last_processed_ns
+
+    def _refuse_queued(self, error: FrameRejected) -> None:
+        """After a passing failure the frames queued behind it are refused too: the client
+        resends them after the failed one, in order (answering them now would leave the failed
+        frame behind the session's timestamp)."""
+        while not self.queue.empty():
+            job = self.queue.get_nowait()
+            if not job.future.done():
+                job.future.set_exception(FrameRejected(
+                    error.status_code, f"an earlier frame was refused: {error.detail}",
+                    error.kind, error.retry_after_s))
 
     def _pipeline_spec(self) -> tuple[PipelineSpec, str]:
         """How to build the pipeline: resumed from the last stored pose when there is one."""
@@ -543,7 +559,8 @@ class SessionManager:
             max(2, min(settings.workers, 8)), thread_name_prefix="swarmvo-io"
         )
         self.workers: OrderedDict[str, SessionWorker] = OrderedDict()
-        self.leases = LeaseBook(store, settings.replica_id or replica_id(), settings.lease_ttl_s)
+        self.leases = LeaseBook(store, settings.replica_id or replica_id(), settings.lease_ttl_s,
+                                settings.leases)
         # Recently deleted ids (uuid4: never reused), so that a request that looked the session
         # up just before its deletion cannot bring it back to life.
         self.deleted: OrderedDict[str, None] = OrderedDict()

@@ -75,6 +75,8 @@ class ServiceSettings(BaseSettings):
     # streams, for this long after its last write; another one takes over after that. Short
     # means a quick failover, long tolerates longer stalls of a replica. Unused on SQLite.
     lease_ttl_s: float = Field(1.0, gt=0, le=600)
+    # False only for a server that is alone on its database (no ownership, no fencing).
+    leases: bool = True
     # This replica's name in the leases; empty: host name, process id and a random suffix.
     replica_id: str = Field("", max_length=64)
 
