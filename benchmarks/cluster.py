@@ -263,6 +263,7 @@ def check(fleet: Fleet, robots: list[RobotRun], run: dict[str, Any]) -> dict[str
     takeover_jumps: list[float] = []
     ordinary: list[float] = []
     gaps: list[float] = []
+    problems: list[str] = []
     with Client(fleet.replicas[0].url, fleet.key, timeout=60) as client:
         calibrations = {r.name: client.get_session(r.session_id).calibration for r in robots}
     for robot in robots:
@@ -276,8 +277,11 @@ def check(fleet: Fleet, robots: list[RobotRun], run: dict[str, Any]) -> dict[str
             row = stored.get(stamp)
             if row is None:
                 lost += 1
-            elif json.loads(row[2]) != pose.pose.reshape(16).tolist():
+                problems.append(f"{robot.name}: {stamp} answered, not stored")
+            elif json.loads(row[2]) != pose.pose.reshape(16).tolist() or row[1] != pose.index:
                 mismatched += 1
+                problems.append(f"{robot.name}: {stamp} stored differs from the answer "
+                                f"(index {row[1]} vs {pose.index})")
         # Fencing: tokens never go back along the trajectory and each has one writer.
         writers: dict[int, set[str]] = {}
         highest = 0
@@ -309,6 +313,7 @@ def check(fleet: Fleet, robots: list[RobotRun], run: dict[str, Any]) -> dict[str
         "duplicate_poses": duplicates,
         "poses_without_lease": unfenced,
         "frames_unanswered": unanswered,
+        "problems": problems[:10],
         "frames_rejected": sum(len(r.rejected) for r in robots),
         "rejections": [rej for r in robots for rej in r.rejected][:10],
         "answers_from_stored_pose": sum(r.duplicates for r in robots),
