@@ -31,7 +31,7 @@ import cluster
 from local_cluster import missing_tools
 
 pytestmark = pytest.mark.slow
-FRAMES = 40
+FRAMES = 30
 
 
 @pytest.fixture(scope="module")
