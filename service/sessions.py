@@ -565,6 +565,7 @@ class SessionManager:
         # up just before its deletion cannot bring it back to life.
         self.deleted: OrderedDict[str, None] = OrderedDict()
         self.streams: dict[str, set[StreamHandle]] = {}
+        self._background: set[asyncio.Task[None]] = set()
         self._on_change: Callable[[], None] = lambda: metrics.sessions_active.set(
             len(self.workers)
         )
@@ -621,10 +622,13 @@ class SessionManager:
                 del self.streams[session_id]
         worker = self.workers.get(session_id)
         if finished and worker is not None and session_id not in self.streams:
-            asyncio.get_running_loop().create_task(self._release_when_idle(worker))
+            task = asyncio.get_running_loop().create_task(self._release_when_idle(worker))
+            self._background.add(task)  # referenced until done (the loop keeps weak ones)
+            task.add_done_callback(self._background.discard)
 
     async def _release_when_idle(self, worker: SessionWorker, wait_s: float = 30.0) -> None:
         deadline = time.monotonic() + wait_s
+
         def drained() -> bool:
             return not worker.busy and worker.queue.empty()
 
@@ -656,5 +660,10 @@ class SessionManager:
             *(w.close("server shutting down", drain_seconds) for w in workers),
             return_exceptions=True,
         )
+        # Leases given back: other replicas take these sessions over at once, not on expiry.
+        for worker in workers:
+            with contextlib.suppress(Exception):
+                await asyncio.get_running_loop().run_in_executor(self.io_pool,
+                                                                 worker.release_lease)
         await self.runner.shutdown()
         self.io_pool.shutdown(wait=True, cancel_futures=False)
