@@ -57,7 +57,7 @@ class Options:
     kills: int = 2
     down_s: float = 4.0
     window: int = 2
-    lease_ttl_s: float = 1.0
+    lease_ttl_s: float = 0.5
     overhead_frames: int = 30
     overhead_rounds: int = 3
     level_s: float = 12.0

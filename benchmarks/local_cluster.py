@@ -173,7 +173,7 @@ class Replica:
     """One service process on ``port``; the same port again after a restart."""
 
     def __init__(self, name: str, database_url: str, api_key: str, folder: Path,
-                 workers: int = 1, lease_ttl_s: float = 1.0, leases: bool = True) -> None:
+                 workers: int = 1, lease_ttl_s: float = 0.5, leases: bool = True) -> None:
         self.name = name
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"

@@ -74,7 +74,7 @@ class ServiceSettings(BaseSettings):
     # Replicas on one PostgreSQL database (service.lease): a replica owns a session while it
     # streams, for this long after its last write; another one takes over after that. Short
     # means a quick failover, long tolerates longer stalls of a replica. Unused on SQLite.
-    lease_ttl_s: float = Field(1.0, gt=0, le=600)
+    lease_ttl_s: float = Field(0.5, gt=0, le=600)
     # False only for a server that is alone on its database (no ownership, no fencing).
     leases: bool = True
     # This replica's name in the leases; empty: host name, process id and a random suffix.
