@@ -202,7 +202,7 @@ class Replica:
         if wait:
             self.wait_healthy()
 
-    def wait_healthy(self, timeout_s: float = 120.0) -> None:
+    def wait_healthy(self, timeout_s: float = 300.0) -> None:
         assert self.process is not None
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
