@@ -174,14 +174,19 @@ class ReliableStream:
 
     async def _serve(self, connection: ClientConnection) -> str:
         """Resend what is owed, then read answers until the connection must be replaced."""
-        self._connection = connection
         try:
             json.loads(await asyncio.wait_for(connection.recv(), 5.0))  # hello
             if self.stats.outages:
                 self.stats.reconnects += 1
-            for frame in list(self._unanswered.values()):
-                self.stats.resent += int(bool(self.stats.outages))
-                await self._send(connection, frame)
+            # Owed frames first, oldest first; frames queued meanwhile follow them. Only then
+            # may send_frame() use the connection, so timestamps reach the server in order.
+            sent: set[int] = set()
+            while owed := [(t, f) for t, f in self._unanswered.items() if t not in sent]:
+                for stamp, frame in owed:
+                    self.stats.resent += int(bool(self.stats.outages))
+                    await self._send(connection, frame)
+                    sent.add(stamp)
+            self._connection = connection
             self._last_progress = time.monotonic()
             while True:
                 try:
