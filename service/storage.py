@@ -353,11 +353,11 @@ class Store:
         lease token and holder are still the writer's, checked by the database in that UPDATE
         (which also renews the lease): otherwise :class:`LeaseLost` and nothing is written.
         """
+        # The state always belongs to the last pose (None: its pipeline has none to give).
         counters: dict[str, Any] = {
             "frame_count": pose.frame_index + 1, "last_timestamp_ns": pose.timestamp_ns,
+            "resume_state": resume_state,
         }
-        if resume_state is not None:
-            counters["resume_state"] = resume_state
         with self._sessions.begin() as db:
             if fence is not None:
                 renewed = db.execute(

@@ -200,3 +200,37 @@ def test_two_replicas_racing_for_one_session_store_each_frame_once(
     for stamp, (pose, _when) in robot.answers.items():
         assert twin.answers[stamp][0].pose.tolist() == pose.pose.tolist()
         assert twin.answers[stamp][0].index == pose.index
+
+
+def test_lease_tokens_and_fenced_writes_in_the_database(fleet: cluster.Fleet) -> None:
+    """The lease rules themselves, on the fleet's PostgreSQL: one holder at a time, the token
+    rises with each change of holder, and a write under an old token changes nothing."""
+    from service.lease import LeaseBook, LeaseHeld
+    from service.storage import LeaseLost, PoseRecord, Store
+
+    store = Store.open(fleet.url)
+    try:
+        session = store.create_session("owner", "lease", {}, {}, None, (64, 48))
+        first, second = LeaseBook(store, "first", 0.3), LeaseBook(store, "second", 0.3)
+        fence = first.acquire(session.id)
+        assert fence is not None and first.acquire(session.id) == fence  # renewed, same token
+        with pytest.raises(LeaseHeld) as held:
+            second.acquire(session.id)
+        assert held.value.holder == "first" and 0 < held.value.retry_after_s <= 0.3
+        pose = PoseRecord(0, 10, [1.0] * 16, [1.0] * 16, [1.0] * 16, "ok")
+        store.add_pose(session.id, pose, fence, {"timestamp_ns": 10})
+        time.sleep(0.4)  # expired, nobody took it: the holder may still write
+        store.add_pose(session.id, PoseRecord(1, 20, *([2.0] * 16,) * 3, "ok"), fence)
+        time.sleep(0.4)
+        taken = second.acquire(session.id)
+        assert taken is not None and taken.token == fence.token + 1
+        with pytest.raises(LeaseLost):
+            store.add_pose(session.id, PoseRecord(2, 30, *([3.0] * 16,) * 3, "ok"), fence)
+        assert [p.timestamp_ns for p in store.poses(session.id)] == [10, 20]
+        assert store.get_session(session.id).frame_count == 2  # type: ignore[union-attr]
+        second.release(session.id, taken)
+        again = first.acquire(session.id)
+        assert again is not None and again.token == taken.token + 1
+        assert store.resume_point(session.id)[1] is None  # the state went with pose 10 only
+    finally:
+        store.close()
