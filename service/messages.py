@@ -91,6 +91,8 @@ class PoseMessage(PoseOut):
     """A frame's stored pose: the same body as the REST answer, with its ``type``."""
 
     type: Literal["pose"] = "pose"
+    # True: the frame was sent again and this is its stored answer (it was not processed twice).
+    duplicate: bool = False
 
 
 class DroppedMessage(BaseModel):
@@ -108,6 +110,9 @@ class RejectedMessage(BaseModel):
     timestamp_ns: Any
     status: int
     detail: str
+    # A passing refusal (503: database away, session leased by another replica): resend the
+    # frame after this many seconds, possibly to another replica.
+    retry_after_s: float | None = None
 
 
 class ErrorMessage(BaseModel):

@@ -5,12 +5,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 from dataclasses import dataclass
 from typing import Any
 
 from fastapi import APIRouter, HTTPException, WebSocket
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ValidationError
+from sqlalchemy.exc import DBAPIError
 from starlette.types import Message
 from starlette.websockets import WebSocketDisconnect
 
@@ -40,6 +42,8 @@ from service.sessions import (
     SessionWorker,
 )
 from service.storage import SessionRecord
+
+logger = logging.getLogger("swarmvo.service")
 
 # Answers (poses, refusals, errors) a WebSocket client may leave unread before the server
 # stops reading its socket; each is a small JSON message (images are not kept with them).
@@ -104,8 +108,11 @@ class StreamConnection:
         return None
 
     async def _deny(self, status: int, detail: str) -> None:
-        self.state.metrics.errors.labels("auth" if status == 401 else "unknown_session").inc()
-        await self.websocket.send_denial_response(JSONResponse({"detail": detail}, status))
+        kind = {401: "auth", 503: "storage"}.get(status, "unknown_session")
+        self.state.metrics.errors.labels(kind).inc()
+        headers = {"Retry-After": "1"} if status == 503 else None
+        await self.websocket.send_denial_response(
+            JSONResponse({"detail": detail}, status, headers=headers))
 
     async def run(self) -> None:
         websocket = self.websocket
@@ -124,12 +131,18 @@ class StreamConnection:
             await self._deny(404 if isinstance(error, SessionGone) else error.status_code,
                              str(error.detail))
             return
+        except DBAPIError as error:  # the database is away: the robot retries later
+            logger.error("stream refused, database unavailable: %s", str(error).splitlines()[0])
+            await self._deny(503, "database unavailable; retry later")
+            return
+        finished = False
         try:
-            await self._serve(record, worker)
+            finished = await self._serve(record, worker)
         finally:
-            self.state.manager.detach(record.id, self)
+            self.state.manager.detach(record.id, self, finished)
 
-    async def _serve(self, record: SessionRecord, worker: SessionWorker) -> None:
+    async def _serve(self, record: SessionRecord, worker: SessionWorker) -> bool:
+        """Serve the stream; True when the robot ended it with a close message."""
         websocket = self.websocket
         await websocket.accept()
         self.image_size = (record.image_width, record.image_height)
@@ -172,6 +185,7 @@ class StreamConnection:
                 # are shielded), only the answers have nobody to go to.
                 sender.cancel()
                 await asyncio.wait({sender})
+        return graceful
 
     async def _reply(self, message: ServerMessage) -> None:
         await self._acquire_credit()
@@ -318,9 +332,10 @@ class StreamConnection:
             return DroppedMessage(timestamp_ns=timestamp_ns, detail=error.detail)
         except FrameRejected as error:
             return RejectedMessage(timestamp_ns=timestamp_ns, status=error.status_code,
-                                   detail=error.detail)
-        return PoseMessage.of(result.session_id, result.record, result.imu_samples,
+                                   detail=error.detail, retry_after_s=error.retry_after_s)
+        pose = PoseMessage.of(result.session_id, result.record, result.imu_samples,
                               result.odometry, result.smoothed)
+        return pose.model_copy(update={"duplicate": result.duplicate})
 
 
 @dataclass
