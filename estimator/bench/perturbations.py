@@ -58,9 +58,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _config(
     setting: str, mode: str, seed: int, base: SwarmvoConfig | None = None
 ) -> SwarmvoConfig:
-    data = (base or SwarmvoConfig()).model_dump()
+    # Only the fields set in ``base`` are carried over, as ``swarmvo run`` does: a full dump
+    # would mark every field as configured and stop the rig-derived settings (the search
+    # window that scales with the frame interval) from being derived.
+    data = (base or SwarmvoConfig()).model_dump(exclude_unset=True)
     for section, values in SETTINGS[setting].items():
-        data[section].update(values)
+        data.setdefault(section, {}).update(values)
     return build_config(seed=seed, imu=mode == "fused", backend=True,
                         base=SwarmvoConfig.model_validate(data))  # fmt: skip
 
