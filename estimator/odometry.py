@@ -373,7 +373,10 @@ class Odometry:
         options: dict[str, object] = dict(registration.options)
         if registration.use_point_sigmas and registration.method in _METHODS_WITH_COVARIANCES:
             options["source_cov"], options["target_cov"] = covariances
-            options.setdefault("gate_chi2", self.noise.gate_chi2)
+            gate = self.noise.gate_for(
+                correspondences.current_points, correspondences.reference_points
+            )
+            options.setdefault("gate_chi2", gate)
         result = register(
             correspondences.current_points,
             correspondences.reference_points,
