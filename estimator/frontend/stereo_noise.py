@@ -32,8 +32,11 @@ flow, so a frame that moves more than they did (a faster turn, a dropped frame, 
 rate) would meet too tight a support gate and lose good pairs by the dozen. So the model fits
 that growth, sigma ~ a (1 + gain x flow), as a least-squares line through the residual sizes
 and flows of the recent frames' pairs (``gain_memory``; the flow varies more from frame to
-frame than within one), and widens a frame's gate (``gate_for``) by the square of
+frame than within one), and widens a frame's gate (``gate_for``) by the ratio
 (1 + gain x its median flow) / (1 + gain x the recent frames' median flow), when that is > 1.
+By the ratio, not by its square as Gaussian sigmas would have it: the measured tail already
+widens the gate for the spread of flows in the recent frames, and on MH_01 the square lets
+enough poor pairs of the fastest frames in to cost 0.8 mm of ATE on the clean clip.
 
 The level gives every point its full 3x3 covariance (``stereo.point_covariances``: lateral noise
 growing with depth, depth noise with depth squared, along the viewing ray). With the right
@@ -159,7 +162,7 @@ class StereoNoiseModel:
         moved = float(np.median(flow(current, reference, self.rectification)))
         gain = self.gain
         ratio = (1.0 + gain * moved) / (1.0 + gain * self.typical_flow)
-        return self.gate_chi2 * max(ratio, 1.0) ** 2
+        return self.gate_chi2 * max(ratio, 1.0)
 
     def covariances(self, points: np.ndarray) -> np.ndarray:
         """(N, 3, 3) covariances of rectified-camera points at the current level."""
