@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 
 from estimator.bench.perturbations import _config
-from estimator.commands.run import frame_interval_s, run_sequence, summarize
-from estimator.datasets import open_sequence
-from estimator.perturb import PERTURBATIONS, perturb_sequence
+from estimator.formats.datasets import open_sequence
+from estimator.pipeline import frame_interval_s, run_sequence, summarize
+from estimator.rendered.perturb import PERTURBATIONS, perturb_sequence
 from estimator.rig_settings import apply_rig_settings
 
 # The clip's fastest stretch (source frames 120-199: turns of up to 5 degrees per 0.1 s). A
