@@ -25,6 +25,7 @@ from estimator.types import ImuBatch
 from service.images import ImageLimits
 from service.metrics import Metrics
 from service.pipeline import PipelineFactory, PreparedSession
+from service.pose_writer import PoseWriter
 from service.settings import ServiceSettings
 from service.storage import PoseRecord, SessionRecord, Store
 from service.workers import (
@@ -128,6 +129,7 @@ class SessionWorker:
         slot: int,
         io_pool: ThreadPoolExecutor,
         metrics: Metrics,
+        pose_writer: PoseWriter | None = None,
     ) -> None:
         self.session_id = record.id
         self.record = record
@@ -143,6 +145,7 @@ class SessionWorker:
         self.runner = runner
         self.slot = slot
         self.io_pool = io_pool
+        self.pose_writer = pose_writer or PoseWriter(store, io_pool)
         self.metrics = metrics
         self.limits = ImageLimits(
             settings.max_image_width, settings.max_image_height, settings.max_image_pixels
@@ -376,7 +379,7 @@ class SessionWorker:
         )
         stored = time.perf_counter()
         try:
-            await loop.run_in_executor(self.io_pool, self.store.add_pose, self.session_id, record)
+            await self.pose_writer.add(self.session_id, record)
         except Exception as error:
             # The estimator has moved on but the pose is not stored: rebuild from the last
             # stored pose on the next frame so the stored trajectory stays the source of truth.
@@ -456,6 +459,7 @@ class SessionManager:
         self.io_pool = ThreadPoolExecutor(
             max(2, min(settings.workers, 8)), thread_name_prefix="swarmvo-io"
         )
+        self.pose_writer = PoseWriter(store, self.io_pool)  # one group commit for all sessions
         self.workers: OrderedDict[str, SessionWorker] = OrderedDict()
         # Recently deleted ids (uuid4: never reused), so that a request that looked the session
         # up just before its deletion cannot bring it back to life.
@@ -484,7 +488,8 @@ class SessionManager:
         self._evict_idle()
         slot = self.runner.assign(record.id)
         worker = SessionWorker(
-            record, self.settings, self.store, self.runner, slot, self.io_pool, self.metrics
+            record, self.settings, self.store, self.runner, slot, self.io_pool, self.metrics,
+            self.pose_writer,
         )
         self.workers[record.id] = worker
         self._on_change()

@@ -309,29 +309,37 @@ class Store:
 
     def add_pose(self, session_id: str, pose: PoseRecord) -> None:
         """Store one answered pose and advance the session counters in the same transaction."""
+        self.add_poses([(session_id, pose)])
+
+    def add_poses(self, poses: list[tuple[str, PoseRecord]]) -> None:
+        """Store answered poses of any sessions in one transaction (all or none)."""
+        latest: dict[str, PoseRecord] = {}
         with self._sessions.begin() as db:
-            db.add(
-                PoseRow(
-                    session_id=session_id,
-                    frame_index=pose.frame_index,
-                    timestamp_ns=pose.timestamp_ns,
-                    pose=pose.pose,
-                    frontend_pose=pose.frontend_pose,
-                    relative_pose=pose.relative_pose,
-                    status=pose.status,
-                    matches=pose.matches,
-                    inliers=pose.inliers,
-                    support=pose.support,
-                    timings=pose.timings,
-                    message=pose.message,
-                    resumed=pose.resumed,
+            for session_id, pose in poses:
+                db.add(
+                    PoseRow(
+                        session_id=session_id,
+                        frame_index=pose.frame_index,
+                        timestamp_ns=pose.timestamp_ns,
+                        pose=pose.pose,
+                        frontend_pose=pose.frontend_pose,
+                        relative_pose=pose.relative_pose,
+                        status=pose.status,
+                        matches=pose.matches,
+                        inliers=pose.inliers,
+                        support=pose.support,
+                        timings=pose.timings,
+                        message=pose.message,
+                        resumed=pose.resumed,
+                    )
                 )
-            )
-            db.execute(
-                update(SessionRow)
-                .where(SessionRow.id == session_id)
-                .values(frame_count=pose.frame_index + 1, last_timestamp_ns=pose.timestamp_ns)
-            )
+                latest[session_id] = pose  # a session's poses arrive in frame order
+            for session_id, pose in latest.items():
+                db.execute(
+                    update(SessionRow)
+                    .where(SessionRow.id == session_id)
+                    .values(frame_count=pose.frame_index + 1, last_timestamp_ns=pose.timestamp_ns)
+                )
 
     def last_pose(self, session_id: str) -> PoseRecord | None:
         with self._sessions() as db:
