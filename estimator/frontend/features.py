@@ -80,13 +80,16 @@ def grid_select(
     col = np.clip((points[:, 0] * cols / width).astype(np.intp), 0, cols - 1)
     row = np.clip((points[:, 1] * rows / height).astype(np.intp), 0, rows - 1)
     cell = row * cols + col
-    by_cell = np.lexsort((-response, cell))  # within each cell, strongest first
+    # Stable sorts of small integers after one sort by strength: the order of a lexsort by
+    # (cell, strength) and (rank, strength), at a fraction of its cost.
+    strongest = np.argsort(-response, kind="stable")
+    by_cell = strongest[np.argsort(cell[strongest], kind="stable")]  # strongest first per cell
     sorted_cell = cell[by_cell]
     starts = np.flatnonzero(np.r_[True, sorted_cell[1:] != sorted_cell[:-1]])
     counts = np.diff(np.r_[starts, len(sorted_cell)])
     rank = np.empty(len(points), dtype=np.intp)
     rank[by_cell] = np.arange(len(points)) - np.repeat(starts, counts)
-    order = np.lexsort((-response, rank))
+    order = strongest[np.argsort(rank[strongest], kind="stable")]
     return np.sort(order[:budget])
 
 
