@@ -72,7 +72,9 @@ class LevelResult:
     latency_p50_ms: float | None
     latency_p95_ms: float | None
     latency_p99_ms: float | None
-    server_rss_mb_peak: float | None
+    server_rss_mb_peak: float | None  # server and workers together
+    # Peaks of the server process alone and of its workers together (sampled every 0.25 s).
+    rss_mb_peak_by_role: dict[str, float]
     # CPU time of the server process itself and of its worker processes, per answered frame.
     server_cpu_ms_per_frame: dict[str, float]
     stage_median_ms: dict[str, float]
@@ -203,18 +205,17 @@ def _tree(pid: int) -> list[int]:
     return found
 
 
-def _rss_mb(pid: int) -> float | None:
-    """Resident memory of the server and its worker processes."""
-    total, found = 0.0, False
+def _rss_mb(pid: int) -> dict[int, float]:
+    """Resident memory (MB) of the server and of each of its worker processes, by pid."""
+    found = {}
     for current in _tree(pid):
         try:
             for line in Path(f"/proc/{current}/status").read_text().splitlines():
                 if line.startswith("VmRSS:"):
-                    total += int(line.split()[1]) / 1024
-                    found = True
+                    found[current] = int(line.split()[1]) / 1024
         except (OSError, ValueError):
             continue
-    return total if found else None
+    return found
 
 
 def _cpu_s(pid: int | None) -> dict[int, float]:
@@ -243,13 +244,19 @@ async def run_level(url: str, frames: Frames, robots: int, rate: float, duration
         ]
     stats = [RobotStats() for _ in range(robots)]
     peak_rss: list[float] = []
+    peak_role = {"server_process": 0.0, "worker_processes": 0.0}
     stop = asyncio.Event()
 
     async def sample_memory() -> None:
         while not stop.is_set() and server_pid is not None:
-            value = _rss_mb(server_pid)
-            if value is not None:
-                peak_rss.append(value)
+            by_pid = _rss_mb(server_pid)
+            if by_pid:
+                peak_rss.append(sum(by_pid.values()))
+                server = by_pid.pop(server_pid, 0.0)
+                peak_role["server_process"] = max(peak_role["server_process"], server)
+                peak_role["worker_processes"] = max(
+                    peak_role["worker_processes"], sum(by_pid.values())
+                )
             await asyncio.sleep(0.25)
 
     sampler = asyncio.create_task(sample_memory())
@@ -296,6 +303,7 @@ async def run_level(url: str, frames: Frames, robots: int, rate: float, duration
         sustained_fps=answered / window if window > 0 else 0.0, offered_fps=robots * rate,
         latency_p50_ms=pct(50), latency_p95_ms=pct(95), latency_p99_ms=pct(99),
         server_rss_mb_peak=max(peak_rss) if peak_rss else None,
+        rss_mb_peak_by_role=peak_role if peak_rss else {},
         server_cpu_ms_per_frame=cpu,
         stage_median_ms={k: float(np.median(v) * 1000) for k, v in sorted(stages.items())},
         reject_reasons=reasons,
@@ -357,6 +365,9 @@ def print_table(results: list[LevelResult]) -> None:
         if r.server_cpu_ms_per_frame:
             print("        server CPU per answered frame (ms): " + ", ".join(
                 f"{k} {v:.1f}" for k, v in r.server_cpu_ms_per_frame.items()))
+        if r.rss_mb_peak_by_role:
+            print("        peak RSS (MB): " + ", ".join(
+                f"{k} {v:.0f}" for k, v in r.rss_mb_peak_by_role.items()))
         if r.reject_reasons:
             print(f"        rejected: {r.reject_reasons}")
 
