@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from estimator.config import FrontendConfig
-from estimator.features import FeatureDetector, grid_select
+from estimator.frontend.features import FeatureDetector, grid_select
 
 
 def _lexsort_grid_select(points, response, image_size, grid, budget):
