@@ -329,7 +329,7 @@ def start_server(workers: int | None, queue_size: int, policy: str, executor: st
         command += ["--workers", str(workers)]
     process = subprocess.Popen(command, cwd=PROJECT_ROOT, env=env)
     url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 90
+    deadline = time.monotonic() + 180  # workers load the estimator first; slow on a busy machine
     while time.monotonic() < deadline:
         if process.poll() is not None:
             raise RuntimeError("server exited during start-up")
@@ -340,7 +340,7 @@ def start_server(workers: int | None, queue_size: int, policy: str, executor: st
             pass
         time.sleep(0.25)
     process.kill()
-    raise RuntimeError("server did not become healthy within 90 s")
+    raise RuntimeError("server did not become healthy within 180 s")
 
 
 def _fmt(value: float | None, digits: int = 1) -> str:
