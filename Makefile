@@ -34,6 +34,8 @@ bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench registration --out benchmarks/results/registration
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench frontend --out benchmarks/results/frontend
+	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench frontend --data ../shared/data/euroc_mh01_moving \
+		--out benchmarks/results/frontend/euroc_mh01_moving
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench odometry --out benchmarks/results/odometry
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench backend --out benchmarks/results/backend
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench driving --out benchmarks/results/driving

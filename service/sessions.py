@@ -27,8 +27,9 @@ from service.images import ImageLimits
 from service.lease import Held, LeaseBook, LeaseHeld, replica_id
 from service.metrics import Metrics
 from service.pipeline import PipelineFactory, PreparedSession
+from service.pose_writer import PoseWriter
 from service.settings import ServiceSettings
-from service.storage import LeaseLost, PoseRecord, SessionRecord, Store
+from service.storage import LeaseLost, PendingPose, PoseRecord, SessionRecord, Store
 from service.workers import (
     FrameFailure,
     FrameOutcome,
@@ -135,6 +136,7 @@ class SessionWorker:
         io_pool: ThreadPoolExecutor,
         metrics: Metrics,
         leases: LeaseBook | None = None,
+        pose_writer: PoseWriter | None = None,
     ) -> None:
         self.session_id = record.id
         self.record = record
@@ -150,6 +152,7 @@ class SessionWorker:
         self.runner = runner
         self.slot = slot
         self.io_pool = io_pool
+        self.pose_writer = pose_writer or PoseWriter(store, io_pool)
         self.metrics = metrics
         self.leases = leases
         self.lease: Held | None = None  # this replica's lease on the session, when it has one
@@ -468,8 +471,7 @@ class SessionWorker:
         stored = time.perf_counter()
         fence = self.lease.fence if self.lease is not None else None
         try:
-            await loop.run_in_executor(self.io_pool, self.store.add_pose, self.session_id,
-                                       record, fence, outcome.state)
+            await self.pose_writer.add(PendingPose(self.session_id, record, fence, outcome.state))
         except LeaseLost as error:
             # Another replica took the session over: this one must not write, and its
             # pipeline is out of date; the client resends the frame to the new owner.
@@ -558,6 +560,7 @@ class SessionManager:
         self.io_pool = ThreadPoolExecutor(
             max(2, min(settings.workers, 8)), thread_name_prefix="swarmvo-io"
         )
+        self.pose_writer = PoseWriter(store, self.io_pool)  # one group commit for all sessions
         self.workers: OrderedDict[str, SessionWorker] = OrderedDict()
         self.leases = LeaseBook(store, settings.replica_id or replica_id(), settings.lease_ttl_s,
                                 settings.leases)
@@ -590,7 +593,7 @@ class SessionManager:
         slot = self.runner.assign(record.id)
         worker = SessionWorker(
             record, self.settings, self.store, self.runner, slot, self.io_pool, self.metrics,
-            self.leases,
+            self.leases, self.pose_writer,
         )
         self.workers[record.id] = worker
         self._on_change()

@@ -152,6 +152,37 @@ class PoseRecord:
     resumed: bool = False
 
 
+@dataclass(frozen=True)
+class PendingPose:
+    """One answered pose waiting to be stored, with the writer's lease and resume state."""
+
+    session_id: str
+    pose: PoseRecord
+    fence: Fence | None = None
+    resume_state: dict[str, Any] | None = None
+
+
+def _pose_row(entry: PendingPose) -> PoseRow:
+    pose, fence = entry.pose, entry.fence
+    return PoseRow(
+        session_id=entry.session_id,
+        frame_index=pose.frame_index,
+        timestamp_ns=pose.timestamp_ns,
+        pose=pose.pose,
+        frontend_pose=pose.frontend_pose,
+        relative_pose=pose.relative_pose,
+        status=pose.status,
+        matches=pose.matches,
+        inliers=pose.inliers,
+        support=pose.support,
+        timings=pose.timings,
+        message=pose.message,
+        resumed=pose.resumed,
+        fence_token=None if fence is None else fence.token,
+        writer=None if fence is None else fence.holder,
+    )
+
+
 def _session_record(row: SessionRow) -> SessionRecord:
     created = row.created_at
     if created.tzinfo is None:  # SQLite drops the zone; everything is stored in UTC
@@ -347,54 +378,49 @@ class Store:
         fence: Fence | None = None,
         resume_state: dict[str, Any] | None = None,
     ) -> None:
-        """Store one answered pose and advance the session counters in the same transaction.
+        """Store one answered pose and advance the session counters in the same transaction."""
+        self.add_poses([PendingPose(session_id, pose, fence, resume_state)])
 
-        With a ``fence`` (the writer's lease) the counters are only advanced while the session's
-        lease token and holder are still the writer's, checked by the database in that UPDATE
-        (which also renews the lease): otherwise :class:`LeaseLost` and nothing is written.
+    def add_poses(self, poses: list[PendingPose]) -> None:
+        """Store answered poses of any sessions in one transaction (all or none).
+
+        With a ``fence`` (the writer's lease) a pose's counters are only advanced while the
+        session's lease token and holder are still the writer's, checked by the database in that
+        UPDATE (which also renews the lease): otherwise :class:`LeaseLost` and nothing of the
+        batch is written.
         """
+        with self._sessions.begin() as db:
+            for entry in poses:
+                self._advance_counters(db, entry)
+                db.add(_pose_row(entry))
+
+    @staticmethod
+    def _advance_counters(db: Any, entry: PendingPose) -> None:
+        pose, fence = entry.pose, entry.fence
         # The state always belongs to the last pose (None: its pipeline has none to give).
         counters: dict[str, Any] = {
-            "frame_count": pose.frame_index + 1, "last_timestamp_ns": pose.timestamp_ns,
-            "resume_state": resume_state,
+            "frame_count": pose.frame_index + 1,
+            "last_timestamp_ns": pose.timestamp_ns,
+            "resume_state": entry.resume_state,
         }
-        with self._sessions.begin() as db:
-            if fence is not None:
-                renewed = db.execute(
-                    update(SessionRow)
-                    .where(
-                        SessionRow.id == session_id,
-                        SessionRow.lease_token == fence.token,
-                        SessionRow.lease_holder == fence.holder,
-                    )
-                    .values(**counters, lease_expires_at=fence.expiry())
-                )
-                if renewed.rowcount != 1:
-                    raise LeaseLost(
-                        f"replica {fence.holder} no longer holds the lease of session "
-                        f"{session_id} (token {fence.token}); the pose was not stored"
-                    )
-            db.add(
-                PoseRow(
-                    session_id=session_id,
-                    frame_index=pose.frame_index,
-                    timestamp_ns=pose.timestamp_ns,
-                    pose=pose.pose,
-                    frontend_pose=pose.frontend_pose,
-                    relative_pose=pose.relative_pose,
-                    status=pose.status,
-                    matches=pose.matches,
-                    inliers=pose.inliers,
-                    support=pose.support,
-                    timings=pose.timings,
-                    message=pose.message,
-                    resumed=pose.resumed,
-                    fence_token=None if fence is None else fence.token,
-                    writer=None if fence is None else fence.holder,
-                )
+        if fence is None:
+            session = SessionRow.id == entry.session_id
+            db.execute(update(SessionRow).where(session).values(**counters))
+            return
+        renewed = db.execute(
+            update(SessionRow)
+            .where(
+                SessionRow.id == entry.session_id,
+                SessionRow.lease_token == fence.token,
+                SessionRow.lease_holder == fence.holder,
             )
-            if fence is None:
-                db.execute(update(SessionRow).where(SessionRow.id == session_id).values(**counters))
+            .values(**counters, lease_expires_at=fence.expiry())
+        )
+        if renewed.rowcount != 1:
+            raise LeaseLost(
+                f"replica {fence.holder} no longer holds the lease of session "
+                f"{entry.session_id} (token {fence.token}); the pose was not stored"
+            )
 
     def pose_at(self, session_id: str, timestamp_ns: int) -> PoseRecord | None:
         """The stored pose of the frame taken at ``timestamp_ns`` (a resent frame's answer)."""

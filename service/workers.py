@@ -247,6 +247,17 @@ def _pipeline_state(pipeline: Pipeline) -> dict[str, Any] | None:
     return state() if callable(state) else None
 
 
+def session_problem(factory: PipelineFactory, prepared: PreparedSession) -> str | None:
+    """The factory's dry run of a new session (if it has one): its refusal, or None."""
+    check = getattr(factory, "check", None)
+    if callable(check):
+        try:
+            check(prepared)
+        except ValueError as error:
+            return str(error)
+    return None
+
+
 class Runner(Protocol):
     """Runs frames of pinned sessions; ``slot`` is the worker a session was assigned."""
 
@@ -260,6 +271,8 @@ class Runner(Protocol):
     def release(self, slot: int, session_id: str) -> None: ...
 
     async def run(self, slot: int, request: FrameRequest) -> FrameOutcome | FrameFailure: ...
+
+    def check_session(self, prepared: PreparedSession) -> None: ...
 
     async def shutdown(self) -> None: ...
 
@@ -291,6 +304,11 @@ class ThreadRunner:
         return await loop.run_in_executor(
             self.pool, compute_frame, self.pipelines, self.factory, request
         )
+
+    def check_session(self, prepared: PreparedSession) -> None:
+        problem = session_problem(self.factory, prepared)
+        if problem is not None:
+            raise ValueError(problem)
 
     async def shutdown(self) -> None:
         await asyncio.to_thread(self.pool.shutdown, True)
@@ -330,6 +348,11 @@ def _worker_init(factory: PipelineFactory) -> None:
 def _worker_frame(request: FrameRequest) -> FrameOutcome | FrameFailure:
     assert _factory is not None
     return compute_frame(_pipelines, _factory, request)
+
+
+def _worker_check(prepared: PreparedSession) -> str | None:
+    assert _factory is not None
+    return session_problem(_factory, prepared)
 
 
 def _worker_drop(session_id: str) -> None:
@@ -394,6 +417,22 @@ class ProcessRunner:
         slot = min(range(len(self.slots)), key=lambda i: (len(self.slots[i].sessions), i))
         self.slots[slot].sessions.add(session_id)
         return slot
+
+    def check_session(self, prepared: PreparedSession) -> None:
+        """Dry-run a new session in a worker (blocking; call it from a thread).
+
+        The dry run imports and runs the estimator; in a worker, which has it loaded anyway,
+        the server process stays free of it (a few hundred MB less, docs/performance.md). A
+        worker that cannot answer is not a reason to refuse: the check then runs here.
+        """
+        slot = min(range(len(self.slots)), key=lambda i: (len(self.slots[i].sessions), i))
+        try:
+            future = self.slots[slot].executor.submit(_worker_check, prepared)
+            problem = future.result(timeout=self.frame_timeout_s)
+        except Exception:  # broken, replaced or stuck worker
+            problem = session_problem(self.factory, prepared)
+        if problem is not None:
+            raise ValueError(problem)
 
     def release(self, slot: int, session_id: str) -> None:
         """Forget the session and free its pipeline's memory in the worker."""

@@ -66,9 +66,7 @@ def _create_session(
         )
         if problems:
             raise ValueError("; ".join(problems))
-        check = getattr(state.factory, "check", None)
-        if callable(check):
-            check(prepared)
+        state.manager.runner.check_session(prepared)
     except ValueError as error:
         raise Refusal(422, str(error), "bad_session") from error
     record = state.store.create_session(
