@@ -29,7 +29,12 @@ import numpy as np
 from tqdm import tqdm
 
 from estimator.bench.peers import INLIER_QUANTILE, PEERS, oracle, peer_missing_package, run_peer
-from estimator.registration.registry import RegistrationResult, available_methods, register
+from estimator.registration.registry import (
+    Estimator,
+    RegistrationResult,
+    available_methods,
+    register,
+)
 from estimator.rendered.simulation import (
     SimulatedPair,
     rotation_error_deg,
@@ -46,9 +51,9 @@ QUICK_SIGMAS = (0.02,)
 QUICK_OUTLIER_RATIOS = (0.0, 0.5, 0.9)
 QUICK_TRIALS = 5
 N_POINTS = 400
-OURS = ("pso-robust", "pso", "msac", "svd")
+OURS = tuple(name.value for name in Estimator)
 DEFAULT_METHODS = (*OURS, *PEERS, "oracle")
-TARGET_METHOD = "pso-robust"
+TARGET_METHOD = Estimator.PSO_ROBUST.value
 
 # A trial succeeds when the estimate is within both bounds of the truth.
 SUCCESS_ROTATION_DEG = 1.0

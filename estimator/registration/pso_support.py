@@ -66,7 +66,7 @@ from estimator.geometry import (
     matrix_to_quat,
     quat_to_rotation_vector,
 )
-from estimator.registration.methods import register_method
+from estimator.registration.methods import Estimator, EstimatorSpec, register_method
 from estimator.registration.pso import optimise
 from estimator.registration.refine import refine_pose_mahalanobis, squared_mahalanobis
 from estimator.registration.result import (
@@ -163,7 +163,7 @@ class PsoSupportEstimator:
         known = _option_names(cls)
         unknown = sorted(set(options) - known)
         if unknown:
-            name = "pso-robust" if robust else "pso"
+            name = Estimator.PSO_ROBUST if robust else Estimator.PSO
             raise ValueError(f"{name}: unknown option(s) {unknown}; known: {sorted(known)}")
         return cls(robust=robust, **options)  # type: ignore[arg-type]
 
@@ -1111,13 +1111,32 @@ def _scaled_rigidity_kernel(
     return weights
 
 
-@register_method("pso")
+# The swarm's keyword options but the per-pair inputs (sigmas and covariances).
+_TUNING_OPTIONS = _option_names(PsoSupportEstimator) - {"sigmas", "source_cov", "target_cov"}
+
+
+@register_method(
+    EstimatorSpec(
+        Estimator.PSO,
+        "the paper's swarm: all-pairs centroids, SVD refit",
+        options=_TUNING_OPTIONS,
+        takes_sigmas=True,
+    )
+)
 def pso(source: np.ndarray, target: np.ndarray, *, seed: int | None = None, **options: object):
     """The paper's swarm: all-pairs centroids, eq. 13 cost, eq. 15 support, SVD refit."""
     return PsoSupportEstimator.from_options(False, options).estimate(source, target, seed)
 
 
-@register_method("pso-robust")
+@register_method(
+    EstimatorSpec(
+        Estimator.PSO_ROBUST,
+        "rigidity-seeded, core-anchored swarm with an adaptive threshold",
+        options=_TUNING_OPTIONS,
+        takes_sigmas=True,
+        takes_covariances=True,
+    )
+)
 def pso_robust(
     source: np.ndarray, target: np.ndarray, *, seed: int | None = None, **options: object
 ):

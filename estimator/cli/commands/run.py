@@ -31,6 +31,7 @@ from estimator.pipeline import (
     write_odometry,
     write_outputs,
 )
+from estimator.registration.methods import DEFAULT_ESTIMATOR
 from estimator.rig_settings import apply_rig_settings, format_settings
 
 
@@ -47,7 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="SwarmvoConfig as JSON or YAML (the flags below override its fields)",
     )
     parser.add_argument(
-        "--estimator", choices=ESTIMATORS, help="registration method (default: pso-robust)"
+        "--estimator",
+        choices=ESTIMATORS,
+        help=f"registration method (default: {DEFAULT_ESTIMATOR})",
     )
     parser.add_argument("--seed", type=int, help="default: 0")
     parser.add_argument("--out", type=Path, help="output folder (default: runs/<sequence>)")
