@@ -39,7 +39,7 @@ def test_table_with_ground_truth() -> None:
     assert _value(table, "tracked").startswith("7 ")
     assert _value(table, "coasted").startswith("2 ")
     assert _value(table, "lost") == "1"
-    assert _value(table, "path length") == "2.46 m (ground truth 2.50 m)"
+    assert _value(table, "path length") == "2.46 m (ground truth 2.5 m)"
     assert _value(table, "ATE RMSE") == "12.3 mm"
     assert _value(table, "RPE per frame") == "2.1 mm, 0.0345 deg"
     assert _value(table, "speed") == "12.5 fps (0.8 s)"
@@ -52,10 +52,10 @@ def test_table_without_ground_truth_or_back_end() -> None:
         if key not in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "path_length_m")
     }
     summary.update(backend=False, imu=False, frames_skipped=0)
-    table = results_table(summary, estimated_path_m=1.0)
+    table = results_table(summary, estimated_path_m=0.01432)
     assert "(pso-robust, front end only)" in table.splitlines()[0]
     assert _value(table, "frames") == "10"
-    assert _value(table, "path length") == "1.00 m"
+    assert _value(table, "path length") == "0.0143 m"
     assert _value(table, "ATE / RPE") == "no ground truth"
     assert "ATE RMSE" not in table
 

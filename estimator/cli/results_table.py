@@ -19,9 +19,9 @@ def _rows(summary: dict[str, Any], estimated_path_m: float) -> list[tuple[str, s
         ("coasted", f"{counts.get(str(FrameStatus.DEGRADED), 0)} (IMU / motion prior only)"),
         ("lost", f"{counts.get(str(FrameStatus.LOST), 0)}"),
     ]
-    path = f"{estimated_path_m:.2f} m"
+    path = f"{estimated_path_m:.3g} m"
     if "ate_rmse_m" in summary:
-        path += f" (ground truth {summary['path_length_m']:.2f} m)"
+        path += f" (ground truth {summary['path_length_m']:.3g} m)"
     rows.append(("path length", path))
     if "ate_rmse_m" in summary:
         rows.append(("ATE RMSE", f"{summary['ate_rmse_m'] * 1e3:.1f} mm"))
