@@ -46,17 +46,13 @@ from estimator.geometry import (
     transform_points,
 )
 from estimator.registration.refine import refine_pose_mahalanobis
-from estimator.registration.registry import RegistrationResult, register
+from estimator.registration.registry import RegistrationResult, estimator_spec, register
 from estimator.types import FrameReport, FrameStatus, ImuBatch, ImuNoise, StereoFrame
 
 if TYPE_CHECKING:
     from estimator.backend import FusedEstimate
 
 __all__ = ["Odometry", "frame_seed", "to_grey8"]
-
-
-# Estimators that weigh each point's covariance (``source_cov`` / ``target_cov``).
-_METHODS_WITH_COVARIANCES = frozenset({"pso-robust"})
 
 
 def frame_seed(seed: int, index: int) -> int:
@@ -371,7 +367,7 @@ class Odometry:
             return _Estimate(None, None, f"{len(correspondences)} temporal matches (< {needed})")
         registration = self.config.registration
         options: dict[str, object] = dict(registration.options)
-        if registration.use_point_sigmas and registration.method in _METHODS_WITH_COVARIANCES:
+        if registration.use_point_sigmas and estimator_spec(registration.method).takes_covariances:
             options["source_cov"], options["target_cov"] = covariances
             gate = self.noise.gate_for(
                 correspondences.current_points, correspondences.reference_points

@@ -123,8 +123,8 @@ class EstimatorFactory:
         """
         from estimator.config import SwarmvoConfig
         from estimator.formats.calibration import StereoRig
-        from estimator.odometry import _METHODS_WITH_COVARIANCES, Odometry, frame_seed
-        from estimator.registration.registry import register
+        from estimator.odometry import Odometry, frame_seed
+        from estimator.registration.registry import estimator_spec, register
 
         config = SwarmvoConfig.model_validate(prepared.config)
         noise = None if prepared.imu_noise is None else ImuNoise(**prepared.imu_noise)
@@ -139,7 +139,7 @@ class EstimatorFactory:
         target[:, 0] += 0.05
         registration = config.registration
         options: dict[str, Any] = dict(registration.options)
-        if registration.use_point_sigmas and registration.method in _METHODS_WITH_COVARIANCES:
+        if registration.use_point_sigmas and estimator_spec(registration.method).takes_covariances:
             covariance = np.tile(np.eye(3) * 1e-4, (len(source), 1, 1))
             options["source_cov"], options["target_cov"] = covariance, covariance
         try:

@@ -24,7 +24,9 @@ from estimator.geometry import (
     scale_motion,
 )
 from estimator.odometry import Odometry, frame_seed, to_grey8
-from estimator.rendered.synthetic import CAMERA, T_BS_CAM0, build_world, loop_for_length
+from estimator.rendered.camera import CAMERA, T_BS_CAM0
+from estimator.rendered.trajectory import loop_for_length
+from estimator.rendered.world import build_world
 from estimator.types import FrameStatus, StereoFrame
 
 FRAME_NS = 50_000_000  # 20 Hz

@@ -20,6 +20,7 @@ from typing import Any
 from estimator.config import SwarmvoConfig
 from estimator.formats.datasets import Sequence, open_sequence
 from estimator.pipeline import build_config, load_config, run_sequence, summarize
+from estimator.registration.methods import Estimator
 from estimator.rendered.perturb import PERTURBATIONS, perturb_sequence
 
 __all__ = ["SETTINGS", "add_arguments", "run", "run_one"]
@@ -29,7 +30,7 @@ DEFAULT_DATA = Path(__file__).resolve().parents[2].parent / "shared/data/euroc_m
 SETTINGS: dict[str, dict[str, Any]] = {
     "default": {},
     "no-sigmas": {"registration": {"use_point_sigmas": False}},
-    "msac": {"registration": {"method": "msac"}},
+    Estimator.MSAC.value: {"registration": {"method": Estimator.MSAC.value}},
 }
 MODES = ("vision", "fused")
 

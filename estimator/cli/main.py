@@ -47,10 +47,19 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"swarmvo {package_version()}")
     subparsers = parser.add_subparsers(dest="command", required=True)
     for name, (module_name, help_text) in COMMANDS.items():
-        sub = subparsers.add_parser(name, help=help_text)
+        # Only the chosen command's module is imported (`swarmvo serve` must not load the
+        # estimator's numba and GTSAM); its user-facing DESCRIPTION / EPILOG when it has one.
+        module = importlib.import_module(module_name) if only in (None, name) else None
+        sub = subparsers.add_parser(
+            name,
+            help=help_text,
+            description=getattr(module, "DESCRIPTION", help_text),
+            epilog=getattr(module, "EPILOG", None),
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
         sub.set_defaults(_module=module_name)
-        if only is None or name == only:
-            importlib.import_module(module_name).add_arguments(sub)
+        if module is not None:
+            module.add_arguments(sub)
     return parser
 
 

@@ -20,6 +20,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from estimator.cli.results_table import results_table
+from estimator.evaluation.metrics import path_length
 from estimator.formats.datasets import Sequence, open_sequence
 from estimator.pipeline import (
     ESTIMATORS,
@@ -31,7 +33,27 @@ from estimator.pipeline import (
     write_odometry,
     write_outputs,
 )
+from estimator.registration.methods import DEFAULT_ESTIMATOR
 from estimator.rig_settings import apply_rig_settings, format_settings
+
+DESCRIPTION = """\
+Run the odometry over a recorded stereo sequence (EuRoC folder with mav0/, KITTI sequence,
+or a ROS 1 .bag / ROS 2 bag folder) and write the trajectory. The IMU is fused when the
+dataset has one. At the end a results table: frames tracked / coasted / lost, path length,
+ATE and RPE against the ground truth when the dataset has it, and the speed."""
+
+EPILOG = """\
+outputs (in --out, default runs/<sequence>):
+  trajectory.tum            left-camera pose of every frame, as answered when it arrived
+  trajectory_smoothed.tum   each frame's final estimate from the smoother (back end on)
+  metrics.json              accuracy against ground truth, failures, stage times
+  trajectory.png            top view against the ground truth
+  odometry.jsonl / .tum     the odometry in the robotics convention (base_link in odom)
+
+examples:
+  swarmvo run ../shared/data/euroc_mh01_moving
+  swarmvo run ../shared/data/euroc_mh01_moving --no-imu --out runs/vision-only
+  swarmvo run recording.bag --calibration camchain.yaml"""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -47,7 +69,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="SwarmvoConfig as JSON or YAML (the flags below override its fields)",
     )
     parser.add_argument(
-        "--estimator", choices=ESTIMATORS, help="registration method (default: pso-robust)"
+        "--estimator",
+        choices=ESTIMATORS,
+        help=f"registration method (default: {DEFAULT_ESTIMATOR})",
     )
     parser.add_argument("--seed", type=int, help="default: 0")
     parser.add_argument("--out", type=Path, help="output folder (default: runs/<sequence>)")
@@ -134,24 +158,10 @@ def run(args: argparse.Namespace) -> int:
     out = args.out if args.out is not None else Path("runs") / sequence.name
     summary = write_outputs(result, out)
     write_odometry(result, out, args.export_bag, args.export_storage)
-    line = f"{summary['frames']} frames, {summary['frames_failed']} failed"
-    if summary["frames_skipped"]:
-        line += f", {summary['frames_skipped']} skipped (unreadable images)"
-    if "ate_rmse_m" in summary:
-        line += (
-            f"; ATE {summary['ate_rmse_m']:.4f} m, RPE {summary['rpe_trans_rmse_m']:.4f} m / "
-            f"{summary['rpe_rot_rmse_deg']:.4f} deg per frame, "
-            f"path {summary['path_length_m']:.2f} m"
-        )
-    if summary.get("kitti_segments"):
-        line += (
-            f"; KITTI segment errors {summary['kitti_trans_err_pct']:.2f} % / "
-            f"{summary['kitti_rot_err_deg_per_100m']:.3f} deg per 100 m "
-            f"({summary['kitti_segments']} segments)"
-        )
+    print(results_table(summary, path_length(result.poses())))
     kitti_path = kitti_poses_path(result, out)
     print(
-        f"{line}\nwrote {out / 'trajectory.tum'}, {out / 'metrics.json'}, {out / 'trajectory.png'}"
+        f"wrote {out / 'trajectory.tum'}, {out / 'metrics.json'}, {out / 'trajectory.png'}"
         + (f", {out / 'trajectory_smoothed.tum'}" if config.backend.enabled else "")
         + f", {out / 'odometry.jsonl'}, {out / 'odometry.tum'}"
         + (f", {args.export_bag}" if args.export_bag is not None else "")
