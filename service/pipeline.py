@@ -216,6 +216,10 @@ class OdometryAnswers:
         self.last_odometry = self._builder.build(report).to_dict()
         return report
 
+    def finish(self) -> tuple[tuple[int, np.ndarray], ...]:
+        """The back end's final poses of the frames still in its window (the session ends)."""
+        return self.odometry.finish()
+
 
 def _synthetic_run(factory: EstimatorFactory, frames: int = 4) -> None:
     """Blurred random texture seen by a stereo pair (8 px disparity) sliding 2 px per frame."""

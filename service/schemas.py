@@ -223,10 +223,17 @@ class PoseOut(BaseModel):
 
 
 class SmoothedOut(BaseModel):
-    """The back end's final estimates so far (live sessions; not stored)."""
+    """The back end's final estimates, oldest first (stored as the frames are finalised)."""
 
     session_id: str
     poses: list[SmoothedPose]
+
+    @classmethod
+    def of(cls, session_id: str, smoothed: list[tuple[int, list[float]]]) -> SmoothedOut:
+        return cls(
+            session_id=session_id,
+            poses=[SmoothedPose(timestamp_ns=t, pose=_matrix(p)) for t, p in smoothed],
+        )
 
 
 class TrajectoryOut(BaseModel):

@@ -41,6 +41,7 @@ from estimator.types import ImuBatch, StereoFrame
 from service.images import ImageError, ImageLimits, decode_pair, decode_raw_pair
 from service.pipeline import Pipeline, PipelineFactory, PreparedSession
 from service.settings import Executor
+from service.storage import SmoothedPose
 
 logger = logging.getLogger("swarmvo.service")
 
@@ -87,7 +88,7 @@ class FrameOutcome:
     worker_pid: int
     odometry: dict[str, Any] | None = None  # OdometryMessage.to_dict() of this frame
     # Earlier frames the back end finished with at this frame: (timestamp_ns, flat 4x4 pose).
-    smoothed: list[tuple[int, list[float]]] = field(default_factory=list)
+    smoothed: list[SmoothedPose] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -230,6 +231,23 @@ def _compute_frame(
     )
 
 
+def finish_pipeline(pipelines: dict[str, Pipeline], session_id: str) -> list[SmoothedPose]:
+    """End a session's pipeline: the back end finalises the frames still in its window.
+
+    The pipeline is dropped (its smoother cannot go on after a flush): a later frame of the
+    session resumes from its last stored pose. Never raises; a failure only loses the window.
+    """
+    pipeline = pipelines.pop(session_id, None)
+    finish = getattr(pipeline, "finish", None)
+    if not callable(finish):
+        return []
+    try:
+        return [(int(stamp), _flat(pose)) for stamp, pose in finish()]
+    except Exception:
+        logger.exception("flushing the back end of session %s failed", session_id)
+        return []
+
+
 class Runner(Protocol):
     """Runs frames of pinned sessions; ``slot`` is the worker a session was assigned."""
 
@@ -243,6 +261,10 @@ class Runner(Protocol):
     def release(self, slot: int, session_id: str) -> None: ...
 
     async def run(self, slot: int, request: FrameRequest) -> FrameOutcome | FrameFailure: ...
+
+    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[SmoothedPose]]:
+        """Drop the session's pipeline after flushing its back end; the future holds the
+        flushed poses. Submitted at once, so it runs before any later frame of the session."""
 
     async def shutdown(self) -> None: ...
 
@@ -273,6 +295,15 @@ class ThreadRunner:
         loop = asyncio.get_running_loop()
         return await loop.run_in_executor(
             self.pool, compute_frame, self.pipelines, self.factory, request
+        )
+
+    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[SmoothedPose]]:
+        # Taken out now: a pipeline built for a later frame is a new one, never this.
+        pipeline = self.pipelines.pop(session_id, None)
+        if pipeline is None:
+            return _done([])
+        return asyncio.get_running_loop().run_in_executor(
+            self.pool, finish_pipeline, {session_id: pipeline}, session_id
         )
 
     async def shutdown(self) -> None:
@@ -313,6 +344,10 @@ def _worker_init(factory: PipelineFactory) -> None:
 def _worker_frame(request: FrameRequest) -> FrameOutcome | FrameFailure:
     assert _factory is not None
     return compute_frame(_pipelines, _factory, request)
+
+
+def _worker_finish(session_id: str) -> list[SmoothedPose]:
+    return finish_pipeline(_pipelines, session_id)
 
 
 def _worker_drop(session_id: str) -> None:
@@ -432,6 +467,14 @@ class ProcessRunner:
             pipeline_lost=True,
         )
 
+    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[SmoothedPose]]:
+        """Flush the session's back end in its worker, queued before any later frame of it."""
+        try:
+            future = self.slots[slot].executor.submit(_worker_finish, session_id)
+        except (BrokenProcessPool, RuntimeError):
+            return _done([])  # a dead or replaced worker holds nothing any more
+        return asyncio.wrap_future(future)
+
     def _kill(self, slot: int, generation: int) -> bool:
         """SIGKILL a stuck worker (a thread cannot be stopped; a process can)."""
         state = self.slots[slot]
@@ -468,6 +511,12 @@ class ProcessRunner:
             *(asyncio.to_thread(slot.executor.shutdown, True, cancel_futures=True)
               for slot in self.slots)
         )
+
+
+def _done(value: Any) -> asyncio.Future[Any]:
+    future = asyncio.get_running_loop().create_future()
+    future.set_result(value)
+    return future
 
 
 def _ignore_outcome(future: Future[Any] | asyncio.Future[Any]) -> None:
