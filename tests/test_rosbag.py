@@ -25,6 +25,7 @@ from estimator.formats.rosbag_write import (
 from estimator.formats.trajectory_io import read_tum
 from estimator.geometry import invert_pose
 from estimator.odometry import to_grey8
+from estimator.types import ImuNoise
 
 pytestmark = pytest.mark.euroc
 FRAMES = 20
@@ -110,6 +111,46 @@ def test_kalibr_camchain_gives_the_euroc_rig_and_topics(euroc_mh01_moving, tmp_p
     chain["cam1"]["T_cn_cnm1"] = (invert_pose(rig.right.T_BS) @ rig.left.T_BS).tolist()
     path.write_text(yaml.safe_dump(chain))
     assert np.allclose(load_kalibr_rig(path)[0].right.T_BS, rig.right.T_BS, atol=1e-9)
+
+
+def test_kalibr_imu_yaml_beside_the_camchain_sets_the_imu_noise(
+    euroc_mh01_moving, small_bag, tmp_path
+):
+    mav0 = euroc_mh01_moving / "mav0"
+    rig = load_euroc_rig(mav0 / "cam0" / "sensor.yaml", mav0 / "cam1" / "sensor.yaml")
+    chain = {
+        f"cam{index}": {
+            "intrinsics": [camera.fx, camera.fy, camera.cx, camera.cy],
+            "distortion_model": "radtan", "distortion_coeffs": list(camera.distortion),
+            "resolution": [camera.width, camera.height],
+            "T_cam_imu": invert_pose(camera.T_BS).tolist(),
+        }
+        for index, camera in enumerate((rig.left, rig.right))
+    }
+    camchain = tmp_path / "camchain-imucam-flight.yaml"
+    camchain.write_text(yaml.safe_dump(chain))
+    assert load_bag_calibration(camchain).imu_file is None  # none beside it: the default
+    values = {"accelerometer_noise_density": 1.86e-3, "accelerometer_random_walk": 4.33e-4,
+              "gyroscope_noise_density": 1.87e-4, "gyroscope_random_walk": 2.66e-5,
+              "update_rate": 200.0}
+    # Kalibr's input form (flat) as imu.yaml; its result form (under imu0) as imu-NAME.yaml.
+    (tmp_path / "imu.yaml").write_text(yaml.safe_dump({**values, "rostopic": "/imu0"}))
+    expected = ImuNoise(gyro_noise_density=1.87e-4, gyro_random_walk=2.66e-5,
+                        accel_noise_density=1.86e-3, accel_random_walk=4.33e-4, rate_hz=200.0)
+    calibration = load_bag_calibration(camchain)
+    assert calibration.imu_noise == expected and calibration.imu_topic == "/imu0"
+    result = {**values, "update_rate": 400.0, "rostopic": "/imu0"}
+    (tmp_path / "imu-flight.yaml").write_text(yaml.safe_dump({"imu0": result}))
+    calibration = load_bag_calibration(camchain)
+    assert calibration.imu_file == tmp_path / "imu-flight.yaml"
+    assert calibration.imu_noise.rate_hz == 400.0
+    # The bag's sequence carries it to the back end (run_sequence hands it to the odometry).
+    sequence = open_bag(small_bag, calibration)
+    assert sequence.topics.imu == "/imu0" and sequence.imu_noise == calibration.imu_noise
+    # A malformed file is a one-line error.
+    (tmp_path / "imu-flight.yaml").write_text(yaml.safe_dump({"imu0": {"update_rate": 200}}))
+    with pytest.raises(ValueError, match="missing Kalibr IMU field"):
+        load_bag_calibration(camchain)
 
 
 # ----------------------------------------------------------------------------- bad input

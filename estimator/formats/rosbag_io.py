@@ -117,6 +117,8 @@ def _guess_topics(
     listing = ", ".join(f"{t} ({kind})" for t, kind in sorted(connections.items())) or "none"
     left = left or calibration.left_topic
     right = right or calibration.right_topic
+    if imu is None and connections.get(calibration.imu_topic or "") == IMU_TYPE:
+        imu = calibration.imu_topic  # named by the IMU calibration and present
     if left is None or right is None:
         lefts = [t for t in images if _LEFT.search(t) and not _RIGHT.search(t)]
         rights = [t for t in images if _RIGHT.search(t) and not _LEFT.search(t)]
