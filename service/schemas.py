@@ -59,6 +59,12 @@ class SessionCreate(_Strict):
         default_factory=dict, description="SwarmvoConfig overrides, e.g. {'seed': 3}"
     )
     imu_noise: ImuNoiseIn | None = None
+    frame_rate_hz: float | None = Field(
+        None, gt=0, le=10_000,
+        description="camera frame rate; with it the frame-interval settings (search window) "
+        "are derived at creation, without it from the first two frames' stamps. The settings "
+        "derived from the rig are recorded in the session's config under 'rig_settings'",
+    )
 
 
 class SessionOut(BaseModel):
