@@ -379,7 +379,7 @@ def euroc_imu_noise(imu_yaml: bytes) -> dict[str, Any]:
 
 def euroc_frame_rate(cam0_yaml: bytes) -> float | None:
     """The camera rate (``rate_hz``) of EuRoC ``cam0/sensor.yaml`` contents, when it has one."""
-    from estimator.formats.datasets import read_opencv_yaml
+    from estimator.formats.calibration import read_opencv_yaml
 
     data = _with_files({"cam0.yaml": cam0_yaml}, lambda p: read_opencv_yaml(p["cam0.yaml"]))
     rate = data.get("rate_hz")
