@@ -39,23 +39,23 @@ def _reports(errors: np.ndarray, covariance: np.ndarray, keyframe_every: int):
 
 def test_right_covariances_give_one_per_dof_and_small_ones_more() -> None:
     rng = np.random.default_rng(0)
-    errors = rng.normal(size=(3000, 6)) * SIGMAS
+    errors = rng.normal(size=(1200, 6)) * SIGMAS
     covariance = np.diag(SIGMAS**2)
     check = measurement_nees(*_reports(errors, covariance, keyframe_every=1))
     summary = check.summary()
-    assert summary["windows"] == 2999
-    assert summary["mean_nees_per_dof"] == pytest.approx(1.0, abs=0.05)
-    assert summary["rotation_per_dof"] == pytest.approx(1.0, abs=0.07)
-    assert abs(check.lag1_new_reference) < 0.05  # independent errors
+    assert summary["windows"] == 1199
+    assert summary["mean_nees_per_dof"] == pytest.approx(1.0, abs=0.08)
+    assert summary["rotation_per_dof"] == pytest.approx(1.0, abs=0.1)
+    assert abs(check.lag1_new_reference) < 0.08  # independent errors
     # Sigmas reported half as large: four times the NEES.
     small = measurement_nees(*_reports(errors, covariance / 4, keyframe_every=1)).summary()
-    assert small["mean_nees_per_dof"] == pytest.approx(4.0, rel=0.05)
+    assert small["mean_nees_per_dof"] == pytest.approx(4.0 * summary["mean_nees_per_dof"])
 
 
 def test_errors_shared_within_a_keyframe_show_in_the_lag1_correlation() -> None:
     rng = np.random.default_rng(1)
     # One shared error per keyframe: frames 1-5 are measured against frame 0, 6-10 against 5...
-    shared = np.vstack([np.zeros((1, 6)), np.repeat(rng.normal(size=(600, 6)), 5, axis=0)])
+    shared = np.vstack([np.zeros((1, 6)), np.repeat(rng.normal(size=(240, 6)), 5, axis=0)])
     errors = (0.9 * shared + 0.3 * rng.normal(size=shared.shape)) * SIGMAS
     check = measurement_nees(*_reports(errors, np.diag(SIGMAS**2), keyframe_every=5))
     assert check.lag1_same_reference > 0.8

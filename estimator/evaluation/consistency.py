@@ -163,20 +163,20 @@ def measurement_nees(
     """NEES of each reported front-end measurement T_ref_cur (right perturbation of the left
     camera, GTSAM order) against the ground-truth motion of the left camera."""
     pose_of = {r.timestamp_ns: r.frontend_pose for r in reports}
+    measured = [
+        r for r in reports
+        if r.measurement_covariance is not None and r.reference_timestamp_ns in pose_of
+        and ground_truth.covers(np.array([r.reference_timestamp_ns, r.timestamp_ns])).all()
+    ]
+    stamps = np.array([[r.reference_timestamp_ns, r.timestamp_ns] for r in measured], np.int64)
+    truth = ground_truth.interpolate(stamps.reshape(-1)).reshape(-1, 2, 4, 4) @ body_from_camera
     errors, covariances, references = [], [], []
-    for report in reports:
-        reference = report.reference_timestamp_ns
-        if report.measurement_covariance is None or reference not in pose_of:
-            continue
-        stamps = np.array([reference, report.timestamp_ns], dtype=np.int64)
-        if not ground_truth.covers(stamps).all():
-            continue
-        first, last = (pose @ body_from_camera for pose in ground_truth.interpolate(stamps))
+    for report, (first, last) in zip(measured, truth, strict=True):
         actual = invert_pose(first) @ last
-        measured = invert_pose(pose_of[reference]) @ report.frontend_pose
-        errors.append(gtsam.Pose3.Logmap(gtsam.Pose3(invert_pose(actual) @ measured)))
+        motion = invert_pose(pose_of[report.reference_timestamp_ns]) @ report.frontend_pose
+        errors.append(gtsam.Pose3.Logmap(gtsam.Pose3(invert_pose(actual) @ motion)))
         covariances.append(report.measurement_covariance)
-        references.append(reference)
+        references.append(report.reference_timestamp_ns)
     error, covariance = np.array(errors).reshape(-1, 6), np.array(covariances).reshape(-1, 6, 6)
     values = np.einsum("ni,ni->n", error, np.linalg.solve(covariance, error[:, :, None])[..., 0])
     rotation = np.einsum(
