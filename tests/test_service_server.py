@@ -524,7 +524,9 @@ def test_websocket_refusals_and_garbage(server: Server) -> None:
         "rejected",
         "rejected",
         "error",
+        "smoothed",  # the close: the back end's window (no frame was processed: none)
     ]
+    assert replies[-1]["poses"] == []
     assert "PNG or JPEG" in replies[5]["detail"]
 
 
