@@ -29,7 +29,14 @@ from service.metrics import Metrics
 from service.pipeline import PipelineFactory, PreparedSession
 from service.pose_writer import PoseWriter
 from service.settings import ServiceSettings
-from service.storage import LeaseLost, PendingPose, PoseRecord, SessionRecord, Store
+from service.storage import (
+    LeaseLost,
+    PendingPose,
+    PoseRecord,
+    SessionRecord,
+    SmoothedPose,
+    Store,
+)
 from service.workers import (
     FrameFailure,
     FrameOutcome,
@@ -41,8 +48,6 @@ from service.workers import (
 )
 
 logger = logging.getLogger("swarmvo.service")
-# Smoothed poses a live session keeps for GET .../smoothed (the newest; they are not stored).
-SMOOTHED_KEEP = 20_000
 
 # WebSocket close code (application range 4000-4999) sent to streams of a deleted session.
 STREAM_CLOSE_DELETED = 4404
@@ -72,7 +77,8 @@ class SessionGone(FrameRejected):
 class StreamHandle(Protocol):
     """An open stream of a session (a WebSocket), ended when the session is deleted."""
 
-    def terminate(self, code: int, reason: str) -> None: ...
+    def terminate(self, code: int, reason: str, last: list[SmoothedPose] | None = None) -> None:
+        """Close with ``code`` after sending ``last`` (the flushed smoothed poses), if any."""
 
 
 class FrameDropped(FrameRejected):
@@ -99,9 +105,10 @@ class FrameJob:
     timestamp_ns: int
     left: bytes
     right: bytes
-    future: asyncio.Future[FrameResult]
+    future: asyncio.Future[Any]  # FrameResult; the flushed poses for a flush job
     raw: bool = False
     received: float = field(default_factory=time.perf_counter)
+    flush: bool = False  # not a frame: flush the back end once the frames before it are done
 
 
 @dataclass(frozen=True)
@@ -110,7 +117,7 @@ class FrameResult:
     record: PoseRecord
     imu_samples: int
     odometry: dict[str, Any] | None = None  # the frame's odometry message (not stored)
-    smoothed: list[tuple[int, list[float]]] = field(default_factory=list)  # finalised poses
+    smoothed: list[SmoothedPose] = field(default_factory=list)  # finalised at this frame
     duplicate: bool = False  # a resent frame answered from its stored pose
 
 
@@ -174,8 +181,10 @@ class SessionWorker:
         self._imu_lock = threading.Lock()
         self._imu: list[ImuSamples] = []
         self._imu_count = 0
-        # Final smoothed poses handed out so far: (timestamp_ns, flat 4x4), oldest first.
-        self.smoothed: deque[tuple[int, list[float]]] = deque(maxlen=SMOOTHED_KEEP)
+        # A back end holds the newest frames back for smoothing: a stream's end flushes them.
+        self.smoothing = bool(record.config.get("backend", {}).get("enabled", True))
+        # Held while the worker runs this session's pipeline: a flush never overlaps a frame.
+        self._pipeline_lock = asyncio.Lock()
         self._task = asyncio.get_running_loop().create_task(self._consume())
 
     # -- producer side (event loop)
@@ -305,10 +314,14 @@ class SessionWorker:
             job = await self.queue.get()
             if job.future.done():
                 continue
+            if job.flush:
+                job.future.set_result(await self.flush())
+                continue
             self.busy = True
             failed = True
             try:
-                result = await self._process(job)
+                async with self._pipeline_lock:
+                    result = await self._process(job)
                 failed = False
             except FrameRejected as error:
                 self.metrics.errors.labels(error.kind).inc()
@@ -471,7 +484,9 @@ class SessionWorker:
         stored = time.perf_counter()
         fence = self.lease.fence if self.lease is not None else None
         try:
-            await self.pose_writer.add(PendingPose(self.session_id, record, fence, outcome.state))
+            await self.pose_writer.add(
+                PendingPose(self.session_id, record, fence, outcome.state, outcome.smoothed)
+            )
         except LeaseLost as error:
             # Another replica took the session over: this one must not write, and its
             # pipeline is out of date; the client resends the frame to the new owner.
@@ -497,7 +512,6 @@ class SessionWorker:
         self.last_processed_ns = job.timestamp_ns
         if self.lease is not None and self.leases is not None:
             self.lease = self.leases.held(self.lease.fence)  # the write renewed it
-        self.smoothed.extend(outcome.smoothed)
         self.stored_at.append(time.time())
         for stage, seconds in timings.items():
             self.metrics.stage_latency.labels(stage).observe(seconds)
@@ -509,12 +523,63 @@ class SessionWorker:
             outcome.smoothed,
         )
 
+    def start_flush(self) -> asyncio.Future[list[SmoothedPose]]:
+        """Ask the worker to finalise the back end's window; call only between frames.
+
+        The pipeline is dropped (a smoother cannot go on after a flush), so a later frame
+        resumes from the last stored pose, as after a restart.
+        """
+        if not (self.pipeline_ready and self.smoothing):  # nothing held back: it goes on
+            done: asyncio.Future[list[SmoothedPose]] = asyncio.get_running_loop().create_future()
+            done.set_result([])
+            return done
+        self.pipeline_ready = False
+        return self.runner.finish(self.slot, self.session_id)
+
+    async def flush_after_queued(self) -> list[SmoothedPose]:
+        """Flush once the frames queued so far are done: the stream that sent them ended."""
+        if self.closed:
+            return []
+        future: asyncio.Future[list[SmoothedPose]] = asyncio.get_running_loop().create_future()
+        future.add_done_callback(lambda f: f.cancelled() or f.exception())
+        await self.queue.put(FrameJob(-1, b"", b"", future, flush=True))
+        try:
+            return await asyncio.shield(future)
+        except FrameRejected:  # refused by a closing session, which flushes by itself
+            return []
+
+    async def flush(self, store: bool = True) -> list[SmoothedPose]:
+        """The session's stream ended: its last frames get their final poses, stored (unless
+        the session is being deleted) and returned for the stream's last message."""
+        async with self._pipeline_lock:  # never in the middle of a frame
+            flushed = self.start_flush()
+        return await self.finish_flush(flushed, store)
+
+    async def finish_flush(
+        self, flushed: asyncio.Future[list[SmoothedPose]], store: bool = True
+    ) -> list[SmoothedPose]:
+        try:
+            smoothed = await asyncio.wait_for(flushed, self.settings.frame_timeout_s)
+        except Exception as error:
+            logger.error("flushing the back end of session %s failed: %r", self.session_id, error)
+            return []
+        if smoothed and store:
+            try:
+                await asyncio.get_running_loop().run_in_executor(
+                    self.io_pool, self.store.add_smoothed, self.session_id, smoothed
+                )
+            except Exception as error:
+                logger.error("storing the flushed poses of session %s failed: %s",
+                             self.session_id, str(error).splitlines()[0] if str(error) else "")
+        return smoothed
+
     async def close(
         self, reason: str, drain_seconds: float = 0.0, deleted: bool = False
-    ) -> None:
+    ) -> list[SmoothedPose]:
         """Stop the consumer; queued frames are processed first for up to ``drain_seconds``.
 
-        Frames still queued are refused with 503 (``reason``), or 404 when ``deleted``.
+        Frames still queued are refused with 503 (``reason``), or 404 when ``deleted``. The
+        back end's window is then flushed (stored unless ``deleted``); its poses are returned.
         """
         self.closed = True
         if drain_seconds > 0:
@@ -533,6 +598,7 @@ class SessionWorker:
         self._task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await self._task
+        return await self.flush(store=not deleted)
 
 
 class SessionManager:
@@ -605,10 +671,19 @@ class SessionManager:
             if victim is None:
                 return  # all busy: exceed the soft cap rather than refuse work
             worker = self.workers.pop(victim)
-            # Freed now, not when the close task runs: the session may come back before that,
-            # and its new pipeline must not be dropped by this late release.
+            # Flushed and freed now, not when the close task runs: the session may come back
+            # before that, and its new pipeline must not be dropped by this late release.
+            flushed = worker.start_flush()
             self.runner.release(worker.slot, victim)
-            asyncio.get_running_loop().create_task(worker.close("session unloaded"))
+            asyncio.get_running_loop().create_task(self._unload(worker, flushed))
+
+    @staticmethod
+    async def _unload(
+        worker: SessionWorker, flushed: asyncio.Future[list[SmoothedPose]]
+    ) -> None:
+        """An evicted session: its back end's last poses are stored, its consumer stopped."""
+        await worker.close("session unloaded")
+        await worker.finish_flush(flushed)
 
     def attach(self, session_id: str, stream: StreamHandle) -> None:
         """Register an open stream; SessionGone when the session was deleted meanwhile."""
@@ -643,17 +718,19 @@ class SessionManager:
                     self.io_pool, worker.release_lease)
 
     async def remove(self, session_id: str) -> None:
-        """Delete the live state: open streams are closed, queued frames refused with 404."""
+        """Delete the live state: queued frames are refused with 404, the back end's window is
+        flushed to the open streams, which are then closed."""
         self.deleted[session_id] = None
         while len(self.deleted) > MAX_REMEMBERED_DELETIONS:
             self.deleted.popitem(last=False)
-        for stream in self.streams.pop(session_id, set()):
-            stream.terminate(STREAM_CLOSE_DELETED, "session deleted")
         worker = self.workers.pop(session_id, None)
+        last: list[SmoothedPose] = []
         if worker is not None:
             self._on_change()
-            await worker.close("session was deleted", deleted=True)
+            last = await worker.close("session was deleted", deleted=True)
             self.runner.release(worker.slot, session_id)
+        for stream in self.streams.pop(session_id, set()):
+            stream.terminate(STREAM_CLOSE_DELETED, "session deleted", last)
 
     async def shutdown(self, drain_seconds: float = 10.0) -> None:
         workers = list(self.workers.values())

@@ -1,4 +1,4 @@
-"""Persistence: sessions and every pose the service answered, in SQLite or PostgreSQL.
+"""Persistence: sessions, every pose the service answered and the smoother's final poses.
 
 The schema is owned by the Alembic migrations in ``service/migrations`` (run at start-up); the
 ORM classes below mirror it. Poses are stored as JSON lists of 16 floats: Python's float repr
@@ -12,6 +12,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import uuid
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -120,6 +121,28 @@ class Fence:
         return func.now() + dt.timedelta(seconds=self.ttl_s)
 
 
+class SmoothedPoseRow(Base):
+    """The back end's final (smoothed) estimate of one frame, left camera in world."""
+
+    __tablename__ = "smoothed_poses"
+    __table_args__ = (
+        UniqueConstraint("session_id", "timestamp_ns", name="uq_smoothed_stamp"),
+    )
+
+    id: Mapped[int] = mapped_column(
+        BigInteger().with_variant(Integer, "sqlite"), primary_key=True, autoincrement=True
+    )
+    session_id: Mapped[str] = mapped_column(
+        String(32), ForeignKey("sessions.id", ondelete="CASCADE"), index=True
+    )
+    timestamp_ns: Mapped[int] = mapped_column(BigInteger)
+    pose: Mapped[list[float]] = mapped_column(JSON)
+
+
+# A smoothed pose as answered: (timestamp_ns, row-major flat 4x4 left camera in world).
+SmoothedPose = tuple[int, list[float]]
+
+
 @dataclass(frozen=True)
 class SessionRecord:
     id: str
@@ -160,6 +183,7 @@ class PendingPose:
     pose: PoseRecord
     fence: Fence | None = None
     resume_state: dict[str, Any] | None = None
+    smoothed: Sequence[SmoothedPose] = ()  # the back end's poses finalised at this frame
 
 
 def _pose_row(entry: PendingPose) -> PoseRow:
@@ -283,7 +307,7 @@ def run_migrations(engine: Engine) -> None:
 
 
 class Store:
-    """Repository over the two tables; every method is one short transaction."""
+    """Repository over the tables; every method is one short transaction."""
 
     def __init__(self, engine: Engine) -> None:
         self.engine = engine
@@ -358,6 +382,7 @@ class Store:
             if row is None or row.owner != owner:
                 return False
             db.execute(delete(PoseRow).where(PoseRow.session_id == session_id))
+            db.execute(delete(SmoothedPoseRow).where(SmoothedPoseRow.session_id == session_id))
             db.delete(row)
         return True
 
@@ -377,9 +402,11 @@ class Store:
         pose: PoseRecord,
         fence: Fence | None = None,
         resume_state: dict[str, Any] | None = None,
+        smoothed: Sequence[SmoothedPose] = (),
     ) -> None:
-        """Store one answered pose and advance the session counters in the same transaction."""
-        self.add_poses([PendingPose(session_id, pose, fence, resume_state)])
+        """Store one answered pose (with the smoothed poses finalised at its frame) and advance
+        the session counters, all in one transaction."""
+        self.add_poses([PendingPose(session_id, pose, fence, resume_state, tuple(smoothed))])
 
     def add_poses(self, poses: list[PendingPose]) -> None:
         """Store answered poses of any sessions in one transaction (all or none).
@@ -392,6 +419,7 @@ class Store:
         with self._sessions.begin() as db:
             for entry in poses:
                 self._advance_counters(db, entry)
+                _put_smoothed(db, entry.session_id, entry.smoothed)
                 db.add(_pose_row(entry))
 
     @staticmethod
@@ -468,3 +496,42 @@ class Store:
                 .limit(limit)
             )
             return [_pose_record(row) for row in rows]
+
+    # -- smoothed poses
+
+    def add_smoothed(self, session_id: str, smoothed: Sequence[SmoothedPose]) -> None:
+        """Store final poses that came without a frame (the window flushed at a session's end)."""
+        with self._sessions.begin() as db:
+            _put_smoothed(db, session_id, smoothed)
+
+    def smoothed(
+        self, session_id: str, after_ns: int = -1, limit: int | None = None
+    ) -> list[SmoothedPose]:
+        """The session's smoothed poses stamped after ``after_ns``, oldest first."""
+        with self._sessions() as db:
+            rows = db.execute(
+                select(SmoothedPoseRow.timestamp_ns, SmoothedPoseRow.pose)
+                .where(
+                    SmoothedPoseRow.session_id == session_id,
+                    SmoothedPoseRow.timestamp_ns > after_ns,
+                )
+                .order_by(SmoothedPoseRow.timestamp_ns)
+                .limit(limit)
+            )
+            return [(int(stamp), pose) for stamp, pose in rows]
+
+
+def _put_smoothed(db: Any, session_id: str, smoothed: Sequence[SmoothedPose]) -> None:
+    """Insert final poses; a frame finalised again (a resumed back end) keeps the newest."""
+    if not smoothed:
+        return
+    stamps = [int(stamp) for stamp, _ in smoothed]
+    db.execute(
+        delete(SmoothedPoseRow).where(
+            SmoothedPoseRow.session_id == session_id, SmoothedPoseRow.timestamp_ns.in_(stamps)
+        )
+    )
+    db.add_all(
+        SmoothedPoseRow(session_id=session_id, timestamp_ns=stamp, pose=list(pose))
+        for stamp, pose in zip(stamps, (pose for _, pose in smoothed), strict=True)
+    )

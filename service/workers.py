@@ -41,6 +41,7 @@ from estimator.types import ImuBatch, StereoFrame
 from service.images import ImageError, ImageLimits, decode_pair, decode_raw_pair
 from service.pipeline import Pipeline, PipelineFactory, PreparedSession
 from service.settings import Executor
+from service.storage import SmoothedPose
 
 logger = logging.getLogger("swarmvo.service")
 
@@ -89,7 +90,7 @@ class FrameOutcome:
     worker_pid: int
     odometry: dict[str, Any] | None = None  # OdometryMessage.to_dict() of this frame
     # Earlier frames the back end finished with at this frame: (timestamp_ns, flat 4x4 pose).
-    smoothed: list[tuple[int, list[float]]] = field(default_factory=list)
+    smoothed: list[SmoothedPose] = field(default_factory=list)
     # The pipeline's state after this frame, stored with the pose so that any replica can
     # continue the session (pipelines without state() give None).
     state: dict[str, Any] | None = None
@@ -258,6 +259,23 @@ def session_problem(factory: PipelineFactory, prepared: PreparedSession) -> str 
     return None
 
 
+def finish_pipeline(pipelines: dict[str, Pipeline], session_id: str) -> list[SmoothedPose]:
+    """End a session's pipeline: the back end finalises the frames still in its window.
+
+    The pipeline is dropped (its smoother cannot go on after a flush): a later frame of the
+    session resumes from its last stored pose. Never raises; a failure only loses the window.
+    """
+    pipeline = pipelines.pop(session_id, None)
+    finish = getattr(pipeline, "finish", None)
+    if not callable(finish):
+        return []
+    try:
+        return [(int(stamp), _flat(pose)) for stamp, pose in finish()]
+    except Exception:
+        logger.exception("flushing the back end of session %s failed", session_id)
+        return []
+
+
 class Runner(Protocol):
     """Runs frames of pinned sessions; ``slot`` is the worker a session was assigned."""
 
@@ -273,6 +291,11 @@ class Runner(Protocol):
     async def run(self, slot: int, request: FrameRequest) -> FrameOutcome | FrameFailure: ...
 
     def check_session(self, prepared: PreparedSession) -> None: ...
+
+
+    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[SmoothedPose]]:
+        """Drop the session's pipeline after flushing its back end; the future holds the
+        flushed poses. Submitted at once, so it runs before any later frame of the session."""
 
     async def shutdown(self) -> None: ...
 
@@ -309,6 +332,16 @@ class ThreadRunner:
         problem = session_problem(self.factory, prepared)
         if problem is not None:
             raise ValueError(problem)
+
+
+    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[SmoothedPose]]:
+        # Taken out now: a pipeline built for a later frame is a new one, never this.
+        pipeline = self.pipelines.pop(session_id, None)
+        if pipeline is None:
+            return _done([])
+        return asyncio.get_running_loop().run_in_executor(
+            self.pool, finish_pipeline, {session_id: pipeline}, session_id
+        )
 
     async def shutdown(self) -> None:
         await asyncio.to_thread(self.pool.shutdown, True)
@@ -353,6 +386,10 @@ def _worker_frame(request: FrameRequest) -> FrameOutcome | FrameFailure:
 def _worker_check(prepared: PreparedSession) -> str | None:
     assert _factory is not None
     return session_problem(_factory, prepared)
+
+
+def _worker_finish(session_id: str) -> list[SmoothedPose]:
+    return finish_pipeline(_pipelines, session_id)
 
 
 def _worker_drop(session_id: str) -> None:
@@ -488,6 +525,14 @@ class ProcessRunner:
             pipeline_lost=True,
         )
 
+    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[SmoothedPose]]:
+        """Flush the session's back end in its worker, queued before any later frame of it."""
+        try:
+            future = self.slots[slot].executor.submit(_worker_finish, session_id)
+        except (BrokenProcessPool, RuntimeError):
+            return _done([])  # a dead or replaced worker holds nothing any more
+        return asyncio.wrap_future(future)
+
     def _kill(self, slot: int, generation: int) -> bool:
         """SIGKILL a stuck worker (a thread cannot be stopped; a process can)."""
         state = self.slots[slot]
@@ -524,6 +569,12 @@ class ProcessRunner:
             *(asyncio.to_thread(slot.executor.shutdown, True, cancel_futures=True)
               for slot in self.slots)
         )
+
+
+def _done(value: Any) -> asyncio.Future[Any]:
+    future = asyncio.get_running_loop().create_future()
+    future.set_result(value)
+    return future
 
 
 def _ignore_outcome(future: Future[Any] | asyncio.Future[Any]) -> None:

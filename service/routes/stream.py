@@ -32,6 +32,7 @@ from service.messages import (
     PoseMessage,
     RejectedMessage,
     ServerMessage,
+    SmoothedMessage,
 )
 from service.sessions import (
     FrameDropped,
@@ -41,7 +42,7 @@ from service.sessions import (
     SessionGone,
     SessionWorker,
 )
-from service.storage import SessionRecord
+from service.storage import SessionRecord, SmoothedPose
 
 logger = logging.getLogger("swarmvo.service")
 
@@ -49,8 +50,16 @@ logger = logging.getLogger("swarmvo.service")
 # stops reading its socket; each is a small JSON message (images are not kept with them).
 MAX_UNSENT_REPLIES = 64
 
-# Answers in order: a ready message, or (future, timestamp_ns) of a frame being processed.
-_Outgoing = BaseModel | tuple[asyncio.Future[FrameResult], int]
+# Outbox marker: flush the session's back end once the answers before it are sent.
+_FLUSH = object()
+# How long a stream of a deleted session may take to send its last message.
+FINAL_MESSAGE_TIMEOUT_S = 5.0
+
+# Answers in order: a ready message, (future, timestamp_ns) of a frame being processed, or
+# the flush marker.
+_Outgoing = BaseModel | tuple[asyncio.Future[FrameResult], int] | object
+# Flushes after a normal close, kept referenced until they are done.
+_PENDING_FLUSHES: set[asyncio.Task[Any]] = set()
 
 router = APIRouter()
 
@@ -84,12 +93,16 @@ class StreamConnection:
         self.ending: tuple[int, str] | None = None
         self.stop = asyncio.Event()
 
-    def terminate(self, code: int, reason: str) -> None:
-        """End this stream from outside: its loop stops reading and closes with ``code``."""
+    def terminate(self, code: int, reason: str, last: list[SmoothedPose] | None = None) -> None:
+        """End this stream from outside: its loop stops reading and closes with ``code``,
+        after a last ``smoothed`` message when the session's back end was flushed."""
         if self.ending is None:
             self.ending = (code, reason)
         self.stop.set()
-        if self.sender is not None:
+        if last is not None and self.sender is not None and not self.sender.done():
+            self.outbox.put_nowait(SmoothedMessage.of(self.session_id, last))
+            self.outbox.put_nowait(None)
+        elif self.sender is not None:
             self.sender.cancel()
 
     async def _receive(self) -> Message | None:
@@ -158,7 +171,14 @@ class StreamConnection:
         try:
             while True:
                 message = await self._receive()
-                if message is None or message["type"] == "websocket.disconnect":
+                if message is None:
+                    break
+                if message["type"] == "websocket.disconnect":
+                    # A normal close ends the session's stream as a close message does (the
+                    # answers have nobody to go to); a lost connection keeps the window.
+                    live = self.state.manager.workers.get(record.id)
+                    if message.get("code") in (1000, 1001) and live is not None:
+                        _flush_later(live)
                     break
                 if message.get("text") is not None:
                     if await self._on_text(message["text"], record):
@@ -169,8 +189,12 @@ class StreamConnection:
         except (WebSocketDisconnect, RuntimeError):
             pass
         finally:
+            if graceful and self.ending is None:
+                # The back end's window follows the answers, then the stream closes.
+                await self.outbox.put(_FLUSH)
             await self.outbox.put(None)
             if self.ending is not None:
+                await asyncio.wait({sender}, timeout=FINAL_MESSAGE_TIMEOUT_S)
                 sender.cancel()
                 await asyncio.wait({sender})
                 with contextlib.suppress(Exception):
@@ -319,6 +343,13 @@ class StreamConnection:
             item = await self.outbox.get()
             if item is None:
                 return
+            if item is _FLUSH:
+                worker = self.state.manager.workers.get(self.session_id)
+                last = [] if worker is None else await worker.flush_after_queued()
+                await self.websocket.send_json(
+                    SmoothedMessage.of(self.session_id, last).model_dump(mode="json")
+                )
+                continue
             message = item if isinstance(item, BaseModel) else await self._outcome(*item)
             await self.websocket.send_json(message.model_dump(mode="json"))
             self.credit.release()
@@ -336,6 +367,13 @@ class StreamConnection:
         pose = PoseMessage.of(result.session_id, result.record, result.imu_samples,
                               result.odometry, result.smoothed)
         return pose.model_copy(update={"duplicate": result.duplicate})
+
+
+def _flush_later(worker: SessionWorker) -> None:
+    """Flush once the frames already sent are done, without waiting for it here."""
+    task = asyncio.get_running_loop().create_task(worker.flush_after_queued())
+    _PENDING_FLUSHES.add(task)
+    task.add_done_callback(_PENDING_FLUSHES.discard)
 
 
 @dataclass

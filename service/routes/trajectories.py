@@ -12,7 +12,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 
 from service.dependencies import State, StoredSession
 from service.errors import ERROR_RESPONSES
-from service.schemas import PoseOut, SmoothedOut, SmoothedPose, TrajectoryOut
+from service.schemas import PoseOut, SmoothedOut, TrajectoryOut
 
 # Listed with the session itself: a trajectory is a read of the session resource.
 router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["sessions"])
@@ -21,10 +21,6 @@ router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["sessions"])
 _TRAJECTORY_CONTENT: dict[str, Any] = {
     "description": "JSON for format=json; text for format=tum (t x y z qx qy qz qw per line) "
     "and format=kitti (12 numbers of the 3x4 pose per line)",
-    "content": {"text/plain": {"schema": {"type": "string"}}},
-}
-_SMOOTHED_CONTENT: dict[str, Any] = {
-    "description": "JSON for format=json; text for format=tum (t x y z qx qy qz qw per line)",
     "content": {"text/plain": {"schema": {"type": "string"}}},
 }
 
@@ -54,31 +50,25 @@ def get_trajectory(
 
 
 @router.get(
-    "/smoothed", responses={**ERROR_RESPONSES, 200: _SMOOTHED_CONTENT},
+    "/smoothed", responses={**ERROR_RESPONSES, 200: _TRAJECTORY_CONTENT},
     response_model=SmoothedOut,
 )
 def get_smoothed(
     record: StoredSession,
     state: State,
-    format: Annotated[Literal["tum", "json"], Query()] = "json",
+    format: Annotated[Literal["tum", "kitti", "json"], Query()] = "json",
 ) -> Response:
-    """The smoother's final poses handed out so far by the live session (left camera in
-    world; each frame once, the newest 20000): the smoothed twin of ``/trajectory``. Not
-    stored: empty for a session that is not live in this server."""
-    worker = state.manager.workers.get(record.id)
-    smoothed = list(worker.smoothed) if worker is not None else []
+    """The smoother's final poses (left camera in world, each frame once, oldest first):
+    the smoothed twin of ``/trajectory``, stored as the frames are finalised; the last
+    frames follow when the session's stream ends (``close``) or the session is unloaded."""
+    smoothed = state.store.smoothed(record.id)
     if format == "json":
-        body = SmoothedOut(
-            session_id=record.id,
-            poses=[SmoothedPose(timestamp_ns=t, pose=[p[0:4], p[4:8], p[8:12], p[12:16]])
-                   for t, p in smoothed],
-        )
-        return JSONResponse(body.model_dump(mode="json"))
+        return JSONResponse(SmoothedOut.of(record.id, smoothed).model_dump(mode="json"))
     return trajectory_file(
-        "tum",
+        format,
         np.array([t for t, _ in smoothed], dtype=np.int64),
         np.array([p for _, p in smoothed], dtype=float).reshape(-1, 4, 4),
-        f"{record.id}.smoothed.tum.txt",
+        f"{record.id}.smoothed.{format}.txt",
     )
 
 

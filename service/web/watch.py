@@ -209,13 +209,14 @@ class WatchConnection:
         return sent_any
 
     async def _send_smoothed(self) -> None:
-        """The smoother's final poses since the last sent (kept by a live session's worker)."""
-        worker = self.state.manager.workers.get(self.session_id)
-        if worker is None or self.world is None or not worker.smoothed:
+        """The smoother's final poses stored since the last sent."""
+        if self.world is None:
             return
-        if worker.smoothed[-1][0] <= self.smoothed_ns:
+        new = await run_in_threadpool(
+            self.state.store.smoothed, self.session_id, self.smoothed_ns
+        )
+        if not new:
             return
-        new = [(t, pose) for t, pose in worker.smoothed if t > self.smoothed_ns]
         self.smoothed_ns = new[-1][0]
         await self.websocket.send_json(smoothed_columns(new))
 
@@ -250,6 +251,7 @@ class WatchConnection:
                 quiet_since = time.monotonic()
                 await self._send_smoothed()
             if time.monotonic() >= state_due:
+                await self._send_smoothed()  # also those flushed when a stream ended
                 await self._send_state(count)
                 state_due = time.monotonic() + STATE_EVERY_S
 

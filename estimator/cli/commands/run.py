@@ -104,6 +104,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     bags.add_argument("--right-topic", help="right images (default: guessed)")
     bags.add_argument("--imu-topic", help="sensor_msgs/Imu (default: the bag's only one)")
     bags.add_argument(
+        "--stereo-sync-tolerance",
+        type=float,
+        metavar="MS",
+        help="bags and EuRoC folders: pair left/right images whose stamps are nearest each "
+        "other and at most MS milliseconds apart (default: a tenth of the frame period; 0 = "
+        "equal stamps only); others are dropped with one warning",
+    )
+    bags.add_argument(
         "--export-bag",
         type=Path,
         help="also write the result as a bag: PATH.bag = ROS 1, else a ROS 2 folder",
@@ -115,10 +123,14 @@ def open_input(args: argparse.Namespace) -> Sequence:
     """The dataset folder, or a bag with its calibration and topics."""
     from estimator.formats.rosbag_io import is_bag
 
+    tolerance_ms = args.stereo_sync_tolerance
+    if tolerance_ms is not None and not tolerance_ms >= 0:
+        raise ValueError(f"--stereo-sync-tolerance must be >= 0 ms, got {tolerance_ms}")
+    tolerance = None if tolerance_ms is None else round(tolerance_ms * 1e6)
     if not is_bag(args.dataset):
         if args.calibration is not None:
             raise ValueError("--calibration is for bags; a dataset folder has its own")
-        return open_sequence(args.dataset, args.format)
+        return open_sequence(args.dataset, args.format, tolerance)
     from estimator.formats.bag_calibration import load_bag_calibration
     from estimator.formats.rosbag_io import open_bag
 
@@ -128,7 +140,9 @@ def open_input(args: argparse.Namespace) -> Sequence:
             "camchain YAML or a rig JSON/YAML"
         )
     calibration = load_bag_calibration(args.calibration)
-    return open_bag(args.dataset, calibration, args.left_topic, args.right_topic, args.imu_topic)
+    return open_bag(
+        args.dataset, calibration, args.left_topic, args.right_topic, args.imu_topic, tolerance
+    )
 
 
 def run(args: argparse.Namespace) -> int:
