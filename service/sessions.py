@@ -16,20 +16,21 @@ import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
 from estimator.types import ImuBatch
+from service.answer import FrameAnswer, flat_of
 from service.images import ImageLimits
 from service.metrics import Metrics
 from service.pipeline import PipelineFactory, PreparedSession
 from service.settings import ServiceSettings
-from service.storage import PoseRecord, SessionRecord, Store
+from service.storage import SessionRecord, Store
 from service.workers import (
     FrameFailure,
-    FrameOutcome,
+    FrameProcessed,
     FrameRequest,
     PipelineSpec,
     ProcessRunner,
@@ -93,18 +94,9 @@ class FrameJob:
     timestamp_ns: int
     left: bytes
     right: bytes
-    future: asyncio.Future[FrameResult]
+    future: asyncio.Future[FrameAnswer]
     raw: bool = False
     received: float = field(default_factory=time.perf_counter)
-
-
-@dataclass(frozen=True)
-class FrameResult:
-    session_id: str
-    record: PoseRecord
-    imu_samples: int
-    odometry: dict[str, Any] | None = None  # the frame's odometry message (not stored)
-    smoothed: list[tuple[int, list[float]]] = field(default_factory=list)  # finalised poses
 
 
 @dataclass
@@ -193,7 +185,7 @@ class SessionWorker:
         right: bytes,
         imu: ImuSamples | None,
         raw: bool = False,
-    ) -> asyncio.Future[FrameResult]:
+    ) -> asyncio.Future[FrameAnswer]:
         """Queue one frame; the future resolves once its pose is stored (or it is refused)."""
         if self.closed:
             raise SessionGone()
@@ -209,7 +201,7 @@ class SessionWorker:
             # Samples sent with a frame join the session buffer at once: they stay valid
             # measurements even if this frame is refused or dropped below.
             self.add_imu(imu)
-        future: asyncio.Future[FrameResult] = asyncio.get_running_loop().create_future()
+        future: asyncio.Future[FrameAnswer] = asyncio.get_running_loop().create_future()
         # Nobody may be left to read the outcome (client gone): mark it read, not leaked.
         future.add_done_callback(lambda f: f.cancelled() or f.exception())
         job = FrameJob(timestamp_ns, left, right, future, raw)
@@ -277,10 +269,10 @@ class SessionWorker:
             return PipelineSpec(self.prepared, None, 0), ""
         initial = np.array(last.pose, dtype=float).reshape(4, 4)
         message = (
-            f"resumed from the stored pose of frame {last.frame_index} "
+            f"resumed from the stored pose of frame {last.index} "
             f"(timestamp {last.timestamp_ns}); motion since then is not known to the estimator"
         )
-        return PipelineSpec(self.prepared, initial, last.frame_index + 1), message
+        return PipelineSpec(self.prepared, initial, last.index + 1), message
 
     def _peek_imu(self, timestamp_ns: int) -> _ImuTake:
         """IMU samples with previous frame < t <= this frame; later ones stay buffered."""
@@ -310,14 +302,14 @@ class SessionWorker:
             self._imu = [*take.remainder, *self._imu[take.parts :]]
             self._imu_count = sum(len(p) for p in self._imu)
 
-    async def _process(self, job: FrameJob) -> FrameResult:
+    async def _process(self, job: FrameJob) -> FrameAnswer:
         """Decode + odometry in the session's worker, then persist in an I/O thread."""
         loop = asyncio.get_running_loop()
         started = time.perf_counter()
         timings = {"queue_wait": started - job.received}
         take = self._peek_imu(job.timestamp_ns)
         resume_message = ""
-        outcome: FrameOutcome | FrameFailure | None = None
+        outcome: FrameProcessed | FrameFailure | None = None
         for _attempt in range(2):
             spec = None
             if not self.pipeline_ready:
@@ -325,8 +317,8 @@ class SessionWorker:
                     self.io_pool, self._pipeline_spec
                 )
             request = FrameRequest(
-                self.session_id, job.timestamp_ns, job.left, job.right, self.limits,
-                self.prepared.image_size, take.batch, job.raw, spec,
+                self.session_id, self.next_index, job.timestamp_ns, job.left, job.right,
+                self.limits, self.prepared.image_size, take.batch, job.raw, spec,
                 self.settings.frame_cpu_budget_s,
             )
             sent = time.perf_counter()
@@ -354,29 +346,19 @@ class SessionWorker:
             kind = "internal" if outcome.kind == "pipeline_missing" else outcome.kind
             raise FrameRejected(outcome.status_code, outcome.detail, kind)
         self._consume_imu(take)
-        timings.update(outcome.timings)
-        timings["transfer"] = max(
-            0.0, answered - sent - outcome.timings["decode"] - outcome.timings["odometry"]
-        )
+        worked = outcome.answer.timings_s
+        timings.update(worked)
+        timings["transfer"] = max(0.0, answered - sent - worked["decode"] - worked["odometry"])
         resumed = outcome.created and spec is not None and spec.initial_pose is not None
-        message = "; ".join(m for m in (resume_message if resumed else "", outcome.message) if m)
-        record = PoseRecord(
-            frame_index=self.next_index,
-            timestamp_ns=job.timestamp_ns,
-            pose=outcome.pose,
-            frontend_pose=outcome.frontend_pose,
-            relative_pose=outcome.relative_pose,
-            status=outcome.status,
-            matches=outcome.matches,
-            inliers=outcome.inliers,
-            support=outcome.support,
-            timings=dict(timings),
-            message=message,
-            resumed=resumed,
+        message = "; ".join(
+            m for m in (resume_message if resumed else "", outcome.answer.message) if m
+        )
+        answer = outcome.answer.model_copy(
+            update={"timings_s": dict(timings), "message": message, "resumed": resumed}
         )
         stored = time.perf_counter()
         try:
-            await loop.run_in_executor(self.io_pool, self.store.add_pose, self.session_id, record)
+            await loop.run_in_executor(self.io_pool, self.store.add_pose, answer)
         except Exception as error:
             # The estimator has moved on but the pose is not stored: rebuild from the last
             # stored pose on the next frame so the stored trajectory stays the source of truth.
@@ -393,17 +375,12 @@ class SessionWorker:
         timings["total"] = done - job.received
         self.next_index += 1
         self.last_processed_ns = job.timestamp_ns
-        self.smoothed.extend(outcome.smoothed)
+        self.smoothed.extend((p.timestamp_ns, flat_of(p.pose)) for p in answer.smoothed)
         self.stored_at.append(time.time())
         for stage, seconds in timings.items():
             self.metrics.stage_latency.labels(stage).observe(seconds)
-        self.metrics.frames.labels(record.status).inc()
-        return FrameResult(
-            self.session_id, replace(record, timings=timings),
-            0 if take.batch is None else len(take.batch.timestamps_ns),
-            outcome.odometry,
-            outcome.smoothed,
-        )
+        self.metrics.frames.labels(answer.status).inc()
+        return answer.model_copy(update={"timings_s": timings})
 
     async def close(
         self, reason: str, drain_seconds: float = 0.0, deleted: bool = False

@@ -12,7 +12,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +35,8 @@ from sqlalchemy import (
 )
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
+
+from service.answer import FrameAnswer, flat_of, matrix_of
 
 MIGRATIONS_DIR = Path(__file__).resolve().parent / "migrations"
 # PostgreSQL advisory lock id held while migrating (any constant other applications do not use).
@@ -103,22 +105,6 @@ class SessionRecord:
     resume_count: int
 
 
-@dataclass(frozen=True)
-class PoseRecord:
-    frame_index: int
-    timestamp_ns: int
-    pose: list[float]
-    frontend_pose: list[float]
-    relative_pose: list[float]
-    status: str
-    matches: int = 0
-    inliers: int = 0
-    support: int = 0
-    timings: dict[str, float] = field(default_factory=dict)
-    message: str = ""
-    resumed: bool = False
-
-
 def _session_record(row: SessionRow) -> SessionRecord:
     created = row.created_at
     if created.tzinfo is None:  # SQLite drops the zone; everything is stored in UTC
@@ -141,20 +127,41 @@ def _session_record(row: SessionRow) -> SessionRecord:
     )
 
 
-def _pose_record(row: PoseRow) -> PoseRecord:
-    return PoseRecord(
-        frame_index=row.frame_index,
+def _answer_of(session_id: str, row: PoseRow) -> FrameAnswer:
+    """A stored row as the frame's answer (the live-only fields stay at their defaults)."""
+    return FrameAnswer(
+        session_id=session_id,
+        index=row.frame_index,
         timestamp_ns=row.timestamp_ns,
-        pose=row.pose,
-        frontend_pose=row.frontend_pose,
-        relative_pose=row.relative_pose,
+        pose=matrix_of(row.pose),
+        frontend_pose=matrix_of(row.frontend_pose),
+        relative_pose=matrix_of(row.relative_pose),
         status=row.status,
         matches=row.matches,
         inliers=row.inliers,
         support=row.support,
-        timings=row.timings,
+        timings_s=row.timings,
         message=row.message,
         resumed=row.resumed,
+    )
+
+
+def _row_of(answer: FrameAnswer) -> PoseRow:
+    """What storage keeps of an answer: everything but the live-only fields."""
+    return PoseRow(
+        session_id=answer.session_id,
+        frame_index=answer.index,
+        timestamp_ns=answer.timestamp_ns,
+        pose=flat_of(answer.pose),
+        frontend_pose=flat_of(answer.frontend_pose),
+        relative_pose=flat_of(answer.relative_pose),
+        status=answer.status,
+        matches=answer.matches,
+        inliers=answer.inliers,
+        support=answer.support,
+        timings=answer.timings_s,
+        message=answer.message,
+        resumed=answer.resumed,
     )
 
 
@@ -307,33 +314,17 @@ class Store:
 
     # -- poses
 
-    def add_pose(self, session_id: str, pose: PoseRecord) -> None:
-        """Store one answered pose and advance the session counters in the same transaction."""
+    def add_pose(self, answer: FrameAnswer) -> None:
+        """Store one answered frame and advance the session counters in the same transaction."""
         with self._sessions.begin() as db:
-            db.add(
-                PoseRow(
-                    session_id=session_id,
-                    frame_index=pose.frame_index,
-                    timestamp_ns=pose.timestamp_ns,
-                    pose=pose.pose,
-                    frontend_pose=pose.frontend_pose,
-                    relative_pose=pose.relative_pose,
-                    status=pose.status,
-                    matches=pose.matches,
-                    inliers=pose.inliers,
-                    support=pose.support,
-                    timings=pose.timings,
-                    message=pose.message,
-                    resumed=pose.resumed,
-                )
-            )
+            db.add(_row_of(answer))
             db.execute(
                 update(SessionRow)
-                .where(SessionRow.id == session_id)
-                .values(frame_count=pose.frame_index + 1, last_timestamp_ns=pose.timestamp_ns)
+                .where(SessionRow.id == answer.session_id)
+                .values(frame_count=answer.index + 1, last_timestamp_ns=answer.timestamp_ns)
             )
 
-    def last_pose(self, session_id: str) -> PoseRecord | None:
+    def last_pose(self, session_id: str) -> FrameAnswer | None:
         with self._sessions() as db:
             row = db.scalars(
                 select(PoseRow)
@@ -341,11 +332,11 @@ class Store:
                 .order_by(PoseRow.frame_index.desc())
                 .limit(1)
             ).first()
-            return None if row is None else _pose_record(row)
+            return None if row is None else _answer_of(session_id, row)
 
     def poses(
         self, session_id: str, start: int = 0, limit: int | None = None
-    ) -> list[PoseRecord]:
+    ) -> list[FrameAnswer]:
         """The session's poses from frame ``start`` on (a watcher catching up reads only new)."""
         with self._sessions() as db:
             rows = db.scalars(
@@ -354,4 +345,4 @@ class Store:
                 .order_by(PoseRow.frame_index)
                 .limit(limit)
             )
-            return [_pose_record(row) for row in rows]
+            return [_answer_of(session_id, row) for row in rows]

@@ -38,6 +38,7 @@ import numpy as np
 
 from estimator.geometry import nearest_rigid
 from estimator.types import ImuBatch, StereoFrame
+from service.answer import FrameAnswer, OdometryOut, SmoothedPose
 from service.images import ImageError, ImageLimits, decode_pair, decode_raw_pair
 from service.pipeline import Pipeline, PipelineFactory, PreparedSession
 from service.settings import Executor
@@ -59,6 +60,7 @@ class FrameRequest:
     """One frame for one session, as sent to a worker (encoded images, not arrays)."""
 
     session_id: str
+    frame_index: int
     timestamp_ns: int
     left: bytes
     right: bytes
@@ -71,23 +73,11 @@ class FrameRequest:
 
 
 @dataclass(frozen=True)
-class FrameOutcome:
-    """A processed frame, in plain values so it crosses the process boundary cheaply."""
+class FrameProcessed:
+    """A frame's answer as the worker computed it (the session adds queueing and storage)."""
 
-    pose: list[float]
-    frontend_pose: list[float]
-    relative_pose: list[float]
-    status: str
-    matches: int
-    inliers: int
-    support: int
-    message: str
-    timings: dict[str, float]
-    created: bool
-    worker_pid: int
-    odometry: dict[str, Any] | None = None  # OdometryMessage.to_dict() of this frame
-    # Earlier frames the back end finished with at this frame: (timestamp_ns, flat 4x4 pose).
-    smoothed: list[tuple[int, list[float]]] = field(default_factory=list)
+    answer: FrameAnswer
+    created: bool  # the worker built the session's pipeline for this frame
 
 
 @dataclass(frozen=True)
@@ -134,13 +124,13 @@ def cpu_budget(seconds: float) -> Iterator[None]:
         signal.signal(signal.SIGPROF, previous)
 
 
-def _flat(matrix: np.ndarray) -> list[float]:
-    return [float(v) for v in np.asarray(matrix, dtype=float).reshape(16)]
+def _rows(matrix: np.ndarray) -> list[list[float]]:
+    return np.asarray(matrix, dtype=float).reshape(4, 4).tolist()
 
 
 def compute_frame(
     pipelines: dict[str, Pipeline], factory: PipelineFactory, request: FrameRequest
-) -> FrameOutcome | FrameFailure:
+) -> FrameProcessed | FrameFailure:
     """Decode and run the odometry of one frame within its CPU budget; never raises."""
     try:
         with cpu_budget(request.cpu_budget_s):
@@ -161,7 +151,7 @@ def compute_frame(
 
 def _compute_frame(
     pipelines: dict[str, Pipeline], factory: PipelineFactory, request: FrameRequest
-) -> FrameOutcome | FrameFailure:
+) -> FrameProcessed | FrameFailure:
     started = time.perf_counter()
     try:
         if request.raw:
@@ -213,21 +203,29 @@ def _compute_frame(
     timings = {"decode": decoded - started, "odometry": done - decoded}
     for stage, seconds in report.timings_s.items():
         timings[f"odometry.{stage}"] = float(seconds)
-    return FrameOutcome(
-        pose=_flat(report.pose),
-        frontend_pose=_flat(report.frontend_pose),
-        relative_pose=_flat(report.relative_pose),
+    odometry = getattr(pipeline, "last_odometry", None)
+    answer = FrameAnswer(
+        session_id=request.session_id,
+        index=request.frame_index,
+        timestamp_ns=request.timestamp_ns,
+        pose=_rows(report.pose),
+        frontend_pose=_rows(report.frontend_pose),
+        relative_pose=_rows(report.relative_pose),
         status=str(report.status),
         matches=int(report.matches),
         inliers=int(report.inliers),
         support=int(report.support),
+        timings_s=timings,
         message="; ".join(m for m in (note, report.message) if m),
-        timings=timings,
-        created=created,
-        worker_pid=os.getpid(),
-        odometry=getattr(pipeline, "last_odometry", None),
-        smoothed=[(int(stamp), _flat(pose)) for stamp, pose in report.final_poses],
+        resumed=False,
+        imu_samples=0 if request.imu is None else len(request.imu.timestamps_ns),
+        odometry=None if odometry is None else OdometryOut.model_validate(odometry),
+        smoothed=[
+            SmoothedPose(timestamp_ns=int(stamp), pose=_rows(pose))
+            for stamp, pose in report.final_poses
+        ],
     )
+    return FrameProcessed(answer, created)
 
 
 class Runner(Protocol):
@@ -242,7 +240,7 @@ class Runner(Protocol):
 
     def release(self, slot: int, session_id: str) -> None: ...
 
-    async def run(self, slot: int, request: FrameRequest) -> FrameOutcome | FrameFailure: ...
+    async def run(self, slot: int, request: FrameRequest) -> FrameProcessed | FrameFailure: ...
 
     async def shutdown(self) -> None: ...
 
@@ -269,7 +267,7 @@ class ThreadRunner:
     def release(self, slot: int, session_id: str) -> None:
         self.pipelines.pop(session_id, None)
 
-    async def run(self, slot: int, request: FrameRequest) -> FrameOutcome | FrameFailure:
+    async def run(self, slot: int, request: FrameRequest) -> FrameProcessed | FrameFailure:
         loop = asyncio.get_running_loop()
         return await loop.run_in_executor(
             self.pool, compute_frame, self.pipelines, self.factory, request
@@ -310,7 +308,7 @@ def _worker_init(factory: PipelineFactory) -> None:
         warm_up()
 
 
-def _worker_frame(request: FrameRequest) -> FrameOutcome | FrameFailure:
+def _worker_frame(request: FrameRequest) -> FrameProcessed | FrameFailure:
     assert _factory is not None
     return compute_frame(_pipelines, _factory, request)
 
@@ -389,7 +387,7 @@ class ProcessRunner:
             return  # a dead or replaced worker holds nothing any more
         future.add_done_callback(_ignore_outcome)
 
-    async def run(self, slot: int, request: FrameRequest) -> FrameOutcome | FrameFailure:
+    async def run(self, slot: int, request: FrameRequest) -> FrameProcessed | FrameFailure:
         for _attempt in range(2):
             state = self.slots[slot]
             generation = state.generation

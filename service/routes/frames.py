@@ -6,11 +6,12 @@ import asyncio
 
 from fastapi import APIRouter, Request
 
+from service.answer import FrameAnswer
 from service.dependencies import ActiveSession, State, live_worker
 from service.errors import ERROR_RESPONSES, Refusal
 from service.imu_input import imu_arrays, parse_imu
 from service.multipart import BINARY, file_field, int_field, multipart_body, read_form, text_field
-from service.schemas import ErrorOut, ImuBatchIn, ImuBatchOut, PoseOut
+from service.schemas import ErrorOut, ImuBatchIn, ImuBatchOut
 from service.sessions import FrameRejected
 
 router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["frames"])
@@ -31,10 +32,10 @@ _MULTIPART_FRAME = multipart_body(
 
 
 @router.post(
-    "/frames", response_model=PoseOut, openapi_extra=_MULTIPART_FRAME,
+    "/frames", response_model=FrameAnswer, openapi_extra=_MULTIPART_FRAME,
     responses={**ERROR_RESPONSES, 503: {"model": ErrorOut}},
 )
-async def post_frame(record: ActiveSession, request: Request, state: State) -> PoseOut:
+async def post_frame(record: ActiveSession, request: Request, state: State) -> FrameAnswer:
     """Process one stereo pair; answers once its pose is stored."""
     form = await read_form(request, max_files=2, max_fields=2)
     left = await file_field(form, "left")
@@ -49,12 +50,9 @@ async def post_frame(record: ActiveSession, request: Request, state: State) -> P
         raise Refusal(error.status_code, error.detail, error.kind) from error
     try:
         # Shielded: a client that hangs up does not cancel a frame already accepted.
-        result = await asyncio.shield(future)
+        return await asyncio.shield(future)
     except FrameRejected as error:  # counted by the session's consumer
         raise Refusal(error.status_code, error.detail, None) from error
-    return PoseOut.of(
-        result.session_id, result.record, result.imu_samples, result.odometry, result.smoothed
-    )
 
 
 @router.post("/imu", response_model=ImuBatchOut, responses=ERROR_RESPONSES)

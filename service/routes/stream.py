@@ -14,6 +14,7 @@ from pydantic import BaseModel, ValidationError
 from starlette.types import Message
 from starlette.websockets import WebSocketDisconnect
 
+from service.answer import FrameAnswer
 from service.auth import AuthError, bearer_token, owner_for
 from service.dependencies import live_worker, lookup_live_first, service_state
 from service.imu_input import brief, imu_arrays
@@ -34,7 +35,6 @@ from service.messages import (
 from service.sessions import (
     FrameDropped,
     FrameRejected,
-    FrameResult,
     ImuSamples,
     SessionGone,
     SessionWorker,
@@ -46,7 +46,7 @@ from service.storage import SessionRecord
 MAX_UNSENT_REPLIES = 64
 
 # Answers in order: a ready message, or (future, timestamp_ns) of a frame being processed.
-_Outgoing = BaseModel | tuple[asyncio.Future[FrameResult], int]
+_Outgoing = BaseModel | tuple[asyncio.Future[FrameAnswer], int]
 
 router = APIRouter()
 
@@ -310,7 +310,7 @@ class StreamConnection:
             self.credit.release()
 
     @staticmethod
-    async def _outcome(future: asyncio.Future[FrameResult], timestamp_ns: int) -> ServerMessage:
+    async def _outcome(future: asyncio.Future[FrameAnswer], timestamp_ns: int) -> ServerMessage:
         """The answer to a submitted frame, once its pose is stored (or it was refused)."""
         try:
             result = await asyncio.shield(future)
@@ -319,8 +319,7 @@ class StreamConnection:
         except FrameRejected as error:
             return RejectedMessage(timestamp_ns=timestamp_ns, status=error.status_code,
                                    detail=error.detail)
-        return PoseMessage.of(result.session_id, result.record, result.imu_samples,
-                              result.odometry, result.smoothed)
+        return PoseMessage(**dict(result))
 
 
 @dataclass

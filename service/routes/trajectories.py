@@ -10,9 +10,10 @@ import numpy as np
 from fastapi import APIRouter, Query, Response
 from fastapi.responses import JSONResponse, PlainTextResponse
 
+from service.answer import SmoothedPose, matrix_of
 from service.dependencies import State, StoredSession
 from service.errors import ERROR_RESPONSES
-from service.schemas import PoseOut, SmoothedOut, SmoothedPose, TrajectoryOut
+from service.schemas import SmoothedOut, TrajectoryOut
 
 # Listed with the session itself: a trajectory is a read of the session resource.
 router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["sessions"])
@@ -41,9 +42,7 @@ def get_trajectory(
     """All stored poses: TUM (``t x y z qx qy qz qw``), KITTI (3x4 rows) or JSON."""
     records = state.store.poses(record.id)
     if format == "json":
-        body = TrajectoryOut(
-            session_id=record.id, poses=[PoseOut.of(record.id, r) for r in records]
-        )
+        body = TrajectoryOut(session_id=record.id, poses=records)
         return JSONResponse(body.model_dump(mode="json"))
     return trajectory_file(
         format,
@@ -70,7 +69,7 @@ def get_smoothed(
     if format == "json":
         body = SmoothedOut(
             session_id=record.id,
-            poses=[SmoothedPose(timestamp_ns=t, pose=[p[0:4], p[4:8], p[8:12], p[12:16]])
+            poses=[SmoothedPose(timestamp_ns=t, pose=matrix_of(p))
                    for t, p in smoothed],
         )
         return JSONResponse(body.model_dump(mode="json"))

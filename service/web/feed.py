@@ -2,7 +2,7 @@
 
 A browser drawing ten thousand poses needs positions, a heading, the status and two numbers per
 frame, not three 4x4 matrices and a timing table each; columns of rounded numbers are about a
-tenth of the JSON of :class:`~service.schemas.PoseOut`.
+tenth of the JSON of :class:`~service.answer.FrameAnswer`.
 """
 
 from __future__ import annotations
@@ -16,8 +16,9 @@ import numpy as np
 from sqlalchemy import Row, select
 
 from estimator.geometry import invert_pose
+from service.answer import FrameAnswer
 from service.sessions import SessionWorker
-from service.storage import PoseRecord, PoseRow, SessionRecord, Store
+from service.storage import PoseRow, SessionRecord, Store
 
 # One letter per pose status in the ``status`` column.
 STATUS_CODES: dict[str, str] = {"ok": "o", "degraded": "d", "lost": "l"}
@@ -46,7 +47,7 @@ class WorldFrame:
     frontend_to_world: np.ndarray
 
     @classmethod
-    def of(cls, first: PoseRecord) -> WorldFrame:
+    def of(cls, first: FrameAnswer) -> WorldFrame:
         pose = np.array(first.pose, dtype=float).reshape(4, 4)
         frontend = np.array(first.frontend_pose, dtype=float).reshape(4, 4)
         levelled = not np.allclose(pose[:3, :3], np.eye(3), atol=1e-6)
@@ -164,7 +165,7 @@ class SessionActivity:
 
 
 def session_summary(
-    record: SessionRecord, worker: SessionWorker | None, last: PoseRecord | None
+    record: SessionRecord, worker: SessionWorker | None, last: FrameAnswer | None
 ) -> dict[str, Any]:
     """One row of the sessions list."""
     return {
