@@ -48,10 +48,10 @@ def test_view_columns_are_the_same_on_postgresql(
             messages.append(pose_columns(read_poses(store, session_id), WorldFrame.of(stored[0])))
             poses = np.array([p.pose for p in stored]).reshape(-1, 4, 4)
             assert [row[5] for row in rows[-1]] == poses[1:, 0, 3].tolist()  # exact floats
-            assert np.reshape(messages[-1]["position"], (-1, 3)).tolist() == np.round(
+            assert np.reshape(messages[-1].position, (-1, 3)).tolist() == np.round(
                 poses[:, :3, 3], 4).tolist()
-            assert messages[-1]["status"] == "odlodl" and messages[-1]["message"] == "frame 5 ✓"
-            assert messages[-1]["latency_ms"][:2] == [333.33, 301.0]
+            assert messages[-1].status == "odlodl" and messages[-1].message == "frame 5 ✓"
+            assert messages[-1].latency_ms[:2] == [333.33, 301.0]
         assert rows[0] == rows[1] and messages[0] == messages[1]
     finally:
         for store in stores:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from sqlalchemy import Row, select
@@ -19,13 +19,13 @@ from estimator.geometry import invert_pose
 from service.answer import FrameAnswer
 from service.sessions import SessionWorker
 from service.storage import PoseRow, SessionRecord, Store
+from service.web.watch_messages import Activity, PosesMessage, SmoothedMessage
 
 # One letter per pose status in the ``status`` column.
 STATUS_CODES: dict[str, str] = {"ok": "o", "degraded": "d", "lost": "l"}
 # A session is live while its poses keep coming: no frame for this long and it is idle.
 LIVE_WINDOW_S = 5.0
 
-Activity = Literal["live", "idle"]
 
 
 # Stages of a frame before its pose is stored: what the view plots as the service's latency.
@@ -97,36 +97,34 @@ def read_poses(
         return connection.execute(query).all()
 
 
-def pose_columns(rows: Sequence[Row[Any]], world: WorldFrame) -> dict[str, Any]:
+def pose_columns(rows: Sequence[Row[Any]], world: WorldFrame) -> PosesMessage:
     """A ``poses`` message of rows of :func:`read_poses`: one column per quantity."""
     numbers = np.array([row[5:] for row in rows], dtype=float).reshape(len(rows), 13)
     rotation, offset = world.frontend_to_world[:3, :3], world.frontend_to_world[:3, 3]
     frontend = numbers[:, 6:9] @ rotation.T + offset
     latency_ms = 1000.0 * np.nansum(numbers[:, 9:13], axis=1)  # a missing stage counts 0
-    return {
-        "type": "poses",
-        "index": [row.frame_index for row in rows],
-        "timestamp_ns": [row.timestamp_ns for row in rows],
+    return PosesMessage(
+        index=[row.frame_index for row in rows],
+        timestamp_ns=[row.timestamp_ns for row in rows],
         # 0.1 mm is far below what a screen shows and keeps the numbers short.
-        "position": np.round(numbers[:, 0:3], 4).ravel().tolist(),
-        "frontend_position": np.round(frontend, 4).ravel().tolist(),
+        position=np.round(numbers[:, 0:3], 4).ravel().tolist(),
+        frontend_position=np.round(frontend, 4).ravel().tolist(),
         # The camera's optical axis in the world: the heading drawn at the newest pose.
-        "forward": np.round(numbers[:, 3:6], 3).ravel().tolist(),
-        "status": "".join(STATUS_CODES.get(row.status, "l") for row in rows),
-        "inliers": [row.inliers for row in rows],
-        "latency_ms": np.round(latency_ms, 2).tolist(),
-        "message": rows[-1].message if rows else "",
-    }
+        forward=np.round(numbers[:, 3:6], 3).ravel().tolist(),
+        status="".join(STATUS_CODES.get(row.status, "l") for row in rows),
+        inliers=[row.inliers for row in rows],
+        latency_ms=np.round(latency_ms, 2).tolist(),
+        message=rows[-1].message if rows else "",
+    )
 
 
-def smoothed_columns(smoothed: Sequence[tuple[int, list[float]]]) -> dict[str, Any]:
+def smoothed_columns(smoothed: Sequence[tuple[int, list[float]]]) -> SmoothedMessage:
     """A ``smoothed`` message: the smoother's final poses (timestamp, flat 4x4) as columns."""
     matrices = np.array([pose for _, pose in smoothed], dtype=float).reshape(-1, 16)
-    return {
-        "type": "smoothed",
-        "timestamp_ns": [stamp for stamp, _ in smoothed],
-        "position": np.round(matrices[:, list(_TRANSLATION)], 4).ravel().tolist(),
-    }
+    return SmoothedMessage(
+        timestamp_ns=[stamp for stamp, _ in smoothed],
+        position=np.round(matrices[:, list(_TRANSLATION)], 4).ravel().tolist(),
+    )
 
 
 @dataclass(frozen=True)
