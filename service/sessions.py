@@ -21,7 +21,7 @@ from typing import Protocol
 
 import numpy as np
 
-from estimator.types import ImuBatch
+from estimator.types import ImuBatch, TimestampOrderError, check_timestamp_order
 from service.answer import FrameAnswer, flat_of
 from service.images import ImageLimits
 from service.metrics import Metrics
@@ -189,14 +189,10 @@ class SessionWorker:
         """Queue one frame; the future resolves once its pose is stored (or it is refused)."""
         if self.closed:
             raise SessionGone()
-        last = self.last_submitted_ns
-        if last is not None and timestamp_ns <= last:
-            raise FrameRejected(
-                409,
-                f"timestamp_ns {timestamp_ns} does not increase: the session is already at "
-                f"{last}",
-                "timestamp_order",
-            )
+        try:
+            check_timestamp_order(timestamp_ns, self.last_submitted_ns)
+        except TimestampOrderError as error:
+            raise FrameRejected(409, str(error), "timestamp_order") from error
         if imu is not None and len(imu):
             # Samples sent with a frame join the session buffer at once: they stay valid
             # measurements even if this frame is refused or dropped below.
