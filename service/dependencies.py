@@ -16,8 +16,8 @@ from starlette.requests import HTTPConnection
 
 from service.auth import AuthError, bearer_token, owner_for
 from service.errors import Refusal, unknown_session
+from service.estimator_adapter import PipelineFactory
 from service.metrics import Metrics
-from service.pipeline import PipelineFactory
 from service.sessions import SessionGone, SessionManager, SessionWorker
 from service.settings import ServiceSettings
 from service.storage import SessionRecord, Store

@@ -23,9 +23,9 @@ import numpy as np
 
 from estimator.types import ImuBatch, TimestampOrderError, check_timestamp_order
 from service.answer import FrameAnswer, flat_of
+from service.estimator_adapter import PipelineFactory, PreparedSession
 from service.images import ImageLimits
 from service.metrics import Metrics
-from service.pipeline import PipelineFactory, PreparedSession
 from service.settings import ServiceSettings
 from service.storage import SessionRecord, Store
 from service.workers import (

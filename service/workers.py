@@ -39,8 +39,8 @@ import numpy as np
 from estimator.geometry import nearest_rigid
 from estimator.types import ImuBatch, StereoFrame
 from service.answer import FrameAnswer, OdometryOut, SmoothedPose
+from service.estimator_adapter import Pipeline, PipelineFactory, PreparedSession
 from service.images import ImageError, ImageLimits, decode_pair, decode_raw_pair
-from service.pipeline import Pipeline, PipelineFactory, PreparedSession
 from service.settings import Executor
 
 logger = logging.getLogger("swarmvo.service")

@@ -27,9 +27,9 @@ from estimator.types import FrameReport, FrameStatus, ImuBatch, StereoFrame
 from service.answer import FrameAnswer, flat_of, matrix_of
 from service.app import create_app
 from service.auth import AuthError, owner_for
+from service.estimator_adapter import EstimatorFactory, PreparedSession
 from service.images import ImageError, ImageLimits, decode_image, decode_pair, image_size
 from service.messages import SERVER_MESSAGE
-from service.pipeline import EstimatorFactory, PreparedSession
 from service.settings import ServiceSettings, hash_key
 from service.storage import Store
 

@@ -1,4 +1,4 @@
-"""The service's one door into the estimator: validate calibrations/configs, build pipelines.
+"""Adapter between the service and the estimator: validate calibrations/configs, build pipelines.
 
 The app receives a :class:`PipelineFactory`; production uses :class:`EstimatorFactory`
 (the real ``Odometry``), tests may inject their own. Everything here raises ``ValueError`` with a
