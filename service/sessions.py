@@ -108,7 +108,7 @@ class _ImuTake:
     parts: int
 
 
-class SessionWorker:
+class LiveSession:
     """The live state of one session: its queue, its worker slot and its IMU buffer."""
 
     def __init__(
@@ -429,13 +429,13 @@ class SessionManager:
         self.io_pool = ThreadPoolExecutor(
             max(2, min(settings.workers, 8)), thread_name_prefix="swarmvo-io"
         )
-        self.workers: OrderedDict[str, SessionWorker] = OrderedDict()
+        self.live: OrderedDict[str, LiveSession] = OrderedDict()
         # Recently deleted ids (uuid4: never reused), so that a request that looked the session
         # up just before its deletion cannot bring it back to life.
         self.deleted: OrderedDict[str, None] = OrderedDict()
         self.streams: dict[str, set[StreamHandle]] = {}
         self._on_change: Callable[[], None] = lambda: metrics.sessions_active.set(
-            len(self.workers)
+            len(self.live)
         )
 
     async def start(self) -> None:
@@ -446,29 +446,29 @@ class SessionManager:
             self.io_pool.shutdown(wait=False)
             raise
 
-    def worker(self, record: SessionRecord) -> SessionWorker:
+    def live_session(self, record: SessionRecord) -> LiveSession:
         """The session's live state, created on first use; SessionGone once it was deleted."""
         if record.id in self.deleted:
             raise SessionGone()
-        worker = self.workers.get(record.id)
+        worker = self.live.get(record.id)
         if worker is not None:
-            self.workers.move_to_end(record.id)
+            self.live.move_to_end(record.id)
             return worker
         self._evict_idle()
         slot = self.runner.assign(record.id)
-        worker = SessionWorker(
+        worker = LiveSession(
             record, self.settings, self.store, self.runner, slot, self.io_pool, self.metrics
         )
-        self.workers[record.id] = worker
+        self.live[record.id] = worker
         self._on_change()
         return worker
 
     def _evict_idle(self) -> None:
-        while len(self.workers) >= self.settings.max_active_sessions:
-            victim = next((sid for sid, w in self.workers.items() if w.idle), None)
+        while len(self.live) >= self.settings.max_active_sessions:
+            victim = next((sid for sid, w in self.live.items() if w.idle), None)
             if victim is None:
                 return  # all busy: exceed the soft cap rather than refuse work
-            worker = self.workers.pop(victim)
+            worker = self.live.pop(victim)
             # Freed now, not when the close task runs: the session may come back before that,
             # and its new pipeline must not be dropped by this late release.
             self.runner.release(worker.slot, victim)
@@ -494,15 +494,15 @@ class SessionManager:
             self.deleted.popitem(last=False)
         for stream in self.streams.pop(session_id, set()):
             stream.terminate(STREAM_CLOSE_DELETED, "session deleted")
-        worker = self.workers.pop(session_id, None)
+        worker = self.live.pop(session_id, None)
         if worker is not None:
             self._on_change()
             await worker.close("session was deleted", deleted=True)
             self.runner.release(worker.slot, session_id)
 
     async def shutdown(self, drain_seconds: float = 10.0) -> None:
-        workers = list(self.workers.values())
-        self.workers.clear()
+        workers = list(self.live.values())
+        self.live.clear()
         self._on_change()
         await asyncio.gather(
             *(w.close("server shutting down", drain_seconds) for w in workers),

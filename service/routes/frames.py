@@ -7,7 +7,7 @@ import asyncio
 from fastapi import APIRouter, Request
 
 from service.answer import FrameAnswer
-from service.dependencies import ActiveSession, State, live_worker
+from service.dependencies import ActiveSession, State, live_session
 from service.errors import ERROR_RESPONSES, Refusal
 from service.imu_input import imu_arrays, parse_imu
 from service.multipart import BINARY, file_field, int_field, multipart_body, read_form, text_field
@@ -43,9 +43,9 @@ async def post_frame(record: ActiveSession, request: Request, state: State) -> F
     timestamp_ns = int_field(form, "timestamp_ns", 0, 2**63 - 1)
     imu_text = text_field(form, "imu", required=False)
     imu = parse_imu(imu_text, state.settings) if imu_text and imu_text.strip() else None
-    worker = live_worker(state, record)
+    live = live_session(state, record)
     try:
-        future = worker.submit(timestamp_ns, left, right, imu)
+        future = live.submit(timestamp_ns, left, right, imu)
     except FrameRejected as error:
         raise Refusal(error.status_code, error.detail, error.kind) from error
     try:
@@ -59,9 +59,9 @@ async def post_frame(record: ActiveSession, request: Request, state: State) -> F
 async def post_imu(record: ActiveSession, body: ImuBatchIn, state: State) -> ImuBatchOut:
     """Buffer IMU samples; each frame consumes those up to its timestamp."""
     samples = imu_arrays(body.samples, state.settings)
-    worker = live_worker(state, record)
+    live = live_session(state, record)
     try:
-        buffered = worker.add_imu(samples)
+        buffered = live.add_imu(samples)
     except FrameRejected as error:
         raise Refusal(error.status_code, error.detail, error.kind) from error
     return ImuBatchOut(accepted=len(samples), buffered=buffered)

@@ -16,7 +16,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from service.answer import FrameAnswer
 from service.auth import AuthError, bearer_token, owner_for
-from service.dependencies import live_worker, lookup_live_first, service_state
+from service.dependencies import live_session, lookup_live_first, service_state
 from service.imu_input import brief, imu_arrays
 from service.messages import (
     CLIENT_MESSAGE,
@@ -36,8 +36,8 @@ from service.sessions import (
     FrameDropped,
     FrameRejected,
     ImuSamples,
+    LiveSession,
     SessionGone,
-    SessionWorker,
 )
 from service.storage import SessionRecord
 
@@ -118,24 +118,24 @@ class StreamConnection:
             return
         try:
             record = await lookup_live_first(self.state, self.session_id, owner)
-            worker = live_worker(self.state, record)
+            live = live_session(self.state, record)
             self.state.manager.attach(record.id, self)
         except (HTTPException, SessionGone) as error:
             await self._deny(404 if isinstance(error, SessionGone) else error.status_code,
                              str(error.detail))
             return
         try:
-            await self._serve(record, worker)
+            await self._serve(record, live)
         finally:
             self.state.manager.detach(record.id, self)
 
-    async def _serve(self, record: SessionRecord, worker: SessionWorker) -> None:
+    async def _serve(self, record: SessionRecord, live: LiveSession) -> None:
         websocket = self.websocket
         await websocket.accept()
         self.image_size = (record.image_width, record.image_height)
         hello = HelloMessage(
-            session_id=record.id, next_index=worker.next_index,
-            last_timestamp_ns=worker.last_submitted_ns, queue_size=self.settings.queue_size,
+            session_id=record.id, next_index=live.next_index,
+            last_timestamp_ns=live.last_submitted_ns, queue_size=self.settings.queue_size,
             queue_policy=self.settings.queue_policy,
         )
         await websocket.send_json(hello.model_dump(mode="json"))
@@ -202,7 +202,7 @@ class StreamConnection:
         elif isinstance(message, ImuMessage):
             try:
                 samples = imu_arrays(message.samples, self.settings)
-                live_worker(self.state, record).add_imu(samples)
+                live_session(self.state, record).add_imu(samples)
             except HTTPException as error:
                 await self._reply(ErrorMessage(detail=str(error.detail)))
             except FrameRejected as error:
@@ -277,7 +277,7 @@ class StreamConnection:
             return
         await self._acquire_credit()
         try:
-            future = live_worker(self.state, record).submit(
+            future = live_session(self.state, record).submit(
                 header.timestamp_ns, blob[:header.left_bytes], blob[header.left_bytes:], imu,
                 raw=header.encoding == "raw8",
             )

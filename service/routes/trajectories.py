@@ -64,8 +64,8 @@ def get_smoothed(
     """The smoother's final poses handed out so far by the live session (left camera in
     world; each frame once, the newest 20000): the smoothed twin of ``/trajectory``. Not
     stored: empty for a session that is not live in this server."""
-    worker = state.manager.workers.get(record.id)
-    smoothed = list(worker.smoothed) if worker is not None else []
+    live = state.manager.live.get(record.id)
+    smoothed = list(live.smoothed) if live is not None else []
     if format == "json":
         body = SmoothedOut(
             session_id=record.id,

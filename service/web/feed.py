@@ -17,7 +17,7 @@ from sqlalchemy import Row, select
 
 from estimator.geometry import invert_pose
 from service.answer import FrameAnswer
-from service.sessions import SessionWorker
+from service.sessions import LiveSession
 from service.storage import PoseRow, SessionRecord, Store
 from service.web.watch_messages import Activity, PosesMessage, SmoothedMessage
 
@@ -137,21 +137,21 @@ class SessionActivity:
     queued: int
 
     @classmethod
-    def of(cls, worker: SessionWorker | None, now: float | None = None) -> SessionActivity:
-        """From the session's worker; a session without one received no frame recently."""
-        if worker is None:
+    def of(cls, session: LiveSession | None, now: float | None = None) -> SessionActivity:
+        """From the live session; a session without one received no frame recently."""
+        if session is None:
             return cls("idle", None, None, 0)
         now = time.time() if now is None else now
-        stamps = [t for t in worker.stored_at if now - t <= LIVE_WINDOW_S]
-        queued = worker.queue.qsize() + int(worker.busy)
-        live = bool(stamps) or queued > 0
+        stamps = [t for t in session.stored_at if now - t <= LIVE_WINDOW_S]
+        queued = session.queue.qsize() + int(session.busy)
+        active = bool(stamps) or queued > 0
         rate = None
         if len(stamps) >= 2 and stamps[-1] > stamps[0]:
             rate = (len(stamps) - 1) / (stamps[-1] - stamps[0])
-        elif live:
+        elif active:
             rate = 0.0
-        last = worker.stored_at[-1] if worker.stored_at else None
-        return cls("live" if live else "idle", rate, last, queued)
+        last = session.stored_at[-1] if session.stored_at else None
+        return cls("live" if active else "idle", rate, last, queued)
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -163,15 +163,15 @@ class SessionActivity:
 
 
 def session_summary(
-    record: SessionRecord, worker: SessionWorker | None, last: FrameAnswer | None
+    record: SessionRecord, live: LiveSession | None, last: FrameAnswer | None
 ) -> dict[str, Any]:
     """One row of the sessions list."""
     return {
         "id": record.id,
         "name": record.name,
         "created_at": record.created_at.isoformat(),
-        "frame_count": record.frame_count if worker is None else worker.next_index,
+        "frame_count": record.frame_count if live is None else live.next_index,
         "last_timestamp_ns": record.last_timestamp_ns,
         "last_status": None if last is None else last.status,
-        **SessionActivity.of(worker).as_json(),
+        **SessionActivity.of(live).as_json(),
     }

@@ -72,10 +72,10 @@ async def live_sessions(owner: Owner, state: State) -> dict[str, Any]:
         return [(r, state.store.last_pose(r.id)) for r in records]
 
     rows = await run_in_threadpool(read)
-    workers = state.manager.workers
+    live = state.manager.live
     return {
         "server_time": time.time(),
-        "sessions": [session_summary(r, workers.get(r.id), last) for r, last in rows],
+        "sessions": [session_summary(r, live.get(r.id), last) for r, last in rows],
     }
 
 
@@ -179,10 +179,10 @@ class WatchConnection:
             self.closed.set()
 
     async def _frame_count(self) -> int | None:
-        """Stored poses of the session: from its worker here, else from the store."""
-        worker = self.state.manager.workers.get(self.session_id)
-        if worker is not None:
-            return worker.next_index
+        """Stored poses of the session: from its live session here, else from the store."""
+        live = self.state.manager.live.get(self.session_id)
+        if live is not None:
+            return live.next_index
         record = await run_in_threadpool(self.state.store.get_session, self.session_id)
         return None if record is None else record.frame_count
 
@@ -223,19 +223,19 @@ class WatchConnection:
         return sent_any
 
     async def _send_smoothed(self) -> None:
-        """The smoother's final poses since the last sent (kept by a live session's worker)."""
-        worker = self.state.manager.workers.get(self.session_id)
-        if worker is None or self.world is None or not worker.smoothed:
+        """The smoother's final poses since the last sent (kept by the live session)."""
+        live = self.state.manager.live.get(self.session_id)
+        if live is None or self.world is None or not live.smoothed:
             return
-        if worker.smoothed[-1][0] <= self.smoothed_ns:
+        if live.smoothed[-1][0] <= self.smoothed_ns:
             return
-        new = [(t, pose) for t, pose in worker.smoothed if t > self.smoothed_ns]
+        new = [(t, pose) for t, pose in live.smoothed if t > self.smoothed_ns]
         self.smoothed_ns = new[-1][0]
         await self._send(smoothed_columns(new))
 
     async def _send_state(self, count: int) -> None:
-        worker = self.state.manager.workers.get(self.session_id)
-        activity = SessionActivity.of(worker)
+        live = self.state.manager.live.get(self.session_id)
+        activity = SessionActivity.of(live)
         await self._send(
             StateMessage(frame_count=count, server_time=time.time(), **activity.as_json())
         )
