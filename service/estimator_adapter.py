@@ -47,12 +47,6 @@ class PipelineFactory(Protocol):
     ) -> Pipeline: ...
 
 
-class SessionChecker(Protocol):
-    """Optional: a factory that can try a session out before it is stored."""
-
-    def check(self, prepared: PreparedSession) -> None: ...
-
-
 def reject_non_finite(value: Any, where: str) -> None:
     """NaN/inf anywhere in a JSON document is an input error, not a number to compute with."""
     if isinstance(value, float) and not math.isfinite(value):

@@ -66,6 +66,7 @@ def _create_session(
         )
         if problems:
             raise ValueError("; ".join(problems))
+        # Optional: a factory may try the session out before it is stored.
         check = getattr(state.factory, "check", None)
         if callable(check):
             check(prepared)
