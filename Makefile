@@ -5,7 +5,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: test lint demo bench clean install
+.PHONY: test lint demo bench clean install cluster-test
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -34,12 +34,20 @@ bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench registration --out benchmarks/results/registration
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench frontend --out benchmarks/results/frontend
+	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench frontend --data ../shared/data/euroc_mh01_moving \
+		--out benchmarks/results/frontend/euroc_mh01_moving
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench odometry --out benchmarks/results/odometry
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench backend --out benchmarks/results/backend
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench driving --out benchmarks/results/driving
 	OMP_NUM_THREADS=1 $(BIN)/swarmvo bench perturbations --out benchmarks/results/perturbations \
 		--compare benchmarks/results/perturbations/before/perturbations.json
 	$(BIN)/python benchmarks/load_test.py
+
+# The fleet on loopback: PostgreSQL, 3 replicas and nginx (Debian packages), robots streaming,
+# a replica killed and restarted; the table of docs/fleet.md, JSON in benchmarks/results/cluster.
+cluster-test: $(STAMP)
+	$(BIN)/python -m pip install --quiet -e '.[postgres]'
+	OMP_NUM_THREADS=1 $(BIN)/python benchmarks/cluster.py
 
 clean:
 	rm -rf $(VENV) demo-output .pytest_cache .ruff_cache

@@ -11,6 +11,11 @@ never answered, and the resident memory of the server and its worker processes. 
     python benchmarks/load_test.py --robots 4 --duration 30
     python benchmarks/load_test.py --executor thread    # the in-process thread pool instead
     python benchmarks/load_test.py --encoding raw8      # raw 8-bit pixels, no PNG decode
+    python benchmarks/load_test.py --robots 8 --duration 30 --runs 5   # 5 consecutive runs
+
+With ``--runs N`` every level is run N times in a row against the same server; besides the JSON
+a Markdown table of all runs (not the best of them) is written next to it, with the machine's
+load average at the start and end of each run (other jobs on the machine inflate the numbers).
 """
 
 from __future__ import annotations
@@ -67,11 +72,23 @@ class LevelResult:
     latency_p50_ms: float | None
     latency_p95_ms: float | None
     latency_p99_ms: float | None
-    server_rss_mb_peak: float | None
+    server_rss_mb_peak: float | None  # server and workers together
+    # Peaks of the server process alone and of its workers together (sampled every 0.25 s).
+    rss_mb_peak_by_role: dict[str, float]
     # CPU time of the server process itself and of its worker processes, per answered frame.
     server_cpu_ms_per_frame: dict[str, float]
     stage_median_ms: dict[str, float]
     reject_reasons: dict[str, int]
+    run: int = 1
+    load_average_start: list[float] = field(default_factory=list)
+    load_average_end: list[float] = field(default_factory=list)
+
+    @property
+    def cpu_ms_per_frame(self) -> float | None:
+        """Server process plus worker processes, CPU per answered frame."""
+        if not self.server_cpu_ms_per_frame:
+            return None
+        return sum(self.server_cpu_ms_per_frame.values())
 
 
 class Frames:
@@ -188,18 +205,17 @@ def _tree(pid: int) -> list[int]:
     return found
 
 
-def _rss_mb(pid: int) -> float | None:
-    """Resident memory of the server and its worker processes."""
-    total, found = 0.0, False
+def _rss_mb(pid: int) -> dict[int, float]:
+    """Resident memory (MB) of the server and of each of its worker processes, by pid."""
+    found = {}
     for current in _tree(pid):
         try:
             for line in Path(f"/proc/{current}/status").read_text().splitlines():
                 if line.startswith("VmRSS:"):
-                    total += int(line.split()[1]) / 1024
-                    found = True
+                    found[current] = int(line.split()[1]) / 1024
         except (OSError, ValueError):
             continue
-    return total if found else None
+    return found
 
 
 def _cpu_s(pid: int | None) -> dict[int, float]:
@@ -228,16 +244,23 @@ async def run_level(url: str, frames: Frames, robots: int, rate: float, duration
         ]
     stats = [RobotStats() for _ in range(robots)]
     peak_rss: list[float] = []
+    peak_role = {"server_process": 0.0, "worker_processes": 0.0}
     stop = asyncio.Event()
 
     async def sample_memory() -> None:
         while not stop.is_set() and server_pid is not None:
-            value = _rss_mb(server_pid)
-            if value is not None:
-                peak_rss.append(value)
+            by_pid = _rss_mb(server_pid)
+            if by_pid:
+                peak_rss.append(sum(by_pid.values()))
+                server = by_pid.pop(server_pid, 0.0)
+                peak_role["server_process"] = max(peak_role["server_process"], server)
+                peak_role["worker_processes"] = max(
+                    peak_role["worker_processes"], sum(by_pid.values())
+                )
             await asyncio.sleep(0.25)
 
     sampler = asyncio.create_task(sample_memory())
+    load_start = list(os.getloadavg())
     cpu_before = _cpu_s(server_pid)
     start_at = time.perf_counter() + 0.5
     await asyncio.gather(*(robot(url, s.id, frames, rate, duration, drain, st, start_at)
@@ -280,9 +303,12 @@ async def run_level(url: str, frames: Frames, robots: int, rate: float, duration
         sustained_fps=answered / window if window > 0 else 0.0, offered_fps=robots * rate,
         latency_p50_ms=pct(50), latency_p95_ms=pct(95), latency_p99_ms=pct(99),
         server_rss_mb_peak=max(peak_rss) if peak_rss else None,
+        rss_mb_peak_by_role=peak_role if peak_rss else {},
         server_cpu_ms_per_frame=cpu,
         stage_median_ms={k: float(np.median(v) * 1000) for k, v in sorted(stages.items())},
         reject_reasons=reasons,
+        load_average_start=load_start,
+        load_average_end=list(os.getloadavg()),
     )
 
 
@@ -303,7 +329,7 @@ def start_server(workers: int | None, queue_size: int, policy: str, executor: st
         command += ["--workers", str(workers)]
     process = subprocess.Popen(command, cwd=PROJECT_ROOT, env=env)
     url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 90
+    deadline = time.monotonic() + 180  # workers load the estimator first; slow on a busy machine
     while time.monotonic() < deadline:
         if process.poll() is not None:
             raise RuntimeError("server exited during start-up")
@@ -314,7 +340,7 @@ def start_server(workers: int | None, queue_size: int, policy: str, executor: st
             pass
         time.sleep(0.25)
     process.kill()
-    raise RuntimeError("server did not become healthy within 90 s")
+    raise RuntimeError("server did not become healthy within 180 s")
 
 
 def _fmt(value: float | None, digits: int = 1) -> str:
@@ -339,8 +365,36 @@ def print_table(results: list[LevelResult]) -> None:
         if r.server_cpu_ms_per_frame:
             print("        server CPU per answered frame (ms): " + ", ".join(
                 f"{k} {v:.1f}" for k, v in r.server_cpu_ms_per_frame.items()))
+        if r.rss_mb_peak_by_role:
+            print("        peak RSS (MB): " + ", ".join(
+                f"{k} {v:.0f}" for k, v in r.rss_mb_peak_by_role.items()))
         if r.reject_reasons:
             print(f"        rejected: {r.reject_reasons}")
+
+
+RUNS_HEADER = (
+    "| run | robots | offered/s | answered/s | sent | answered | dropped | rejected | lost "
+    "| p50 ms | p95 ms | p99 ms | CPU ms/frame server | CPU ms/frame workers | CPU ms/frame total "
+    "| RSS MB | load avg start -> end |"
+)
+
+
+def runs_table(results: list[LevelResult]) -> str:
+    """Markdown table with one row per run, in the order they ran."""
+    lines = [RUNS_HEADER, "|" + "---|" * RUNS_HEADER.count(" | ") + "---|"]
+    for r in results:
+        cpu = r.server_cpu_ms_per_frame
+        load = "-"
+        if r.load_average_start and r.load_average_end:
+            load = f"{r.load_average_start[0]:.1f} -> {r.load_average_end[0]:.1f}"
+        lines.append(
+            f"| {r.run} | {r.robots} | {r.offered_fps:.1f} | {r.sustained_fps:.1f} | {r.sent} "
+            f"| {r.answered} | {r.dropped} | {r.rejected} | {r.unanswered} "
+            f"| {_fmt(r.latency_p50_ms)} | {_fmt(r.latency_p95_ms)} | {_fmt(r.latency_p99_ms)} "
+            f"| {_fmt(cpu.get('server_process'))} | {_fmt(cpu.get('worker_processes'))} "
+            f"| {_fmt(r.cpu_ms_per_frame)} | {_fmt(r.server_rss_mb_peak, 0)} | {load} |"
+        )
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -358,6 +412,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="where the server runs the odometry (SWARMVO_EXECUTOR)")
     parser.add_argument("--encoding", choices=("png", "raw8"), default="png",
                         help="frame payload: the dataset's PNG files or raw 8-bit pixels")
+    parser.add_argument("--runs", type=int, default=1,
+                        help="consecutive runs of every level against the same server")
     parser.add_argument("--queue-size", type=int, default=8)
     parser.add_argument("--policy", choices=("reject", "drop_oldest"), default="reject")
     parser.add_argument("--config", default="{}", help="estimator config overrides (JSON)")
@@ -369,6 +425,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("robots must be 1..64 and rate 0..100 Hz")
     if not 1 <= args.duration <= 600:
         parser.error("duration must be 1..600 s")
+    if not 1 <= args.runs <= 20:
+        parser.error("runs must be 1..20")
     config = json.loads(args.config)
     frames = Frames(args.dataset, raw=args.encoding == "raw8")
     width, height = frames.sequence.image_size
@@ -390,9 +448,13 @@ def main(argv: list[str] | None = None) -> int:
         load_before = os.getloadavg()
         try:
             for k in levels:
-                print(f"K={k}: {args.duration:.0f} s at {args.rate:g} Hz per robot ...", flush=True)
-                results.append(asyncio.run(run_level(
-                    url, frames, k, args.rate, args.duration, args.drain, config, pid)))
+                for run in range(1, args.runs + 1):
+                    print(f"K={k}, run {run}/{args.runs}: {args.duration:.0f} s at {args.rate:g} "
+                          "Hz per robot ...", flush=True)
+                    result = asyncio.run(run_level(
+                        url, frames, k, args.rate, args.duration, args.drain, config, pid))
+                    result.run = run
+                    results.append(result)
         finally:
             if process is not None:
                 process.send_signal(signal.SIGTERM)
@@ -402,6 +464,9 @@ def main(argv: list[str] | None = None) -> int:
                     process.kill()
     print()
     print_table(results)
+    table = runs_table(results)
+    print()
+    print(table)
     args.out.mkdir(parents=True, exist_ok=True)
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
     report = {
@@ -412,14 +477,25 @@ def main(argv: list[str] | None = None) -> int:
         "settings": {"rate_hz": args.rate, "duration_s": args.duration,
                      "queue_size": args.queue_size, "policy": args.policy,
                      "workers": args.workers or os.cpu_count(), "config": config,
+                     "runs": args.runs,
                      "executor": None if args.url else args.executor,
                      "encoding": args.encoding,
                      "dataset": str(args.dataset), "image_size": [width, height]},
-        "levels": [asdict(r) for r in results],
+        "levels": [{**asdict(r), "cpu_ms_per_frame": r.cpu_ms_per_frame} for r in results],
     }
     path = args.out / f"load_{stamp}.json"
     path.write_text(json.dumps(report, indent=2) + "\n")
     print(f"\nwrote {path}")
+    if args.runs > 1:
+        settings = report["settings"]
+        markdown = args.out / f"load_{stamp}.md"
+        markdown.write_text(
+            f"{args.runs} consecutive runs of {args.duration:g} s per level at {args.rate:g} Hz "
+            f"per robot, {settings['encoding']} frames, executor {settings['executor']}, "
+            f"{settings['workers']} workers, {os.cpu_count()} CPUs ({stamp}; JSON "
+            f"{path.name}).\n\n{table}\n"
+        )
+        print(f"wrote {markdown}")
     return 0
 
 

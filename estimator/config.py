@@ -11,6 +11,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from estimator.registration.methods import DEFAULT_ESTIMATOR, Estimator
+
 
 class _Section(BaseModel):
     # Unknown keys and non-finite numbers are input errors, not settings.
@@ -20,7 +22,10 @@ class _Section(BaseModel):
 class RegistrationConfig(_Section):
     """Relative-pose estimator used by the odometry (``estimator.register``)."""
 
-    method: Literal["pso-robust", "pso", "msac", "svd"] = "pso-robust"
+    # The names come from the estimator registry; stored as the plain name (a str).
+    model_config = ConfigDict(use_enum_values=True)
+
+    method: Estimator = Field(DEFAULT_ESTIMATOR, validate_default=True)
     # Extra keyword options passed to the estimator (e.g. {"particles": 48}).
     options: dict[str, float | int | str | bool] = Field(default_factory=dict)
     # Hand each stereo point's 3x3 covariance (at the noise level measured on the session's inlier

@@ -25,7 +25,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -40,12 +40,13 @@ from estimator.frontend.temporal import Correspondences, match_temporal
 from estimator.geometry import (
     invert_pose,
     make_pose,
+    nearest_rigid,
     rotation_angle_deg,
     scale_motion,
     transform_points,
 )
 from estimator.registration.refine import refine_pose_mahalanobis
-from estimator.registration.registry import RegistrationResult, register
+from estimator.registration.registry import RegistrationResult, estimator_spec, register
 from estimator.types import (
     FrameReport,
     FrameStatus,
@@ -59,10 +60,6 @@ if TYPE_CHECKING:
     from estimator.backend import FusedEstimate
 
 __all__ = ["Odometry", "frame_seed", "to_grey8"]
-
-
-# Estimators that weigh each point's covariance (``source_cov`` / ``target_cov``).
-_METHODS_WITH_COVARIANCES = frozenset({"pso-robust"})
 
 
 def frame_seed(seed: int, index: int) -> int:
@@ -147,6 +144,8 @@ class Odometry:
         self._frame_interval_ns = 0  # time since the previous frame
         self._failures = 0  # consecutive frames without a vision estimate
         self._final_poses: tuple[tuple[int, np.ndarray], ...] = ()  # from the back end
+        self._restored = False  # continued from state(): the first frame is predicted
+        self._answered = self._pose  # the pose answered for the last frame (fused or not)
         self._fused: FusedEstimate | None = None  # the back end's latest answer
         frontend = self.config.frontend
         self.noise = StereoNoiseModel(
@@ -175,6 +174,40 @@ class Odometry:
         measurements are independent and their sum is the drift: evaluations need to know them.
         """
         return self._reference.index if self._reference is not None else None
+
+    # ------------------------------------------------------------------ continuing elsewhere
+
+    def state(self) -> dict[str, Any]:
+        """What another process needs to continue this run after its last frame (JSON-ready).
+
+        The last answered pose and its keyframe's pose, the measured motion (the velocity that
+        predicts the next frame) and the back end's biases: the continuation predicts its first
+        frame at constant velocity from here instead of restarting at rest.
+        """
+        keyframe = self._reference.pose if self._reference is not None else self._pose
+        return {
+            "index": self._index,
+            "timestamp_ns": self._last_timestamp_ns,
+            "pose": self._answered.tolist(),
+            "keyframe_pose": keyframe.tolist(),
+            "motion": self._motion.tolist(),
+            "motion_interval_ns": self._motion_interval_ns,
+            "backend": self._backend.state() if self._backend is not None else None,
+        }
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Continue from :meth:`state` of another instance (before this one saw any frame)."""
+        if self._count:
+            raise ValueError("restore() must come before the first frame")
+        self._index = int(state["index"])
+        self._last_timestamp_ns = state["timestamp_ns"]
+        self._pose = _checked_pose(np.array(state["pose"], dtype=float))
+        self._initial_pose = self._pose
+        self._motion = nearest_rigid(np.array(state["motion"], dtype=float))
+        self._motion_interval_ns = max(int(state["motion_interval_ns"]), 1)
+        if self._backend is not None and state.get("backend"):
+            self._backend.restore(state["backend"])
+        self._restored = True
 
     # ------------------------------------------------------------------ the algorithm
 
@@ -205,6 +238,7 @@ class Odometry:
                 pose, status, message = self._fuse(
                     frame, imu, frontend_pose, relative_pose, estimate, status, message
                 )
+            self._answered = pose
             self._update_reference(points, left, frontend_pose, estimate, frame.timestamp_ns)
         result, pairs, fused = estimate.result, estimate.pairs, self._fused
         measured = estimate.reference_from_current is not None and estimate.reference is not None
@@ -337,9 +371,12 @@ class Odometry:
             return _Estimate(None, None, f"{len(correspondences)} temporal matches (< {needed})")
         registration = self.config.registration
         options: dict[str, object] = dict(registration.options)
-        if registration.use_point_sigmas and registration.method in _METHODS_WITH_COVARIANCES:
+        if registration.use_point_sigmas and estimator_spec(registration.method).takes_covariances:
             options["source_cov"], options["target_cov"] = covariances
-            options.setdefault("gate_chi2", self.noise.gate_chi2)
+            gate = self.noise.gate_for(
+                correspondences.current_points, correspondences.reference_points
+            )
+            options.setdefault("gate_chi2", gate)
         result = register(
             correspondences.current_points,
             correspondences.reference_points,
@@ -405,6 +442,10 @@ class Odometry:
 
     def _chain(self, estimate: _Estimate) -> tuple[np.ndarray, FrameStatus, str]:
         """pose_k = pose_ref @ T_ref_cur (paper eq. 2), in the original left camera frame."""
+        if self._reference is None and self._restored:
+            step = self._motion_over(self._frame_interval_ns)
+            motion = self._camera_from_rect @ step @ self._rect_from_camera
+            return self._pose @ motion, FrameStatus.OK, "resumed from stored state"
         if self._reference is None:
             message = (
                 "resumed from stored pose"
@@ -468,7 +509,7 @@ class Odometry:
         )
         self._fused = fused
         if first:
-            self._world_from_backend = self._pose @ invert_pose(fused.pose)
+            self._world_from_backend = frontend_pose @ invert_pose(fused.pose)
             if self._initial_pose is None:
                 self._world_from_backend = np.eye(4)
         self._final_poses = self._in_world(fused.final_poses)

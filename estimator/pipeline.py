@@ -27,13 +27,15 @@ from tqdm import tqdm
 from estimator.config import SwarmvoConfig, explain_validation_error
 from estimator.evaluation.metrics import TrajectoryEvaluation, evaluate_trajectory
 from estimator.formats.datasets import Sequence, UnreadableImageError
+from estimator.registration.methods import Estimator
 from estimator.rig_settings import DerivedSetting, apply_rig_settings
 from estimator.types import FrameReport, FrameStatus
 
 if TYPE_CHECKING:
     from estimator.formats.odometry_msg import OdometryMessage
 
-ESTIMATORS = ("pso-robust", "pso", "msac", "svd")
+# The --estimator choices: every registered estimator, the default first.
+ESTIMATORS: tuple[str, ...] = tuple(name.value for name in Estimator)
 # IMU samples fed with the first frame: those of this window before it, from which the back end
 # gravity-aligns its world (the API replay client sends the same window).
 FIRST_FRAME_IMU_WINDOW_NS = 100_000_000

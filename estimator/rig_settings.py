@@ -26,11 +26,20 @@ from estimator.formats.calibration import StereoRig
 
 __all__ = [
     "MAX_RELATIVE_DEPTH_ERROR",
+    "RIG_SETTINGS_KEY",
     "DerivedSetting",
     "apply_rig_settings",
     "derive_rig_settings",
     "format_settings",
+    "interval_dependent",
+    "settings_record",
 ]
+
+# Key of a stored configuration (a service session's) that records what was derived and
+# whether the frame interval is still to come from the first frames' stamps.
+RIG_SETTINGS_KEY = "rig_settings"
+# Settings that need the frame interval (the others follow from the rig alone).
+_INTERVAL_SETTINGS = ("search_radius_px",)
 
 # Depth error / depth at the farthest point kept (EuRoC: 30 m with sigma_d = 0.5 px).
 MAX_RELATIVE_DEPTH_ERROR = 0.3125  # d_min = 1.6 px at the default sigma_d of 0.5 px
@@ -115,3 +124,23 @@ def format_settings(
     for s in settings:
         lines.append(f"  frontend.{s.name} = {s.value:g}  ({s.reason})")
     return "\n".join(lines)
+
+
+def interval_dependent(config: SwarmvoConfig) -> bool:
+    """Settings wait for the frame interval: the user left them to be derived."""
+    return any(name not in config.frontend.model_fields_set for name in _INTERVAL_SETTINGS)
+
+
+def settings_record(
+    frame_interval_s: float | None, settings: list[DerivedSetting], from_stamps: bool
+) -> dict[str, object]:
+    """What a session stores beside its configuration (JSON): rate, settings, what is pending."""
+    return {
+        "frame_rate_hz": None if not frame_interval_s else round(1.0 / frame_interval_s, 6),
+        "settings": [
+            {"name": f"frontend.{s.name}", "value": s.value, "reason": s.reason,
+             "overridden": s.overridden}
+            for s in settings
+        ],
+        "from_stamps": from_stamps,
+    }

@@ -40,6 +40,7 @@ class PipelineFactory(Protocol):
         calibration: dict[str, Any],
         config: dict[str, Any],
         imu_noise: dict[str, Any] | None,
+        frame_rate_hz: float | None = None,
     ) -> PreparedSession: ...
 
     def create(
@@ -86,12 +87,24 @@ class EstimatorFactory:
         calibration: dict[str, Any],
         config: dict[str, Any],
         imu_noise: dict[str, Any] | None,
+        frame_rate_hz: float | None = None,
     ) -> PreparedSession:
+        """Validated session; the frontend settings that follow from the rig (and the declared
+        frame rate) are filled in where the config leaves them (``estimator.rig_settings``)."""
         from estimator.config import SwarmvoConfig
         from estimator.formats.calibration import StereoRig
+        from estimator.rig_settings import (
+            RIG_SETTINGS_KEY,
+            apply_rig_settings,
+            interval_dependent,
+            settings_record,
+        )
 
         reject_non_finite(calibration, "calibration")
+        config = {k: v for k, v in config.items() if k != RIG_SETTINGS_KEY}  # a copied session's
         reject_non_finite(config, "config")
+        if frame_rate_hz is not None and not (math.isfinite(frame_rate_hz) and frame_rate_hz > 0):
+            raise ValueError(f"frame_rate_hz must be a positive number, got {frame_rate_hz}")
         try:
             rig = StereoRig.from_dict(calibration)
         except (TypeError, KeyError) as error:
@@ -100,9 +113,17 @@ class EstimatorFactory:
             swarm_config = SwarmvoConfig.model_validate(config)
         except ValueError as error:  # pydantic.ValidationError is a ValueError
             raise ValueError(f"invalid config: {_short_validation(error)}") from error
+        interval = 1.0 / frame_rate_hz if frame_rate_hz else None
+        try:
+            swarm_config, derived = apply_rig_settings(swarm_config, rig, interval)
+        except ValueError as error:
+            raise ValueError(f"invalid config: {_short_validation(error)}") from error
+        stored = swarm_config.model_dump(mode="json")
+        from_stamps = interval is None and interval_dependent(swarm_config)
+        stored[RIG_SETTINGS_KEY] = settings_record(interval, derived, from_stamps)
         return PreparedSession(
             calibration=rig.to_dict(),
-            config=swarm_config.model_dump(mode="json"),
+            config=stored,
             imu_noise=normalise_imu_noise(imu_noise),
             image_size=rig.size,
         )
@@ -115,12 +136,11 @@ class EstimatorFactory:
         synthetic pairs (unknown or invalid ``registration.options``). Call it only after the
         work limits were checked: the registration runs with the session's options.
         """
-        from estimator.config import SwarmvoConfig
         from estimator.formats.calibration import StereoRig
-        from estimator.odometry import _METHODS_WITH_COVARIANCES, Odometry, frame_seed
-        from estimator.registration.registry import register
+        from estimator.odometry import Odometry, frame_seed
+        from estimator.registration.registry import estimator_spec, register
 
-        config = SwarmvoConfig.model_validate(prepared.config)
+        config, _ = session_config(prepared.config)
         noise = None if prepared.imu_noise is None else ImuNoise(**prepared.imu_noise)
         try:
             Odometry(StereoRig.from_dict(prepared.calibration), config=config, imu_noise=noise)
@@ -133,7 +153,7 @@ class EstimatorFactory:
         target[:, 0] += 0.05
         registration = config.registration
         options: dict[str, Any] = dict(registration.options)
-        if registration.use_point_sigmas and registration.method in _METHODS_WITH_COVARIANCES:
+        if registration.use_point_sigmas and estimator_spec(registration.method).takes_covariances:
             covariance = np.tile(np.eye(3) * 1e-4, (len(source), 1, 1))
             options["source_cov"], options["target_cov"] = covariance, covariance
         try:
@@ -158,13 +178,12 @@ class EstimatorFactory:
     def create(
         self, prepared: PreparedSession, initial_pose: np.ndarray | None, first_index: int
     ) -> Pipeline:
-        from estimator.config import SwarmvoConfig
         from estimator.formats.calibration import StereoRig
         from estimator.odometry import Odometry
 
         noise = None if prepared.imu_noise is None else ImuNoise(**prepared.imu_noise)
         rig = StereoRig.from_dict(prepared.calibration)
-        config = SwarmvoConfig.model_validate(prepared.config)
+        config, from_stamps = session_config(prepared.config)
         odometry = Odometry(
             rig,
             config=config,
@@ -172,7 +191,9 @@ class EstimatorFactory:
             initial_pose=initial_pose,
             first_index=first_index,
         )
-        return OdometryAnswers(odometry, rig.left.T_BS, config, resumed=initial_pose is not None)
+        answers = OdometryAnswers(odometry, rig.left.T_BS, config,
+                                  resumed=initial_pose is not None)
+        return IntervalSettings(answers, rig) if from_stamps else answers
 
 
 class OdometryAnswers:
@@ -209,6 +230,75 @@ class OdometryAnswers:
             )
         self.last_odometry = self._builder.build(report).to_dict()
         return report
+
+    def state(self) -> dict[str, Any]:
+        """The odometry's state after the last frame (stored with its pose)."""
+        return self.odometry.state()
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self.odometry.restore(state)
+
+    def finish(self) -> tuple[tuple[int, np.ndarray], ...]:
+        """The back end's final poses of the frames still in its window (the session ends)."""
+        return self.odometry.finish()
+
+
+def session_config(stored: dict[str, Any]) -> tuple[Any, bool]:
+    """A stored session configuration as ``SwarmvoConfig``, and whether its frame-interval
+    settings still come from the first frames' stamps (no rate was declared)."""
+    from estimator.config import SwarmvoConfig
+    from estimator.rig_settings import RIG_SETTINGS_KEY
+
+    record = stored.get(RIG_SETTINGS_KEY) or {}
+    config = SwarmvoConfig.model_validate(
+        {k: v for k, v in stored.items() if k != RIG_SETTINGS_KEY}
+    )
+    return config, bool(record.get("from_stamps", False))
+
+
+class IntervalSettings:
+    """A session without a declared frame rate: the settings that depend on the frame interval
+    (the search window) follow from its first two frames' stamps, before the second frame is
+    matched against the first (the first frame matches nothing)."""
+
+    def __init__(self, answers: OdometryAnswers, rig: Any) -> None:
+        self.answers = answers
+        self.rig = rig
+        self._first_ns: int | None = None
+        self._derived = False
+
+    @property
+    def last_odometry(self) -> dict[str, Any] | None:
+        return self.answers.last_odometry
+
+    def process(self, frame: StereoFrame, imu: ImuBatch | None = None) -> FrameReport:
+        stamp = int(frame.timestamp_ns)
+        if self._first_ns is None:
+            self._first_ns = stamp
+        elif not self._derived and stamp > self._first_ns:
+            self._derive((stamp - self._first_ns) * 1e-9)
+            self._derived = True
+        return self.answers.process(frame, imu)
+
+    def finish(self) -> tuple[tuple[int, np.ndarray], ...]:
+        return self.answers.finish()
+
+    def state(self) -> dict[str, Any]:
+        return self.answers.state()
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self.answers.restore(state)
+
+    def _derive(self, interval_s: float) -> None:
+        from estimator.config import FrontendConfig
+        from estimator.rig_settings import derive_rig_settings
+
+        odometry = self.answers.odometry
+        values = {s.name: s.value
+                  for s in derive_rig_settings(self.rig, interval_s, FrontendConfig())}
+        values.pop("max_depth_m", None)  # from the rig alone: applied at creation
+        frontend = odometry.config.frontend.model_copy(update=values)
+        odometry.config = odometry.config.model_copy(update={"frontend": frontend})
 
 
 def _synthetic_run(factory: EstimatorFactory, frames: int = 4) -> None:
@@ -292,6 +382,19 @@ def euroc_imu_noise(imu_yaml: bytes) -> dict[str, Any]:
 
     noise = _with_files({"imu0.yaml": imu_yaml}, lambda p: read_euroc_imu_noise(p["imu0.yaml"]))
     return asdict(noise)
+
+
+def euroc_frame_rate(cam0_yaml: bytes) -> float | None:
+    """The camera rate (``rate_hz``) of EuRoC ``cam0/sensor.yaml`` contents, when it has one."""
+    from estimator.formats.calibration import read_opencv_yaml
+
+    data = _with_files({"cam0.yaml": cam0_yaml}, lambda p: read_opencv_yaml(p["cam0.yaml"]))
+    rate = data.get("rate_hz")
+    if rate is None:
+        return None
+    if isinstance(rate, bool) or not isinstance(rate, int | float) or not 0 < rate <= 10_000:
+        raise ValueError(f"cam0 rate_hz must be a positive number, got {rate!r}")
+    return float(rate)
 
 
 def kitti_calibration(calib_txt: bytes, image_size: tuple[int, int]) -> dict[str, Any]:

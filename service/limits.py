@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from estimator.registration.methods import Estimator
 from service.settings import ServiceSettings
 
 
@@ -47,15 +48,16 @@ CONFIG_BOUNDS: tuple[Bound, ...] = (
 # SIFT costs about 16x ORB per EuRoC frame (440 ms against 27 ms): not offered on shared workers.
 ALLOWED_DETECTORS = ("orb",)
 
-# registration.options of each method that scale its work (other options are checked by the
-# estimator itself when the session is created).
+# registration.options of each estimator that scale its work (other options are checked by the
+# estimator itself when the session is created). Every estimator of the registry has an entry
+# (tests/test_limits.py checks the keys against the registry and each estimator's options).
 _SWARM = {"particles": 32, "max_iterations": 60, "stagnation": 60, "refits": 12,
           "core_size": 12, "graph_pairs": 512}
-OPTION_BOUNDS: dict[str, dict[str, float]] = {
-    "pso": _SWARM,
-    "pso-robust": _SWARM,
-    "msac": {"max_iterations": 20000, "batch_size": 128, "refits": 5},
-    "svd": {},
+OPTION_BOUNDS: dict[Estimator, dict[str, float]] = {
+    Estimator.PSO: _SWARM,
+    Estimator.PSO_ROBUST: _SWARM,
+    Estimator.MSAC: {"max_iterations": 20000, "batch_size": 128, "refits": 5},
+    Estimator.SVD: {},
 }
 
 

@@ -3,7 +3,8 @@
 Client to server: ``frame`` (a header; the left then the right image follow as binary
 messages), ``imu``, ``ping``, ``close``. Server to client: ``hello`` once, then ``pose``,
 ``dropped`` or ``rejected`` for each frame in order, ``error`` for a message that is not a
-frame, and ``pong``. Unknown fields of client messages are ignored; field types are strict.
+frame, and ``pong``; ``smoothed`` is the last message when the session's stream ends (``close``)
+or the session is deleted. Unknown fields of client messages are ignored; field types are strict.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from typing import Annotated, Any, Literal, get_args
 from pydantic import BaseModel, Field, Strict, TypeAdapter, model_validator
 
 from service.answer import FrameAnswer
-from service.schemas import ImuSample, TimestampNs
+from service.schemas import ImuSample, SmoothedOut, TimestampNs
 from service.settings import QueuePolicy
 
 PositiveInt = Annotated[int, Strict(), Field(gt=0)]
@@ -92,6 +93,8 @@ class PoseMessage(FrameAnswer):
     """A frame's stored pose: the same body as the REST answer, with its ``type``."""
 
     type: Literal["pose"] = "pose"
+    # True: the frame was sent again and this is its stored answer (it was not processed twice).
+    duplicate: bool = False
 
 
 class DroppedMessage(BaseModel):
@@ -109,6 +112,9 @@ class RejectedMessage(BaseModel):
     timestamp_ns: Any
     status: int
     detail: str
+    # A passing refusal (503: database away, session leased by another replica): resend the
+    # frame after this many seconds, possibly to another replica.
+    retry_after_s: float | None = None
 
 
 class ErrorMessage(BaseModel):
@@ -122,8 +128,16 @@ class PongMessage(BaseModel):
     type: Literal["pong"] = "pong"
 
 
+class SmoothedMessage(SmoothedOut):
+    """The stream's last message: the back end flushed, the final poses of the frames still in
+    its window (possibly none); they are stored too (``GET .../smoothed``)."""
+
+    type: Literal["smoothed"] = "smoothed"
+
+
 ServerMessage = Annotated[
-    HelloMessage | PoseMessage | DroppedMessage | RejectedMessage | ErrorMessage | PongMessage,
+    HelloMessage | PoseMessage | DroppedMessage | RejectedMessage | ErrorMessage | PongMessage
+    | SmoothedMessage,
     Field(discriminator="type"),
 ]
 SERVER_MESSAGE: TypeAdapter[ServerMessage] = TypeAdapter(ServerMessage)

@@ -7,6 +7,7 @@ file count, field count and part size are bounded before anything is buffered.
 from __future__ import annotations
 
 import json
+import math
 import re
 from typing import Any
 
@@ -71,6 +72,20 @@ def int_field(form: FormData, name: str, low: int, high: int) -> int:
     value = int(text)
     if not low <= value <= high:
         raise HTTPException(422, f"form field {name!r} must be in [{low}, {high}]")
+    return value
+
+
+def rate_field(form: FormData, name: str, high: float) -> float | None:
+    """An optional positive number field (a rate in Hz); absent or blank is None."""
+    text = text_field(form, name, required=False)
+    if text is None or not text.strip():
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and 0 < value <= high):
+        raise HTTPException(422, f"form field {name!r} must be a number in (0, {high:g}]")
     return value
 
 

@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, Strict
 
-from service.answer import FrameAnswer, SmoothedPose
+from service.answer import FrameAnswer, SmoothedPose, matrix_of
 from service.settings import Executor
 from service.storage import SessionRecord
 
@@ -59,6 +59,12 @@ class SessionCreate(_Strict):
         default_factory=dict, description="SwarmvoConfig overrides, e.g. {'seed': 3}"
     )
     imu_noise: ImuNoiseIn | None = None
+    frame_rate_hz: float | None = Field(
+        None, gt=0, le=10_000,
+        description="camera frame rate; with it the frame-interval settings (search window) "
+        "are derived at creation, without it from the first two frames' stamps. The settings "
+        "derived from the rig are recorded in the session's config under 'rig_settings'",
+    )
 
 
 class SessionOut(BaseModel):
@@ -96,10 +102,17 @@ class SessionList(BaseModel):
 
 
 class SmoothedOut(BaseModel):
-    """The back end's final estimates so far (live sessions; not stored)."""
+    """The back end's final estimates, oldest first (stored as the frames are finalised)."""
 
     session_id: str
     poses: list[SmoothedPose]
+
+    @classmethod
+    def of(cls, session_id: str, smoothed: list[tuple[int, list[float]]]) -> SmoothedOut:
+        return cls(
+            session_id=session_id,
+            poses=[SmoothedPose(timestamp_ns=t, pose=matrix_of(p)) for t, p in smoothed],
+        )
 
 
 class TrajectoryOut(BaseModel):

@@ -17,17 +17,26 @@ from collections import OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
+from sqlalchemy.exc import DBAPIError
 
 from estimator.types import ImuBatch, TimestampOrderError, check_timestamp_order
 from service.answer import FrameAnswer, flat_of
 from service.estimator_adapter import PipelineFactory, PreparedSession
 from service.images import ImageLimits
+from service.lease import Held, LeaseBook, LeaseHeld, replica_id
 from service.metrics import Metrics
+from service.pose_writer import PoseWriter
 from service.settings import ServiceSettings
-from service.storage import SessionRecord, Store
+from service.storage import (
+    LeaseLost,
+    PendingPose,
+    SessionRecord,
+    SmoothedPose,
+    Store,
+)
 from service.workers import (
     FrameFailure,
     FrameProcessed,
@@ -39,8 +48,6 @@ from service.workers import (
 )
 
 logger = logging.getLogger("swarmvo.service")
-# Smoothed poses a live session keeps for GET .../smoothed (the newest; they are not stored).
-SMOOTHED_KEEP = 20_000
 
 # WebSocket close code (application range 4000-4999) sent to streams of a deleted session.
 STREAM_CLOSE_DELETED = 4404
@@ -50,11 +57,14 @@ MAX_REMEMBERED_DELETIONS = 10_000
 class FrameRejected(Exception):
     """A frame the service will not process; carries the HTTP status that explains why."""
 
-    def __init__(self, status_code: int, detail: str, kind: str) -> None:
+    def __init__(
+        self, status_code: int, detail: str, kind: str, retry_after_s: float | None = None
+    ) -> None:
         super().__init__(detail)
         self.status_code = status_code
         self.detail = detail
         self.kind = kind
+        self.retry_after_s = retry_after_s  # a 503 that will pass: when to try again
 
 
 class SessionGone(FrameRejected):
@@ -67,7 +77,8 @@ class SessionGone(FrameRejected):
 class StreamHandle(Protocol):
     """An open stream of a session (a WebSocket), ended when the session is deleted."""
 
-    def terminate(self, code: int, reason: str) -> None: ...
+    def terminate(self, code: int, reason: str, last: list[SmoothedPose] | None = None) -> None:
+        """Close with ``code`` after sending ``last`` (the flushed smoothed poses), if any."""
 
 
 class FrameDropped(FrameRejected):
@@ -94,9 +105,19 @@ class FrameJob:
     timestamp_ns: int
     left: bytes
     right: bytes
-    future: asyncio.Future[FrameAnswer]
+    future: asyncio.Future[Any]  # Answered; the flushed poses for a flush job
     raw: bool = False
     received: float = field(default_factory=time.perf_counter)
+    flush: bool = False  # not a frame: flush the back end once the frames before it are done
+
+
+@dataclass(frozen=True)
+class Answered:
+    """A frame's answer as a session hands it out: ``duplicate`` when the frame was sent again
+    and this is its stored answer (it was not processed twice)."""
+
+    answer: FrameAnswer
+    duplicate: bool = False
 
 
 @dataclass
@@ -120,6 +141,8 @@ class LiveSession:
         slot: int,
         io_pool: ThreadPoolExecutor,
         metrics: Metrics,
+        leases: LeaseBook | None = None,
+        pose_writer: PoseWriter | None = None,
     ) -> None:
         self.session_id = record.id
         self.record = record
@@ -135,7 +158,12 @@ class LiveSession:
         self.runner = runner
         self.slot = slot
         self.io_pool = io_pool
+        self.pose_writer = pose_writer or PoseWriter(store, io_pool)
         self.metrics = metrics
+        self.leases = leases
+        self.lease: Held | None = None  # this replica's lease on the session, when it has one
+        # Frames queued or in flight by timestamp: a resent one shares the first one's answer.
+        self.pending: dict[int, asyncio.Future[Answered]] = {}
         self.limits = ImageLimits(
             settings.max_image_width, settings.max_image_height, settings.max_image_pixels
         )
@@ -152,8 +180,10 @@ class LiveSession:
         self._imu_lock = threading.Lock()
         self._imu: list[ImuSamples] = []
         self._imu_count = 0
-        # Final smoothed poses handed out so far: (timestamp_ns, flat 4x4), oldest first.
-        self.smoothed: deque[tuple[int, list[float]]] = deque(maxlen=SMOOTHED_KEEP)
+        # A back end holds the newest frames back for smoothing: a stream's end flushes them.
+        self.smoothing = bool(record.config.get("backend", {}).get("enabled", True))
+        # Held while the worker runs this session's pipeline: a flush never overlaps a frame.
+        self._pipeline_lock = asyncio.Lock()
         self._task = asyncio.get_running_loop().create_task(self._consume())
 
     # -- producer side (event loop)
@@ -185,19 +215,21 @@ class LiveSession:
         right: bytes,
         imu: ImuSamples | None,
         raw: bool = False,
-    ) -> asyncio.Future[FrameAnswer]:
+    ) -> asyncio.Future[Answered]:
         """Queue one frame; the future resolves once its pose is stored (or it is refused)."""
         if self.closed:
             raise SessionGone()
-        try:
-            check_timestamp_order(timestamp_ns, self.last_submitted_ns)
-        except TimestampOrderError as error:
-            raise FrameRejected(409, str(error), "timestamp_order") from error
+        if timestamp_ns in self.pending:
+            return self.pending[timestamp_ns]  # resent while still queued or in flight
+        last = self.last_submitted_ns
+        if last is not None and timestamp_ns <= last:
+            # Resent after its answer was lost (a reconnect): the stored answer, or a 409.
+            return asyncio.get_running_loop().create_task(self._stored_answer(timestamp_ns))
         if imu is not None and len(imu):
             # Samples sent with a frame join the session buffer at once: they stay valid
             # measurements even if this frame is refused or dropped below.
             self.add_imu(imu)
-        future: asyncio.Future[FrameAnswer] = asyncio.get_running_loop().create_future()
+        future: asyncio.Future[Answered] = asyncio.get_running_loop().create_future()
         # Nobody may be left to read the outcome (client gone): mark it read, not leaked.
         future.add_done_callback(lambda f: f.cancelled() or f.exception())
         job = FrameJob(timestamp_ns, left, right, future, raw)
@@ -221,7 +253,61 @@ class LiveSession:
                 )
         self.queue.put_nowait(job)
         self.last_submitted_ns = timestamp_ns
+        self.pending[timestamp_ns] = future
+        future.add_done_callback(lambda _f: self.pending.pop(timestamp_ns, None))
         return future
+
+    async def _stored_answer(self, timestamp_ns: int) -> Answered:
+        """A frame already processed gets its stored pose; any other old timestamp a 409."""
+        loop = asyncio.get_running_loop()
+        stored = await loop.run_in_executor(
+            self.io_pool, self.store.pose_at, self.session_id, timestamp_ns
+        )
+        if stored is None:
+            try:
+                check_timestamp_order(timestamp_ns, self.last_submitted_ns)
+            except TimestampOrderError as error:
+                raise FrameRejected(409, str(error), "timestamp_order") from error
+        if stored is None:  # not older after all (the session moved back): still refused
+            raise FrameRejected(409, f"timestamp_ns {timestamp_ns} was not stored",
+                                "timestamp_order")
+        self.metrics.frames.labels("duplicate").inc()
+        return Answered(stored, duplicate=True)
+
+    async def _hold_lease(self) -> None:
+        """Own the session before processing: take or renew its lease (PostgreSQL only).
+
+        A new fencing token means another replica may have written meanwhile: the counters are
+        read again, and the pipeline is rebuilt from the stored state only if they moved (a
+        lease given up and taken back by this replica keeps its pipeline).
+        """
+        if self.leases is None or not self.leases.enabled:
+            return
+        if self.lease is not None and time.monotonic() < self.lease.renew_after:
+            return
+        loop = asyncio.get_running_loop()
+        try:
+            fence = await loop.run_in_executor(self.io_pool, self.leases.acquire, self.session_id)
+        except LeaseHeld as error:
+            self.lease = None
+            raise FrameRejected(503, str(error), "lease_held", error.retry_after_s) from error
+        assert fence is not None
+        if self.lease is None or self.lease.fence.token != fence.token:
+            record = await loop.run_in_executor(self.io_pool, self.store.get_session,
+                                                self.session_id)
+            if record is None:
+                raise SessionGone()
+            stored = (record.frame_count, record.last_timestamp_ns)
+            if stored != (self.next_index, self.last_processed_ns):  # written by another
+                self.next_index, self.last_processed_ns = stored
+                self.pipeline_ready = False
+        self.lease = self.leases.held(fence)
+
+    def release_lease(self) -> None:
+        """Give the lease up (blocking I/O): the session's streams have all ended."""
+        lease, self.lease = self.lease, None
+        if self.leases is not None and lease is not None:
+            self.leases.release(self.session_id, lease.fence)
 
     # -- consumer side
 
@@ -230,15 +316,32 @@ class LiveSession:
             job = await self.queue.get()
             if job.future.done():
                 continue
+            if job.flush:
+                job.future.set_result(await self.flush())
+                continue
             self.busy = True
             failed = True
             try:
-                result = await self._process(job)
+                async with self._pipeline_lock:
+                    result = await self._process(job)
                 failed = False
             except FrameRejected as error:
                 self.metrics.errors.labels(error.kind).inc()
                 if not job.future.done():
                     job.future.set_exception(error)
+                if error.retry_after_s is not None:
+                    self._refuse_queued(error)
+            except DBAPIError as error:  # the database is away: a pause, not a bug
+                logger.error("database unavailable for session %s: %s", self.session_id,
+                             str(error).splitlines()[0] if str(error) else repr(error))
+                self.metrics.errors.labels("storage").inc()
+                self.lease = None
+                refusal = FrameRejected(
+                    503, "database unavailable; retry the frame", "storage", 1.0
+                )
+                if not job.future.done():
+                    job.future.set_exception(refusal)
+                self._refuse_queued(refusal)
             except Exception as error:  # a bug must not kill the session's consumer
                 logger.exception("frame %s of session %s failed", job.timestamp_ns, self.session_id)
                 self.metrics.errors.labels("internal").inc()
@@ -258,17 +361,32 @@ class LiveSession:
                 if failed and self.queue.empty():
                     self.last_submitted_ns = self.last_processed_ns
 
+    def _refuse_queued(self, error: FrameRejected) -> None:
+        """After a passing failure the frames queued behind it are refused too: the client
+        resends them after the failed one, in order (answering them now would leave the failed
+        frame behind the session's timestamp)."""
+        while not self.queue.empty():
+            job = self.queue.get_nowait()
+            if not job.future.done():
+                job.future.set_exception(FrameRejected(
+                    error.status_code, f"an earlier frame was refused: {error.detail}",
+                    error.kind, error.retry_after_s))
+
     def _pipeline_spec(self) -> tuple[PipelineSpec, str]:
         """How to build the pipeline: resumed from the last stored pose when there is one."""
-        last = self.store.last_pose(self.session_id)
+        last, state = self.store.resume_point(self.session_id)
         if last is None:
             return PipelineSpec(self.prepared, None, 0), ""
         initial = np.array(last.pose, dtype=float).reshape(4, 4)
+        if state is not None and state.get("timestamp_ns") != last.timestamp_ns:
+            state = None  # not the state of this pose (written by an older server)
+        known = ("its motion and back-end biases carried over" if state is not None
+                 else "motion since then is not known to the estimator")
         message = (
             f"resumed from the stored pose of frame {last.index} "
-            f"(timestamp {last.timestamp_ns}); motion since then is not known to the estimator"
+            f"(timestamp {last.timestamp_ns}); {known}"
         )
-        return PipelineSpec(self.prepared, initial, last.index + 1), message
+        return PipelineSpec(self.prepared, initial, last.index + 1, state), message
 
     def _peek_imu(self, timestamp_ns: int) -> _ImuTake:
         """IMU samples with previous frame < t <= this frame; later ones stay buffered."""
@@ -298,11 +416,14 @@ class LiveSession:
             self._imu = [*take.remainder, *self._imu[take.parts :]]
             self._imu_count = sum(len(p) for p in self._imu)
 
-    async def _process(self, job: FrameJob) -> FrameAnswer:
+    async def _process(self, job: FrameJob) -> Answered:
         """Decode + odometry in the session's worker, then persist in an I/O thread."""
         loop = asyncio.get_running_loop()
         started = time.perf_counter()
         timings = {"queue_wait": started - job.received}
+        await self._hold_lease()
+        if self.last_processed_ns is not None and job.timestamp_ns <= self.last_processed_ns:
+            return await self._stored_answer(job.timestamp_ns)  # stored by another replica
         take = self._peek_imu(job.timestamp_ns)
         resume_message = ""
         outcome: FrameProcessed | FrameFailure | None = None
@@ -353,8 +474,19 @@ class LiveSession:
             update={"timings_s": dict(timings), "message": message, "resumed": resumed}
         )
         stored = time.perf_counter()
+        fence = self.lease.fence if self.lease is not None else None
         try:
-            await loop.run_in_executor(self.io_pool, self.store.add_pose, answer)
+            await self.pose_writer.add(PendingPose(
+                answer, fence, outcome.state,
+                [(p.timestamp_ns, flat_of(p.pose)) for p in answer.smoothed],
+            ))
+        except LeaseLost as error:
+            # Another replica took the session over: this one must not write, and its
+            # pipeline is out of date; the client resends the frame to the new owner.
+            self.pipeline_ready = False
+            self.lease = None
+            logger.warning("%s", error)
+            raise FrameRejected(503, f"{error}; resend the frame", "lease_lost", 0.2) from error
         except Exception as error:
             # The estimator has moved on but the pose is not stored: rebuild from the last
             # stored pose on the next frame so the stored trajectory stays the source of truth.
@@ -365,25 +497,77 @@ class LiveSession:
             logger.error("storing a pose of session %s failed: %s", self.session_id,
                          str(error).splitlines()[0] if str(error) else repr(error))
             raise FrameRejected(503, "the pose could not be stored (database error); retry "
-                                "the frame", "storage") from error
+                                "the frame", "storage", 1.0) from error
         done = time.perf_counter()
         timings["persist"] = done - stored
         timings["total"] = done - job.received
         self.next_index += 1
         self.last_processed_ns = job.timestamp_ns
-        self.smoothed.extend((p.timestamp_ns, flat_of(p.pose)) for p in answer.smoothed)
+        if self.lease is not None and self.leases is not None:
+            self.lease = self.leases.held(self.lease.fence)  # the write renewed it
         self.stored_at.append(time.time())
         for stage, seconds in timings.items():
             self.metrics.stage_latency.labels(stage).observe(seconds)
         self.metrics.frames.labels(answer.status).inc()
-        return answer.model_copy(update={"timings_s": timings})
+        return Answered(answer.model_copy(update={"timings_s": timings}))
+
+    def start_flush(self) -> asyncio.Future[list[SmoothedPose]]:
+        """Ask the worker to finalise the back end's window; call only between frames.
+
+        The pipeline is dropped (a smoother cannot go on after a flush), so a later frame
+        resumes from the last stored pose, as after a restart.
+        """
+        if not (self.pipeline_ready and self.smoothing):  # nothing held back: it goes on
+            done: asyncio.Future[list[SmoothedPose]] = asyncio.get_running_loop().create_future()
+            done.set_result([])
+            return done
+        self.pipeline_ready = False
+        return self.runner.finish(self.slot, self.session_id)
+
+    async def flush_after_queued(self) -> list[SmoothedPose]:
+        """Flush once the frames queued so far are done: the stream that sent them ended."""
+        if self.closed:
+            return []
+        future: asyncio.Future[list[SmoothedPose]] = asyncio.get_running_loop().create_future()
+        future.add_done_callback(lambda f: f.cancelled() or f.exception())
+        await self.queue.put(FrameJob(-1, b"", b"", future, flush=True))
+        try:
+            return await asyncio.shield(future)
+        except FrameRejected:  # refused by a closing session, which flushes by itself
+            return []
+
+    async def flush(self, store: bool = True) -> list[SmoothedPose]:
+        """The session's stream ended: its last frames get their final poses, stored (unless
+        the session is being deleted) and returned for the stream's last message."""
+        async with self._pipeline_lock:  # never in the middle of a frame
+            flushed = self.start_flush()
+        return await self.finish_flush(flushed, store)
+
+    async def finish_flush(
+        self, flushed: asyncio.Future[list[SmoothedPose]], store: bool = True
+    ) -> list[SmoothedPose]:
+        try:
+            smoothed = await asyncio.wait_for(flushed, self.settings.frame_timeout_s)
+        except Exception as error:
+            logger.error("flushing the back end of session %s failed: %r", self.session_id, error)
+            return []
+        if smoothed and store:
+            try:
+                await asyncio.get_running_loop().run_in_executor(
+                    self.io_pool, self.store.add_smoothed, self.session_id, smoothed
+                )
+            except Exception as error:
+                logger.error("storing the flushed poses of session %s failed: %s",
+                             self.session_id, str(error).splitlines()[0] if str(error) else "")
+        return smoothed
 
     async def close(
         self, reason: str, drain_seconds: float = 0.0, deleted: bool = False
-    ) -> None:
+    ) -> list[SmoothedPose]:
         """Stop the consumer; queued frames are processed first for up to ``drain_seconds``.
 
-        Frames still queued are refused with 503 (``reason``), or 404 when ``deleted``.
+        Frames still queued are refused with 503 (``reason``), or 404 when ``deleted``. The
+        back end's window is then flushed (stored unless ``deleted``); its poses are returned.
         """
         self.closed = True
         if drain_seconds > 0:
@@ -402,6 +586,7 @@ class LiveSession:
         self._task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await self._task
+        return await self.flush(store=not deleted)
 
 
 class SessionManager:
@@ -429,11 +614,15 @@ class SessionManager:
         self.io_pool = ThreadPoolExecutor(
             max(2, min(settings.workers, 8)), thread_name_prefix="swarmvo-io"
         )
+        self.pose_writer = PoseWriter(store, self.io_pool)  # one group commit for all sessions
         self.live: OrderedDict[str, LiveSession] = OrderedDict()
+        self.leases = LeaseBook(store, settings.replica_id or replica_id(), settings.lease_ttl_s,
+                                settings.leases)
         # Recently deleted ids (uuid4: never reused), so that a request that looked the session
         # up just before its deletion cannot bring it back to life.
         self.deleted: OrderedDict[str, None] = OrderedDict()
         self.streams: dict[str, set[StreamHandle]] = {}
+        self._background: set[asyncio.Task[None]] = set()
         self._on_change: Callable[[], None] = lambda: metrics.sessions_active.set(
             len(self.live)
         )
@@ -457,7 +646,8 @@ class SessionManager:
         self._evict_idle()
         slot = self.runner.assign(record.id)
         worker = LiveSession(
-            record, self.settings, self.store, self.runner, slot, self.io_pool, self.metrics
+            record, self.settings, self.store, self.runner, slot, self.io_pool, self.metrics,
+            self.leases, self.pose_writer,
         )
         self.live[record.id] = worker
         self._on_change()
@@ -469,10 +659,19 @@ class SessionManager:
             if victim is None:
                 return  # all busy: exceed the soft cap rather than refuse work
             worker = self.live.pop(victim)
-            # Freed now, not when the close task runs: the session may come back before that,
-            # and its new pipeline must not be dropped by this late release.
+            # Flushed and freed now, not when the close task runs: the session may come back
+            # before that, and its new pipeline must not be dropped by this late release.
+            flushed = worker.start_flush()
             self.runner.release(worker.slot, victim)
-            asyncio.get_running_loop().create_task(worker.close("session unloaded"))
+            asyncio.get_running_loop().create_task(self._unload(worker, flushed))
+
+    @staticmethod
+    async def _unload(
+        worker: LiveSession, flushed: asyncio.Future[list[SmoothedPose]]
+    ) -> None:
+        """An evicted session: its back end's last poses are stored, its consumer stopped."""
+        await worker.close("session unloaded")
+        await worker.finish_flush(flushed)
 
     def attach(self, session_id: str, stream: StreamHandle) -> None:
         """Register an open stream; SessionGone when the session was deleted meanwhile."""
@@ -480,25 +679,46 @@ class SessionManager:
             raise SessionGone()
         self.streams.setdefault(session_id, set()).add(stream)
 
-    def detach(self, session_id: str, stream: StreamHandle) -> None:
+    def detach(self, session_id: str, stream: StreamHandle, finished: bool = False) -> None:
+        """Forget a stream; ``finished`` (the robot said close): give the lease up once idle."""
         streams = self.streams.get(session_id)
         if streams is not None:
             streams.discard(stream)
             if not streams:
                 del self.streams[session_id]
+        worker = self.live.get(session_id)
+        if finished and worker is not None and session_id not in self.streams:
+            task = asyncio.get_running_loop().create_task(self._release_when_idle(worker))
+            self._background.add(task)  # referenced until done (the loop keeps weak ones)
+            task.add_done_callback(self._background.discard)
+
+    async def _release_when_idle(self, worker: LiveSession, wait_s: float = 30.0) -> None:
+        deadline = time.monotonic() + wait_s
+
+        def drained() -> bool:
+            return not worker.busy and worker.queue.empty()
+
+        while not drained() and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
+        if drained() and worker.session_id not in self.streams:
+            with contextlib.suppress(Exception):  # best effort: the lease expires anyway
+                await asyncio.get_running_loop().run_in_executor(
+                    self.io_pool, worker.release_lease)
 
     async def remove(self, session_id: str) -> None:
-        """Delete the live state: open streams are closed, queued frames refused with 404."""
+        """Delete the live state: queued frames are refused with 404, the back end's window is
+        flushed to the open streams, which are then closed."""
         self.deleted[session_id] = None
         while len(self.deleted) > MAX_REMEMBERED_DELETIONS:
             self.deleted.popitem(last=False)
-        for stream in self.streams.pop(session_id, set()):
-            stream.terminate(STREAM_CLOSE_DELETED, "session deleted")
         worker = self.live.pop(session_id, None)
+        last: list[SmoothedPose] = []
         if worker is not None:
             self._on_change()
-            await worker.close("session was deleted", deleted=True)
+            last = await worker.close("session was deleted", deleted=True)
             self.runner.release(worker.slot, session_id)
+        for stream in self.streams.pop(session_id, set()):
+            stream.terminate(STREAM_CLOSE_DELETED, "session deleted", last)
 
     async def shutdown(self, drain_seconds: float = 10.0) -> None:
         workers = list(self.live.values())
@@ -508,5 +728,10 @@ class SessionManager:
             *(w.close("server shutting down", drain_seconds) for w in workers),
             return_exceptions=True,
         )
+        # Leases given back: other replicas take these sessions over at once, not on expiry.
+        for worker in workers:
+            with contextlib.suppress(Exception):
+                await asyncio.get_running_loop().run_in_executor(self.io_pool,
+                                                                 worker.release_lease)
         await self.runner.shutdown()
         self.io_pool.shutdown(wait=True, cancel_futures=False)

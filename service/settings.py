@@ -71,6 +71,14 @@ class ServiceSettings(BaseSettings):
     queue_size: int = Field(8, ge=1, le=10_000)
     queue_policy: QueuePolicy = "reject"
     ws_max_message_bytes: int = Field(16 * 1024 * 1024, ge=1024)
+    # Replicas on one PostgreSQL database (service.lease): a replica owns a session while it
+    # streams, for this long after its last write; another one takes over after that. Short
+    # means a quick failover, long tolerates longer stalls of a replica. Unused on SQLite.
+    lease_ttl_s: float = Field(0.5, gt=0, le=600)
+    # False only for a server that is alone on its database (no ownership, no fencing).
+    leases: bool = True
+    # This replica's name in the leases; empty: host name, process id and a random suffix.
+    replica_id: str = Field("", max_length=64)
 
     @field_validator("database_url")
     @classmethod

@@ -1,4 +1,4 @@
-"""Persistence: sessions and every pose the service answered, in SQLite or PostgreSQL.
+"""Persistence: sessions, every pose the service answered and the smoother's final poses.
 
 The schema is owned by the Alembic migrations in ``service/migrations`` (run at start-up); the
 ORM classes below mirror it. Poses are stored as JSON lists of 16 floats: Python's float repr
@@ -12,6 +12,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import uuid
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -62,11 +63,24 @@ class SessionRow(Base):
     frame_count: Mapped[int] = mapped_column(Integer, default=0)
     last_timestamp_ns: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
     resume_count: Mapped[int] = mapped_column(Integer, default=0)
+    # Ownership across replicas (service.lease): holder, expiry, and the fencing token that
+    # rises at every change of holder (migration 0003).
+    lease_holder: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    lease_expires_at: Mapped[dt.datetime | None] = mapped_column(
+        DateTime(timezone=True), nullable=True
+    )
+    lease_token: Mapped[int] = mapped_column(BigInteger, default=0, server_default="0")
+    # What the estimator needs to continue from the last stored pose (Odometry.state()).
+    resume_state: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
 
 
 class PoseRow(Base):
     __tablename__ = "poses"
-    __table_args__ = (UniqueConstraint("session_id", "frame_index", name="uq_pose_frame"),)
+    __table_args__ = (
+        UniqueConstraint("session_id", "frame_index", name="uq_pose_frame"),
+        # A resent frame gets the stored answer; a second pose for it is refused.
+        UniqueConstraint("session_id", "timestamp_ns", name="uq_pose_timestamp"),
+    )
 
     # 64-bit on PostgreSQL (migration 0002); SQLite's INTEGER PRIMARY KEY is its 64-bit rowid.
     id: Mapped[int] = mapped_column(
@@ -87,6 +101,48 @@ class PoseRow(Base):
     timings: Mapped[dict[str, float]] = mapped_column(JSON)
     message: Mapped[str] = mapped_column(Text, default="")
     resumed: Mapped[bool] = mapped_column(Boolean, default=False)
+    # The lease token and replica the pose was written under (None without leases: SQLite).
+    fence_token: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    writer: Mapped[str | None] = mapped_column(String(64), nullable=True)
+
+
+class LeaseLost(Exception):
+    """A pose write by a replica whose lease token is no longer the session's."""
+
+
+@dataclass(frozen=True)
+class Fence:
+    """A writer's lease: its holder id, fencing token and how long a write renews it for."""
+
+    holder: str
+    token: int
+    ttl_s: float
+
+    def expiry(self) -> Any:
+        """The new expiry on the database's clock (replicas' clocks never enter the lease)."""
+        return func.now() + dt.timedelta(seconds=self.ttl_s)
+
+
+class SmoothedPoseRow(Base):
+    """The back end's final (smoothed) estimate of one frame, left camera in world."""
+
+    __tablename__ = "smoothed_poses"
+    __table_args__ = (
+        UniqueConstraint("session_id", "timestamp_ns", name="uq_smoothed_stamp"),
+    )
+
+    id: Mapped[int] = mapped_column(
+        BigInteger().with_variant(Integer, "sqlite"), primary_key=True, autoincrement=True
+    )
+    session_id: Mapped[str] = mapped_column(
+        String(32), ForeignKey("sessions.id", ondelete="CASCADE"), index=True
+    )
+    timestamp_ns: Mapped[int] = mapped_column(BigInteger)
+    pose: Mapped[list[float]] = mapped_column(JSON)
+
+
+# A smoothed pose as answered: (timestamp_ns, row-major flat 4x4 left camera in world).
+SmoothedPose = tuple[int, list[float]]
 
 
 @dataclass(frozen=True)
@@ -103,6 +159,20 @@ class SessionRecord:
     frame_count: int
     last_timestamp_ns: int | None
     resume_count: int
+
+
+@dataclass(frozen=True)
+class PendingPose:
+    """One answered frame waiting to be stored, with the writer's lease and resume state."""
+
+    answer: FrameAnswer
+    fence: Fence | None = None
+    resume_state: dict[str, Any] | None = None
+    smoothed: Sequence[SmoothedPose] = ()  # the back end's poses finalised at this frame
+
+    @property
+    def session_id(self) -> str:
+        return self.answer.session_id
 
 
 def _session_record(row: SessionRow) -> SessionRecord:
@@ -146,8 +216,9 @@ def _answer_of(session_id: str, row: PoseRow) -> FrameAnswer:
     )
 
 
-def _row_of(answer: FrameAnswer) -> PoseRow:
-    """What storage keeps of an answer: everything but the live-only fields."""
+def _row_of(answer: FrameAnswer, fence: Fence | None = None) -> PoseRow:
+    """What storage keeps of an answer: everything but the live-only fields, with the lease
+    it was written under."""
     return PoseRow(
         session_id=answer.session_id,
         frame_index=answer.index,
@@ -162,6 +233,8 @@ def _row_of(answer: FrameAnswer) -> PoseRow:
         timings=answer.timings_s,
         message=answer.message,
         resumed=answer.resumed,
+        fence_token=None if fence is None else fence.token,
+        writer=None if fence is None else fence.holder,
     )
 
 
@@ -226,7 +299,7 @@ def run_migrations(engine: Engine) -> None:
 
 
 class Store:
-    """Repository over the two tables; every method is one short transaction."""
+    """Repository over the tables; every method is one short transaction."""
 
     def __init__(self, engine: Engine) -> None:
         self.engine = engine
@@ -301,6 +374,7 @@ class Store:
             if row is None or row.owner != owner:
                 return False
             db.execute(delete(PoseRow).where(PoseRow.session_id == session_id))
+            db.execute(delete(SmoothedPoseRow).where(SmoothedPoseRow.session_id == session_id))
             db.delete(row)
         return True
 
@@ -314,15 +388,84 @@ class Store:
 
     # -- poses
 
-    def add_pose(self, answer: FrameAnswer) -> None:
-        """Store one answered frame and advance the session counters in the same transaction."""
+    def add_pose(
+        self,
+        answer: FrameAnswer,
+        fence: Fence | None = None,
+        resume_state: dict[str, Any] | None = None,
+        smoothed: Sequence[SmoothedPose] = (),
+    ) -> None:
+        """Store one answered frame (with the smoothed poses finalised at it) and advance the
+        session counters, all in one transaction."""
+        self.add_poses([PendingPose(answer, fence, resume_state, tuple(smoothed))])
+
+    def add_poses(self, poses: list[PendingPose]) -> None:
+        """Store answered poses of any sessions in one transaction (all or none).
+
+        With a ``fence`` (the writer's lease) a pose's counters are only advanced while the
+        session's lease token and holder are still the writer's, checked by the database in that
+        UPDATE (which also renews the lease): otherwise :class:`LeaseLost` and nothing of the
+        batch is written.
+        """
         with self._sessions.begin() as db:
-            db.add(_row_of(answer))
-            db.execute(
-                update(SessionRow)
-                .where(SessionRow.id == answer.session_id)
-                .values(frame_count=answer.index + 1, last_timestamp_ns=answer.timestamp_ns)
+            for entry in poses:
+                self._advance_counters(db, entry)
+                _put_smoothed(db, entry.session_id, entry.smoothed)
+                db.add(_row_of(entry.answer, entry.fence))
+
+    @staticmethod
+    def _advance_counters(db: Any, entry: PendingPose) -> None:
+        answer, fence = entry.answer, entry.fence
+        # The state always belongs to the last pose (None: its pipeline has none to give).
+        counters: dict[str, Any] = {
+            "frame_count": answer.index + 1,
+            "last_timestamp_ns": answer.timestamp_ns,
+            "resume_state": entry.resume_state,
+        }
+        if fence is None:
+            session = SessionRow.id == entry.session_id
+            db.execute(update(SessionRow).where(session).values(**counters))
+            return
+        renewed = db.execute(
+            update(SessionRow)
+            .where(
+                SessionRow.id == entry.session_id,
+                SessionRow.lease_token == fence.token,
+                SessionRow.lease_holder == fence.holder,
             )
+            .values(**counters, lease_expires_at=fence.expiry())
+        )
+        if renewed.rowcount != 1:
+            raise LeaseLost(
+                f"replica {fence.holder} no longer holds the lease of session "
+                f"{entry.session_id} (token {fence.token}); the pose was not stored"
+            )
+
+    def pose_at(self, session_id: str, timestamp_ns: int) -> FrameAnswer | None:
+        """The stored pose of the frame taken at ``timestamp_ns`` (a resent frame's answer)."""
+        with self._sessions() as db:
+            row = db.scalars(
+                select(PoseRow).where(
+                    PoseRow.session_id == session_id, PoseRow.timestamp_ns == timestamp_ns
+                )
+            ).first()
+            return None if row is None else _answer_of(session_id, row)
+
+    def resume_point(
+        self, session_id: str
+    ) -> tuple[FrameAnswer | None, dict[str, Any] | None]:
+        """The last stored pose and the estimator state stored with it, read together."""
+        with self._sessions() as db:
+            state = db.scalar(select(SessionRow.resume_state).where(SessionRow.id == session_id))
+            row = db.scalars(
+                select(PoseRow)
+                .where(PoseRow.session_id == session_id)
+                .order_by(PoseRow.frame_index.desc())
+                .limit(1)
+            ).first()
+            if row is None:
+                return None, None
+            return _answer_of(session_id, row), state
 
     def last_pose(self, session_id: str) -> FrameAnswer | None:
         with self._sessions() as db:
@@ -346,3 +489,42 @@ class Store:
                 .limit(limit)
             )
             return [_answer_of(session_id, row) for row in rows]
+
+    # -- smoothed poses
+
+    def add_smoothed(self, session_id: str, smoothed: Sequence[SmoothedPose]) -> None:
+        """Store final poses that came without a frame (the window flushed at a session's end)."""
+        with self._sessions.begin() as db:
+            _put_smoothed(db, session_id, smoothed)
+
+    def smoothed(
+        self, session_id: str, after_ns: int = -1, limit: int | None = None
+    ) -> list[SmoothedPose]:
+        """The session's smoothed poses stamped after ``after_ns``, oldest first."""
+        with self._sessions() as db:
+            rows = db.execute(
+                select(SmoothedPoseRow.timestamp_ns, SmoothedPoseRow.pose)
+                .where(
+                    SmoothedPoseRow.session_id == session_id,
+                    SmoothedPoseRow.timestamp_ns > after_ns,
+                )
+                .order_by(SmoothedPoseRow.timestamp_ns)
+                .limit(limit)
+            )
+            return [(int(stamp), pose) for stamp, pose in rows]
+
+
+def _put_smoothed(db: Any, session_id: str, smoothed: Sequence[SmoothedPose]) -> None:
+    """Insert final poses; a frame finalised again (a resumed back end) keeps the newest."""
+    if not smoothed:
+        return
+    stamps = [int(stamp) for stamp, _ in smoothed]
+    db.execute(
+        delete(SmoothedPoseRow).where(
+            SmoothedPoseRow.session_id == session_id, SmoothedPoseRow.timestamp_ns.in_(stamps)
+        )
+    )
+    db.add_all(
+        SmoothedPoseRow(session_id=session_id, timestamp_ns=stamp, pose=list(pose))
+        for stamp, pose in zip(stamps, (pose for _, pose in smoothed), strict=True)
+    )

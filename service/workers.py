@@ -42,6 +42,7 @@ from service.answer import FrameAnswer, OdometryOut, SmoothedPose
 from service.estimator_adapter import Pipeline, PipelineFactory, PreparedSession
 from service.images import ImageError, ImageLimits, decode_pair, decode_raw_pair
 from service.settings import Executor
+from service.storage import SmoothedPose as StoredSmoothedPose
 
 logger = logging.getLogger("swarmvo.service")
 
@@ -53,6 +54,8 @@ class PipelineSpec:
     prepared: PreparedSession
     initial_pose: np.ndarray | None
     first_index: int
+    # The estimator state stored with the last pose (Odometry.state()), when there is one.
+    state: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -78,6 +81,9 @@ class FrameProcessed:
 
     answer: FrameAnswer
     created: bool  # the worker built the session's pipeline for this frame
+    # The pipeline's state after this frame, stored with the pose so that any replica can
+    # continue the session (pipelines without state() give None).
+    state: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -126,6 +132,10 @@ def cpu_budget(seconds: float) -> Iterator[None]:
 
 def _rows(matrix: np.ndarray) -> list[list[float]]:
     return np.asarray(matrix, dtype=float).reshape(4, 4).tolist()
+
+
+def _flat(matrix: np.ndarray) -> list[float]:
+    return np.asarray(matrix, dtype=float).reshape(16).tolist()
 
 
 def compute_frame(
@@ -180,6 +190,12 @@ def _compute_frame(
                     spec.prepared, nearest_rigid(spec.initial_pose), spec.first_index
                 )
                 note = "the stored pose was not exactly rigid; resumed from its nearest rotation"
+            if spec.state is not None and hasattr(pipeline, "restore"):
+                try:
+                    pipeline.restore(spec.state)
+                except (KeyError, TypeError, ValueError) as error:
+                    note = f"the stored state was not usable ({error}); resumed from the pose"
+                    pipeline = factory.create(spec.prepared, spec.initial_pose, spec.first_index)
         except Exception as error:
             return FrameFailure(500, f"internal error building the pipeline: {error!r}",
                                 "internal", pipeline_lost=True, trace=traceback.format_exc())
@@ -225,7 +241,42 @@ def _compute_frame(
             for stamp, pose in report.final_poses
         ],
     )
-    return FrameProcessed(answer, created)
+    return FrameProcessed(answer, created, _pipeline_state(pipeline))
+
+
+def _pipeline_state(pipeline: Pipeline) -> dict[str, Any] | None:
+    state = getattr(pipeline, "state", None)
+    return state() if callable(state) else None
+
+
+def session_problem(factory: PipelineFactory, prepared: PreparedSession) -> str | None:
+    """The factory's dry run of a new session (if it has one): its refusal, or None."""
+    check = getattr(factory, "check", None)
+    if callable(check):
+        try:
+            check(prepared)
+        except ValueError as error:
+            return str(error)
+    return None
+
+
+def finish_pipeline(
+    pipelines: dict[str, Pipeline], session_id: str
+) -> list[StoredSmoothedPose]:
+    """End a session's pipeline: the back end finalises the frames still in its window.
+
+    The pipeline is dropped (its smoother cannot go on after a flush): a later frame of the
+    session resumes from its last stored pose. Never raises; a failure only loses the window.
+    """
+    pipeline = pipelines.pop(session_id, None)
+    finish = getattr(pipeline, "finish", None)
+    if not callable(finish):
+        return []
+    try:
+        return [(int(stamp), _flat(pose)) for stamp, pose in finish()]
+    except Exception:
+        logger.exception("flushing the back end of session %s failed", session_id)
+        return []
 
 
 class Runner(Protocol):
@@ -241,6 +292,13 @@ class Runner(Protocol):
     def release(self, slot: int, session_id: str) -> None: ...
 
     async def run(self, slot: int, request: FrameRequest) -> FrameProcessed | FrameFailure: ...
+
+    def check_session(self, prepared: PreparedSession) -> None: ...
+
+
+    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[StoredSmoothedPose]]:
+        """Drop the session's pipeline after flushing its back end; the future holds the
+        flushed poses. Submitted at once, so it runs before any later frame of the session."""
 
     async def shutdown(self) -> None: ...
 
@@ -271,6 +329,21 @@ class ThreadRunner:
         loop = asyncio.get_running_loop()
         return await loop.run_in_executor(
             self.pool, compute_frame, self.pipelines, self.factory, request
+        )
+
+    def check_session(self, prepared: PreparedSession) -> None:
+        problem = session_problem(self.factory, prepared)
+        if problem is not None:
+            raise ValueError(problem)
+
+
+    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[StoredSmoothedPose]]:
+        # Taken out now: a pipeline built for a later frame is a new one, never this.
+        pipeline = self.pipelines.pop(session_id, None)
+        if pipeline is None:
+            return _done([])
+        return asyncio.get_running_loop().run_in_executor(
+            self.pool, finish_pipeline, {session_id: pipeline}, session_id
         )
 
     async def shutdown(self) -> None:
@@ -311,6 +384,15 @@ def _worker_init(factory: PipelineFactory) -> None:
 def _worker_frame(request: FrameRequest) -> FrameProcessed | FrameFailure:
     assert _factory is not None
     return compute_frame(_pipelines, _factory, request)
+
+
+def _worker_check(prepared: PreparedSession) -> str | None:
+    assert _factory is not None
+    return session_problem(_factory, prepared)
+
+
+def _worker_finish(session_id: str) -> list[StoredSmoothedPose]:
+    return finish_pipeline(_pipelines, session_id)
 
 
 def _worker_drop(session_id: str) -> None:
@@ -376,6 +458,22 @@ class ProcessRunner:
         self.slots[slot].sessions.add(session_id)
         return slot
 
+    def check_session(self, prepared: PreparedSession) -> None:
+        """Dry-run a new session in a worker (blocking; call it from a thread).
+
+        The dry run imports and runs the estimator; in a worker, which has it loaded anyway,
+        the server process stays free of it (a few hundred MB less, docs/performance.md). A
+        worker that cannot answer is not a reason to refuse: the check then runs here.
+        """
+        slot = min(range(len(self.slots)), key=lambda i: (len(self.slots[i].sessions), i))
+        try:
+            future = self.slots[slot].executor.submit(_worker_check, prepared)
+            problem = future.result(timeout=self.frame_timeout_s)
+        except Exception:  # broken, replaced or stuck worker
+            problem = session_problem(self.factory, prepared)
+        if problem is not None:
+            raise ValueError(problem)
+
     def release(self, slot: int, session_id: str) -> None:
         """Forget the session and free its pipeline's memory in the worker."""
         self.slots[slot].sessions.discard(session_id)
@@ -430,6 +528,14 @@ class ProcessRunner:
             pipeline_lost=True,
         )
 
+    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[StoredSmoothedPose]]:
+        """Flush the session's back end in its worker, queued before any later frame of it."""
+        try:
+            future = self.slots[slot].executor.submit(_worker_finish, session_id)
+        except (BrokenProcessPool, RuntimeError):
+            return _done([])  # a dead or replaced worker holds nothing any more
+        return asyncio.wrap_future(future)
+
     def _kill(self, slot: int, generation: int) -> bool:
         """SIGKILL a stuck worker (a thread cannot be stopped; a process can)."""
         state = self.slots[slot]
@@ -466,6 +572,12 @@ class ProcessRunner:
             *(asyncio.to_thread(slot.executor.shutdown, True, cancel_futures=True)
               for slot in self.slots)
         )
+
+
+def _done(value: Any) -> asyncio.Future[Any]:
+    future = asyncio.get_running_loop().create_future()
+    future.set_result(value)
+    return future
 
 
 def _ignore_outcome(future: Future[Any] | asyncio.Future[Any]) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import yaml
 
@@ -30,6 +31,49 @@ def test_config_file_is_shown_merged_onto_the_defaults(tmp_path, capsys):
     listed = yaml.safe_load(capsys.readouterr().out)
     assert (listed["seed"], listed["frontend"]["max_features"]) == (7, 900)
     assert listed["registration"]["method"] == SwarmvoConfig().registration.method
+
+
+def test_config_of_a_dataset_shows_the_settings_derived_from_its_rig(tmp_path, capsys):
+    """A KITTI-like folder (0.54 m baseline, 10 Hz): its depth range and search window, with
+    where they came from; a configured value wins; the output is itself a valid config."""
+    import cv2
+
+    from estimator.pipeline import load_config
+    from estimator.rig_settings import derive_rig_settings
+
+    folder = tmp_path / "drive"
+    focal, baseline = 718.856, 0.54
+    for side in ("image_0", "image_1"):
+        (folder / side).mkdir(parents=True)
+        for k in range(3):
+            cv2.imwrite(str(folder / side / f"{k:06d}.png"), np.zeros((376, 1241), np.uint8))
+    p0 = f"{focal} 0 620.5 0 0 {focal} 188 0 0 0 1 0"
+    p1 = f"{focal} 0 620.5 {-focal * baseline} 0 {focal} 188 0 0 0 1 0"
+    (folder / "calib.txt").write_text(f"P0: {p0}\nP1: {p1}\n")
+    (folder / "times.txt").write_text("0.0\n0.1\n0.2\n")
+    assert main(["config", str(folder)]) == 0
+    out = capsys.readouterr().out
+    from estimator.formats.datasets import open_sequence
+
+    rig = open_sequence(folder).rig
+    expected = {s.name: s.value for s in derive_rig_settings(rig, 0.1, SwarmvoConfig().frontend)}
+    shown = yaml.safe_load(out)
+    for name in ("max_depth_m", "search_radius_px"):
+        assert shown["frontend"][name] == expected[name] != getattr(SwarmvoConfig().frontend, name)
+        assert f"frontend.{name} = {expected[name]:g}" in out
+    assert "10.0 Hz" in out
+    written = tmp_path / "derived.yaml"
+    written.write_text(out)
+    assert load_config(written).frontend.max_depth_m == expected["max_depth_m"]
+    # A configured value wins over the rig's.
+    (tmp_path / "mine.yaml").write_text("frontend:\n  max_depth_m: 55.0\n")
+    assert main(["config", str(folder), "--config", str(tmp_path / "mine.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert yaml.safe_load(out)["frontend"]["max_depth_m"] == 55.0
+    assert "configured; the rig suggests" in out
+    # A folder that is not a dataset: one error line.
+    assert main(["config", str(tmp_path / "missing")]) == 2
+    assert "swarmvo config: error:" in capsys.readouterr().err
 
 
 def test_config_typo_is_one_line_with_a_suggestion(tmp_path, capsys):

@@ -34,7 +34,7 @@ from estimator.rendered.synthetic import SynthOptions, synthesize
 
 @pytest.mark.euroc
 def test_euroc_micro_pairs_frames_and_warns_about_the_unpaired(euroc_v101_micro):
-    with pytest.warns(UserWarning, match="skipping 4 camera row"):
+    with pytest.warns(UserWarning, match=r"skipping 4 image\(s\) without a partner within 5 ms"):
         sequence = open_sequence(euroc_v101_micro)
     assert sequence.format == "euroc" and sequence.name == "euroc_v101_micro"
     assert len(sequence) == 95

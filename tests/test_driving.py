@@ -18,7 +18,8 @@ from estimator.formats.datasets import open_sequence
 from estimator.formats.trajectory_io import read_kitti, read_tum
 from estimator.geometry import invert_pose, make_pose, rotation_angle_deg
 from estimator.pipeline import build_config, load_config
-from estimator.rendered.synthetic import KITTI_CAMERA, SynthOptions
+from estimator.rendered.camera import KITTI_CAMERA
+from estimator.rendered.synthetic import SynthOptions
 from estimator.rendered.synthetic_driving import driving_for_length
 from estimator.rig_settings import (
     MAX_RELATIVE_DEPTH_ERROR,

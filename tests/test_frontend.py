@@ -32,7 +32,9 @@ from estimator.frontend.stereo import (
 )
 from estimator.frontend.temporal import match_temporal, project
 from estimator.geometry import invert_pose, make_pose
-from estimator.rendered.synthetic import CAMERA, T_BS_CAM0, T_BS_CAM1, build_world, loop_for_length
+from estimator.rendered.camera import CAMERA, T_BS_CAM0, T_BS_CAM1
+from estimator.rendered.trajectory import loop_for_length
+from estimator.rendered.world import build_world
 
 WIDTH, HEIGHT, FOCAL, BASELINE = 640, 480, 400.0, 0.12
 

@@ -204,7 +204,7 @@ def _rest_imu(
 
 def test_standstill_detector_accepts_rest_and_rejects_motion():
     from estimator.backend.rest import RestWindow, at_rest
-    from estimator.rendered.synthetic import loop_for_length, simulate_imu, start_after_rest
+    from estimator.rendered.trajectory import loop_for_length, simulate_imu, start_after_rest
 
     noise = ImuNoise()
     rng = np.random.default_rng(0)

@@ -41,12 +41,7 @@ PIPELINE = ("estimator.odometry", "estimator.rig_settings", "estimator.pipeline"
 APPS = ("estimator.cli", "estimator.bench", "service")
 # Known cycles, each with the reason it is still there. Remove an entry when its cycle is gone
 # (the test fails on a listed cycle that no longer exists, so the list cannot go stale).
-KNOWN_CYCLES: dict[frozenset[str], str] = {
-    frozenset({"estimator.rendered.synthetic", "estimator.rendered.synthetic_driving"}): (
-        "the flight renderer dispatches to the driving scene, which reuses the flight's world "
-        "primitives; it goes when synthetic.py is split into world, trajectory and writer"
-    ),
-}
+KNOWN_CYCLES: dict[frozenset[str], str] = {}
 
 
 def _module_name(path: Path) -> str:

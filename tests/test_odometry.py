@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from functools import cache
 from itertools import pairwise
 from pathlib import Path
@@ -23,7 +24,9 @@ from estimator.geometry import (
     scale_motion,
 )
 from estimator.odometry import Odometry, frame_seed, to_grey8
-from estimator.rendered.synthetic import CAMERA, T_BS_CAM0, build_world, loop_for_length
+from estimator.rendered.camera import CAMERA, T_BS_CAM0
+from estimator.rendered.trajectory import loop_for_length
+from estimator.rendered.world import build_world
 from estimator.types import FrameStatus, StereoFrame
 
 FRAME_NS = 50_000_000  # 20 Hz
@@ -517,3 +520,36 @@ def test_bad_initial_pose() -> None:
 def test_config_refuses_unknown_keys_and_non_finite_numbers(overrides) -> None:
     with pytest.raises(ValueError, match=r"finite|Extra inputs"):
         SwarmvoConfig(**overrides)
+
+
+@pytest.mark.parametrize("backend", [False, True])
+def test_a_run_continued_from_its_state_has_no_jump(backend: bool) -> None:
+    """Another process continues from state() (through JSON, as the service stores it): the
+    step into its first frame is predicted at the measured velocity, close to the true step;
+    resuming from the pose alone would stand still for that step (a 10 cm jump here)."""
+    frames, cameras = _rendered_flight()
+    config = _config(backend={"enabled": backend, "use_imu": False})
+    whole = _run(Odometry(_rendered_rig(), config), frames)
+    first = Odometry(_rendered_rig(), config)
+    _run(first, frames[:8])
+    state = json.loads(json.dumps(first.state()))
+    continued = Odometry(_rendered_rig(), config, initial_pose=np.array(state["pose"]),
+                         first_index=8)
+    continued.restore(state)
+    rest = _run(continued, frames[8:])
+    assert [r.index for r in rest] == list(range(8, len(frames)))
+
+    def step(previous: np.ndarray, current: np.ndarray) -> np.ndarray:
+        return (invert_pose(previous) @ current)[:3, 3]
+
+    true_step = step(cameras[7], cameras[8])
+    jump = np.linalg.norm(step(whole[7].pose, rest[0].pose) - true_step)
+    assert np.linalg.norm(true_step) > 0.08
+    assert jump < 0.01, jump
+    # It goes on tracking: the following steps are as good as the uninterrupted run's.
+    for k in range(9, len(frames)):
+        error = np.linalg.norm(step(rest[k - 9].pose, rest[k - 8].pose) - step(cameras[k - 1],
+                                                                                 cameras[k]))
+        assert error < 0.01, (k, error)
+    with pytest.raises(ValueError, match="before the first frame"):
+        continued.restore(state)

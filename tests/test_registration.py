@@ -15,10 +15,11 @@ from estimator.geometry import (
     quat_to_matrix,
     rotation_vector_to_quat,
 )
-from estimator.registration import pso_support
-from estimator.registration.pso_support import rigidity_scores, rigidity_weights, weighted_horn
+from estimator.registration import pso_support, rigidity, swarm_kernels
+from estimator.registration.pso_support import weighted_horn
 from estimator.registration.registry import available_methods, register
 from estimator.registration.result import residual_norms
+from estimator.registration.rigidity import rigidity_scores, rigidity_weights
 from estimator.rendered.simulation import rotation_error_deg, simulate_pair, translation_error
 
 METHODS = ["pso-robust", "pso", "msac", "svd"]
@@ -354,10 +355,10 @@ def test_top_ranked_is_the_head_of_a_stable_descending_sort() -> None:
     for count in (1, 5, 32, 60):
         scores = rng.integers(0, 6, size=50).astype(np.float32)  # many ties
         expected = np.argsort(-scores, kind="stable")[:count]
-        np.testing.assert_array_equal(pso_support._top_ranked(scores, count), expected)
+        np.testing.assert_array_equal(rigidity.top_ranked(scores, count), expected)
     scores = rng.normal(size=300)
     np.testing.assert_array_equal(
-        pso_support._top_ranked(scores, 32), np.argsort(-scores, kind="stable")[:32]
+        rigidity.top_ranked(scores, 32), np.argsort(-scores, kind="stable")[:32]
     )
 
 
@@ -375,7 +376,7 @@ def test_symmetric_eigen_matches_lapack_on_hard_cases() -> None:
             matrix = rng.normal(size=(size, size)) * scale
             cases.append(matrix + matrix.T)
     for matrix in cases:
-        values, vectors = pso_support._symmetric_eigen(matrix)
+        values, vectors = swarm_kernels.symmetric_eigen(matrix)
         expected = np.linalg.eigvalsh(matrix)
         norm = max(np.abs(expected).max(), 1e-300)
         np.testing.assert_allclose(values, expected, rtol=0, atol=1e-13 * norm)
@@ -398,12 +399,12 @@ def test_compiled_degeneracy_check_agrees_with_geometry() -> None:
     ]
     for points in sets:
         rows = np.arange(len(points))
-        assert pso_support._degenerate_points(points, rows) == is_degenerate(points)
+        assert swarm_kernels.degenerate_points(points, rows) == is_degenerate(points)
     # Only the listed rows count: two points of a cloud are degenerate, all of it is not.
     cloud = sets[4]
-    assert pso_support._degenerate_points(cloud, np.array([3, 7]))
-    assert not pso_support._degenerate_rows(cloud, cloud + 1.0, np.array([0, 3, 5, 7]))
-    assert pso_support._degenerate_rows(cloud, line, np.arange(12))
+    assert swarm_kernels.degenerate_points(cloud, np.array([3, 7]))
+    assert not swarm_kernels.degenerate_rows(cloud, cloud + 1.0, np.array([0, 3, 5, 7]))
+    assert swarm_kernels.degenerate_rows(cloud, line, np.arange(12))
 
 
 def test_swarm_objective_scores_match_explicit_rotations() -> None:

@@ -25,6 +25,7 @@ from estimator.formats.rosbag_write import (
 from estimator.formats.trajectory_io import read_tum
 from estimator.geometry import invert_pose
 from estimator.odometry import to_grey8
+from estimator.types import ImuNoise
 
 pytestmark = pytest.mark.euroc
 FRAMES = 20
@@ -112,6 +113,46 @@ def test_kalibr_camchain_gives_the_euroc_rig_and_topics(euroc_mh01_moving, tmp_p
     assert np.allclose(load_kalibr_rig(path)[0].right.T_BS, rig.right.T_BS, atol=1e-9)
 
 
+def test_kalibr_imu_yaml_beside_the_camchain_sets_the_imu_noise(
+    euroc_mh01_moving, small_bag, tmp_path
+):
+    mav0 = euroc_mh01_moving / "mav0"
+    rig = load_euroc_rig(mav0 / "cam0" / "sensor.yaml", mav0 / "cam1" / "sensor.yaml")
+    chain = {
+        f"cam{index}": {
+            "intrinsics": [camera.fx, camera.fy, camera.cx, camera.cy],
+            "distortion_model": "radtan", "distortion_coeffs": list(camera.distortion),
+            "resolution": [camera.width, camera.height],
+            "T_cam_imu": invert_pose(camera.T_BS).tolist(),
+        }
+        for index, camera in enumerate((rig.left, rig.right))
+    }
+    camchain = tmp_path / "camchain-imucam-flight.yaml"
+    camchain.write_text(yaml.safe_dump(chain))
+    assert load_bag_calibration(camchain).imu_file is None  # none beside it: the default
+    values = {"accelerometer_noise_density": 1.86e-3, "accelerometer_random_walk": 4.33e-4,
+              "gyroscope_noise_density": 1.87e-4, "gyroscope_random_walk": 2.66e-5,
+              "update_rate": 200.0}
+    # Kalibr's input form (flat) as imu.yaml; its result form (under imu0) as imu-NAME.yaml.
+    (tmp_path / "imu.yaml").write_text(yaml.safe_dump({**values, "rostopic": "/imu0"}))
+    expected = ImuNoise(gyro_noise_density=1.87e-4, gyro_random_walk=2.66e-5,
+                        accel_noise_density=1.86e-3, accel_random_walk=4.33e-4, rate_hz=200.0)
+    calibration = load_bag_calibration(camchain)
+    assert calibration.imu_noise == expected and calibration.imu_topic == "/imu0"
+    result = {**values, "update_rate": 400.0, "rostopic": "/imu0"}
+    (tmp_path / "imu-flight.yaml").write_text(yaml.safe_dump({"imu0": result}))
+    calibration = load_bag_calibration(camchain)
+    assert calibration.imu_file == tmp_path / "imu-flight.yaml"
+    assert calibration.imu_noise.rate_hz == 400.0
+    # The bag's sequence carries it to the back end (run_sequence hands it to the odometry).
+    sequence = open_bag(small_bag, calibration)
+    assert sequence.topics.imu == "/imu0" and sequence.imu_noise == calibration.imu_noise
+    # A malformed file is a one-line error.
+    (tmp_path / "imu-flight.yaml").write_text(yaml.safe_dump({"imu0": {"update_rate": 200}}))
+    with pytest.raises(ValueError, match="missing Kalibr IMU field"):
+        load_bag_calibration(camchain)
+
+
 # ----------------------------------------------------------------------------- bad input
 
 
@@ -138,6 +179,42 @@ def _write_images(path: Path, topics_and_stamps, encoding: str = "mono8") -> Non
             writer.write(topic, "sensor_msgs/msg/Image", stamp, message)
 
 
+def test_left_and_right_pair_by_the_nearest_stamp_within_the_tolerance(
+    euroc_mh01_moving, tmp_path
+):
+    """Cameras stamped up to 2 ms apart pair (each image with its own partner); an image
+    without a partner within the tolerance is dropped with one warning that counts it."""
+    period = 50_000_000
+    jitter = (np.array([1.2, -0.3, 2.0, 0.1, -1.8, 0.4]) * 1e6).astype(np.int64)
+    bag = tmp_path / "jitter.bag"
+    with _BagWriter(bag) as writer:
+        for k in range(6):
+            for topic, stamp, value in (("/left", k * period + 10**9, k),
+                                        ("/right", k * period + 10**9 + int(jitter[k]), 100 + k)):
+                image = np.full((480, 752), value, dtype=np.uint8)
+                message = writer.type("sensor_msgs/msg/Image")(
+                    header=writer.header(stamp, "cam"), height=480, width=752,
+                    encoding="mono8", is_bigendian=0, step=752, data=image.ravel())
+                writer.write(topic, "sensor_msgs/msg/Image", stamp, message)
+        stray = 10**9 + 2 * period + period // 2  # half way between two frames
+        message = writer.type("sensor_msgs/msg/Image")(
+            header=writer.header(stray, "cam"), height=480, width=752, encoding="mono8",
+            is_bigendian=0, step=752, data=np.zeros(480 * 752, dtype=np.uint8))
+        writer.write("/right", "sensor_msgs/msg/Image", stray, message)
+    calibration = load_bag_calibration(euroc_mh01_moving)
+    with pytest.warns(UserWarning, match=r"skipping 1 image\(s\) without a partner within 5 ms"):
+        sequence = open_bag(bag, calibration, "/left", "/right")
+    assert [f.timestamp_ns for f in sequence.frames] == [k * period + 10**9 for k in range(6)]
+    for k in (0, 3, 5, 2):  # out of order too: the stream restarts
+        frame = sequence.load(k)
+        assert frame.timestamp_ns == k * period + 10**9
+        assert frame.left[0, 0] == k and frame.right[0, 0] == 100 + k
+    # A tolerance below the jitter drops the pairs that are farther apart.
+    with pytest.warns(UserWarning, match="without a partner within 0.5 ms"):
+        strict = open_bag(bag, calibration, "/left", "/right", stereo_sync_tolerance_ns=500_000)
+    assert [f.timestamp_ns for f in strict.frames] == [k * period + 10**9 for k in (1, 3, 5)]
+
+
 def _one_error_line(capsys, code: int, *expected: str) -> None:
     error = capsys.readouterr().err
     assert code == 2
@@ -157,20 +234,23 @@ def test_bad_bags_give_one_error_line(euroc_mh01_moving, small_bag, tmp_path, ca
     truncated = tmp_path / "truncated.bag"
     truncated.write_bytes(small_bag.read_bytes()[: small_bag.stat().st_size // 2])
     _one_error_line(capsys, _run_bag(truncated, euroc_mh01_moving, out), "truncated.bag")
-    # Left and right stamps that never match.
+    # Left and right stamps that never come within the tolerance (0.1 s at 1 Hz).
     mismatched = tmp_path / "mismatched.bag"
     _write_images(
         mismatched,
         [
             ("/left", 10**9),
-            ("/right", 10**9 + 1000),
+            ("/right", 10**9 + 300_000_000),
             ("/left", 2 * 10**9),
-            ("/right", 2 * 10**9 + 1000),
+            ("/right", 2 * 10**9 + 300_000_000),
         ],
     )
     _one_error_line(
-        capsys, _run_bag(mismatched, euroc_mh01_moving, out), "no left/right image pair"
+        capsys, _run_bag(mismatched, euroc_mh01_moving, out), "no left/right image pair",
+        "within 100 ms",
     )
+    code = _run_bag(mismatched, euroc_mh01_moving, out, "--stereo-sync-tolerance", "-1")
+    _one_error_line(capsys, code, "--stereo-sync-tolerance must be >= 0")
     # Ambiguous topics: names that do not tell left from right.
     ambiguous = tmp_path / "ambiguous"
     _write_images(ambiguous, [("/a/image", 10**9), ("/b/image", 10**9)])

@@ -145,7 +145,7 @@ def test_database_errors_never_reach_a_client(client: TestClient, monkeypatch) -
             Exception("FOREIGN KEY constraint failed"),
         )
 
-    monkeypatch.setattr(store, "add_pose", broken)
+    monkeypatch.setattr(store, "add_poses", broken)
     response = send(client, sid, 10)
     assert response.status_code == 503
     detail = response.json()["detail"]

@@ -352,6 +352,19 @@ def test_storage_round_trips_exactly_and_equals_sqlite(
         on_sqlite.close()
 
 
+def test_smoothed_poses_are_stored_and_flushed_on_postgresql(
+    cluster: Cluster, database: str, tmp_path: Path
+) -> None:
+    from test_service_smoothed import check_smoothed_flow
+
+    check_smoothed_flow(cluster.url(database), tmp_path)
+    types = dict(cluster.query(
+        database, "SELECT column_name, data_type FROM information_schema.columns "
+        "WHERE table_name = 'smoothed_poses'"))
+    assert types["timestamp_ns"] == "bigint" and types["pose"] == "json"
+    assert types["id"] == "bigint"
+
+
 # ----------------------------------------------------------------------------- real server
 
 

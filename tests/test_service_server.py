@@ -202,8 +202,14 @@ def test_http_and_websocket_replay_equal_the_offline_run(
         assert len({stamp for stamp, _ in finished}) == len(finished) > FRAMES // 2
         for stamp, pose in finished:
             np.testing.assert_allclose(pose, smoothed[stamp], rtol=0, atol=1e-9)
+        # Over the WebSocket the stream's end flushes the rest: then every frame is there.
+        finished += result.final_smoothed
+        if use_ws:
+            assert [stamp for stamp, _ in finished] == times.tolist()
+        for stamp, pose in result.final_smoothed:
+            np.testing.assert_allclose(pose, smoothed[stamp], rtol=0, atol=1e-9)
         with Client(server.url, KEY) as client:
-            queried = client.smoothed(result.session.id)
+            queried = client.smoothed(result.session.id)  # as stored
         assert [stamp for stamp, _ in queried] == [stamp for stamp, _ in finished]
         assert all(np.array_equal(a, b) for (_, a), (_, b) in zip(queried, finished, strict=True))
     # The TUM export reads back as the offline trajectory too.
@@ -518,7 +524,9 @@ def test_websocket_refusals_and_garbage(server: Server) -> None:
         "rejected",
         "rejected",
         "error",
+        "smoothed",  # the close: the back end's window (no frame was processed: none)
     ]
+    assert replies[-1]["poses"] == []
     assert "PNG or JPEG" in replies[5]["detail"]
 
 

@@ -344,7 +344,10 @@ def test_frames_poses_order_and_trajectory(client: TestClient) -> None:
         assert {"queue_wait", "decode", "odometry", "persist", "total"} <= set(body["timings_s"])
     late = send(client, sid, 250)
     assert late.status_code == 409 and "does not increase" in late.json()["detail"]
-    assert send(client, sid, 300).status_code == 409
+    # A resent frame is answered from its stored pose, not processed a second time.
+    again = send(client, sid, 300)
+    assert again.status_code == 200 and again.json()["index"] == 2
+    assert again.json()["pose"] == body["pose"]
     wrong = send(client, sid, 400, left=png(width=WIDTH + 8), right=png(width=WIDTH + 8))
     assert wrong.status_code == 422 and "calibration" in wrong.json()["detail"]
     # The refused frame does not block a retry with its timestamp.
@@ -513,7 +516,9 @@ def test_websocket_protocol_and_auth(client: TestClient) -> None:
         "rejected",
         "pong",
         "error",
+        "smoothed",  # the last message: the back end's flushed window (none here)
     ]
+    assert replies[-1]["poses"] == []
     for reply in [hello, *replies]:  # every answer is one of the documented messages
         SERVER_MESSAGE.validate_python(reply)
     assert replies[4]["status"] == 409

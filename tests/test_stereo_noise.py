@@ -68,8 +68,9 @@ def test_a_known_noise_level_is_recovered() -> None:
     np.testing.assert_allclose(model.level.as_tuple(), truth.as_tuple(), rtol=0.15)
     summary = model.summary()
     assert abs(summary["median_squared_mahalanobis"] / CHI2_3_MEDIAN - 1.0) < 0.15
-    assert model.tail < 1.3  # Gaussian noise: the gate stays near the chi-square one
-    assert model.gate_chi2 < 16.3 * 1.3**2
+    assert model.tail < 1.3  # Gaussian noise: the measured tail is the Gaussian one ...
+    # ... and the gate stays at the prior's (the tail, truncated by the gate, cannot narrow it).
+    assert model.gate_chi2 == pytest.approx(16.266 * model.prior_tail**2)
 
 
 def test_heavy_tails_widen_the_gate_but_not_the_level() -> None:
@@ -100,3 +101,43 @@ def test_the_prior_holds_until_there_are_enough_pairs() -> None:
 def test_bad_settings_are_rejected(option: str, value: float) -> None:
     with pytest.raises(ValueError, match=option):
         StereoNoiseModel(_rectification(), PRIOR, **{option: value})
+
+
+def _moving_frame(level: NoiseLevel, gain: float, turn_deg: float, rng: np.random.Generator):
+    """Inlier pairs of a frame that turns by ``turn_deg``; each pair's sigmas grow with its
+    image flow as level * (1 + gain * flow)."""
+    count = 300
+    depth = rng.uniform(1.5, 20.0, count)
+    pixels = rng.uniform([20, 20], [732, 460], size=(count, 2))
+    reference = np.column_stack([(pixels - [CX, CY]) * depth[:, None] / F, depth])
+    axis = rng.normal(size=3)
+    axis *= np.radians(turn_deg) / np.linalg.norm(axis)
+    rotation = quat_to_matrix(rotation_vector_to_quat(axis))
+    translation = rng.normal(0, 0.02, 3)
+    current = (reference - translation) @ rotation  # R^T (p - t)
+    flow = np.linalg.norm(F * current[:, :2] / current[:, 2:] + [CX, CY] - pixels, axis=1)
+    sigmas = np.outer(1.0 + gain * flow, level.as_tuple())
+    return _measured(reference, sigmas, rng), _measured(current, sigmas, rng), rotation, translation
+
+
+def test_the_growth_of_the_noise_with_the_image_flow_is_measured() -> None:
+    rng = np.random.default_rng(7)
+    level, gain = NoiseLevel(0.06, 0.06, 0.05), 0.05
+    model = StereoNoiseModel(_rectification(), PRIOR)
+    for turn in np.tile([0.5, 2.0, 4.0, 6.0], 5):
+        model.update(*_moving_frame(level, gain, float(turn), rng))
+    assert model.gain == pytest.approx(gain, rel=0.3)
+    # A frame that moves far more than the recent ones gets a wider gate; a slow one does not
+    # get a narrower one than the session's.
+    fast = _moving_frame(level, gain, 12.0, rng)
+    slow = _moving_frame(level, gain, 0.2, rng)
+    assert model.gate_for(fast[1], fast[0]) > 1.5 * model.gate_chi2
+    assert model.gate_for(slow[1], slow[0]) == model.gate_chi2
+
+
+def test_noise_that_does_not_grow_with_the_flow_gives_no_gain() -> None:
+    rng = np.random.default_rng(8)
+    model = StereoNoiseModel(_rectification(), PRIOR)
+    for turn in np.tile([0.5, 2.0, 4.0, 6.0], 5):
+        model.update(*_moving_frame(NoiseLevel(0.2, 0.2, 0.1), 0.0, float(turn), rng))
+    assert model.gain < 0.005

@@ -12,16 +12,10 @@ from scipy.spatial.transform import Rotation
 
 from estimator.formats.datasets import open_sequence
 from estimator.geometry import invert_pose, make_pose, rotation_angle_deg, transform_points
-from estimator.rendered.synthetic import (
-    CAMERA,
-    GRAVITY,
-    SynthOptions,
-    build_world,
-    loop_for_length,
-    read_broken_frames,
-    simulate_imu,
-    synthesize,
-)
+from estimator.rendered.camera import CAMERA
+from estimator.rendered.synthetic import SynthOptions, read_broken_frames, synthesize
+from estimator.rendered.trajectory import GRAVITY, loop_for_length, simulate_imu
+from estimator.rendered.world import build_world
 from estimator.types import ImuNoise
 
 

@@ -1,5 +1,8 @@
 """The factor graph: front-end relative poses + gyro rotation factors + a motion prior.
 
+(About 950 lines: one class owns the smoother and its per-frame state; each step of a frame,
+``FusionBackend._advance``, is a method of its own that fits on a screen.)
+
 One Pose3 per frame (body in world) and, with an IMU, one gyro bias per frame. Per frame k:
 
 * the front-end relative pose (left camera, moved into the body frame) as a robust
@@ -40,6 +43,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -138,6 +142,27 @@ class _OpenFrame:
     stamp_s: float  # smoother time of its keys
     delta: SpecificForceDelta | None  # accelerometer over the interval ending here
     body_pose: np.ndarray = field(default_factory=lambda: np.eye(4))  # latest estimate
+
+
+@dataclass
+class _Step:
+    """One frame's additions to the graph while ``FusionBackend._advance`` builds them."""
+
+    previous: int
+    current: int
+    dt: float
+    stamp: float  # smoother time of the new keys
+    cutoff: float  # keys stamped before it are dropped by this update
+    factors: gtsam.NonlinearFactorGraph = field(default_factory=gtsam.NonlinearFactorGraph)
+    values: gtsam.Values = field(default_factory=gtsam.Values)
+    keys: list[int] = field(default_factory=list)
+    keep: list[int] = field(default_factory=list)  # existing keys to restamp
+    notes: list[str] = field(default_factory=list)
+    preintegration: GyroPreintegration | None = None
+    delta: SpecificForceDelta | None = None
+    rest_samples: ImuBatch | None = None  # the interval's IMU if it continues the rest
+    still: bool = False
+    accepted: bool = False  # the relative pose passed the gate
 
 
 _EYE3 = np.eye(3)
@@ -275,6 +300,27 @@ class FusionBackend:
             return self._start(timestamp_ns)
         return self._advance(timestamp_ns, relative_pose, covariance, reference_ns)
 
+    def state(self) -> dict[str, Any]:
+        """The estimates a continuation in another process starts from (JSON-ready)."""
+        return {
+            "gyro_bias": self._bias.tolist(),
+            "accel_bias": self._accel_bias.tolist(),
+            "gravity": self._gravity.tolist(),
+        }
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Start from another instance's biases instead of looking for rest (before frame 0).
+
+        The smoother itself starts afresh at the next frame (its world is levelled again from
+        that frame's accelerometer samples); the gyro bias is its prior mean.
+        """
+        if self._index >= 0:
+            raise ValueError("restore() must come before the first frame")
+        self._bias = np.asarray(state["gyro_bias"], dtype=float).reshape(3)
+        self._accel_bias = np.asarray(state["accel_bias"], dtype=float).reshape(3)
+        self._gravity = np.asarray(state["gravity"], dtype=float).reshape(3)
+        self._starting = False
+
     # ------------------------------------------------------------------ graph building
 
     def _make_smoother(self) -> gtsam.ISAM2 | gtsam.IncrementalFixedLagSmoother:
@@ -357,7 +403,7 @@ class FusionBackend:
                     message = f"world = first body pose ({error})"
             else:
                 message = "world = first body pose (no accelerometer samples with frame 0)"
-        bias_mean = np.zeros(3)
+        bias_mean = self._bias.copy()  # zero unless restored from another instance
         bias_sigma = self.config.gyro_bias_prior_sigma
         if self._starting:
             bias_mean, bias_sigma, note = self._rest_before(timestamp_ns + self._offset_ns)
@@ -565,177 +611,227 @@ class FusionBackend:
         covariance: np.ndarray | None,
         reference_ns: int | None = None,
     ) -> FusedEstimate:
-        previous, current = self._index, self._index + 1
+        """One frame: its factors (IMU, vision, motion prior, standstill), the update, status."""
         dt = (timestamp_ns - self._last_ns) * 1e-9
         stamp = self._stamp(timestamp_ns)
-        cutoff = stamp - self.config.smoother_lag_s  # keys stamped before it are dropped now
-        factors = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        keys = [_pose_key(current)]
-        keep: list[int] = []
-        notes: list[str] = []
-
-        preintegration = delta = None
-        rest_samples = None
+        step = _Step(
+            previous=self._index,
+            current=self._index + 1,
+            dt=dt,
+            stamp=stamp,
+            cutoff=stamp - self.config.smoother_lag_s,  # keys stamped before it are dropped now
+        )
+        step.keys.append(_pose_key(step.current))
         if self._starting:
-            rest_samples = self._still_interval(self._last_ns, timestamp_ns)
-        still = rest_samples is not None
+            step.rest_samples = self._still_interval(self._last_ns, timestamp_ns)
+        step.still = step.rest_samples is not None
         if self.use_imu:
-            preintegration, delta = self._preintegrate(self._last_ns, timestamp_ns)
-            if preintegration is not None:
-                factors.add(
-                    gyro_rotation_factor(
-                        _pose_key(previous), _pose_key(current), _bias_key(previous), preintegration
-                    )
-                )
-            else:
-                notes.append("no gyro for this interval")
-            walk = self._bias_sigma_density * np.sqrt(dt)
-            factors.add(
-                gtsam.BetweenFactorVector(
+            self._add_imu_factors(step, timestamp_ns)
+        motion = self._motion_prior(dt)
+        inertial = self._inertial_factor(step.current, step.delta, step.cutoff)
+        prediction = self._prediction(step, motion, inertial)
+        guess = self._add_vision_factor(step, relative_pose, covariance, reference_ns, prediction)
+        if self.config.motion_prior == "always" or not (step.accepted or inertial is not None):
+            self._add_motion_prior(step, motion)
+        guess = self._add_standstill(step, guess)
+        step.values.insert(
+            _pose_key(step.current), gtsam.Pose3(nearest_rigid(self._body_pose @ guess))
+        )
+        previous_pose = self._commit(step, timestamp_ns, guess)
+        status = self._status(step)
+        self._previous_motion = invert_pose(previous_pose) @ self._pose_estimate(step.current)
+        self._previous_dt = dt
+        return self._estimate(
+            status, "; ".join(step.notes), self._previous_motion.copy(), step.delta
+        )
+
+    def _add_imu_factors(self, step: _Step, timestamp_ns: int) -> None:
+        """Gyro rotation factor over the interval and the bias random walk into this frame."""
+        previous, current = step.previous, step.current
+        step.preintegration, step.delta = self._preintegrate(self._last_ns, timestamp_ns)
+        if step.preintegration is not None:
+            step.factors.add(
+                gyro_rotation_factor(
+                    _pose_key(previous),
+                    _pose_key(current),
                     _bias_key(previous),
-                    _bias_key(current),
-                    np.zeros(3),
-                    gtsam.noiseModel.Isotropic.Sigma(3, walk),
+                    step.preintegration,
                 )
             )
-            values.insert(_bias_key(current), self._bias)
-            keys.append(_bias_key(current))
+        else:
+            step.notes.append("no gyro for this interval")
+        walk = self._bias_sigma_density * np.sqrt(step.dt)
+        step.factors.add(
+            gtsam.BetweenFactorVector(
+                _bias_key(previous),
+                _bias_key(current),
+                np.zeros(3),
+                gtsam.noiseModel.Isotropic.Sigma(3, walk),
+            )
+        )
+        step.values.insert(_bias_key(current), self._bias)
+        step.keys.append(_bias_key(current))
 
-        motion = self._motion_prior(dt)
-        inertial = self._inertial_factor(current, delta, cutoff)
-
-        # Prediction (initial guess and outlier gate): gyro rotation (else constant velocity)
-        # with the IMU's translation (else constant velocity).
+    def _prediction(
+        self,
+        step: _Step,
+        motion: np.ndarray,
+        inertial: tuple[gtsam.CustomFactor, np.ndarray] | None,
+    ) -> np.ndarray:
+        """Body motion expected for this frame (initial guess and outlier gate): gyro rotation
+        (else constant velocity) with the IMU's translation (else constant velocity). Adds the
+        inertial factor when there is one."""
         prediction = motion.copy()
-        if preintegration is not None:
-            prediction[:3, :3] = preintegration.delta_rotation
+        if step.preintegration is not None:
+            prediction[:3, :3] = step.preintegration.delta_rotation
         if inertial is not None:
-            factors.add(inertial[0])
+            step.factors.add(inertial[0])
             prediction[:3, 3] = self._body_pose[:3, :3].T @ (inertial[1] - self._body_pose[:3, 3])
-        guess = prediction
-        accepted = False
+        return prediction
+
+    def _add_vision_factor(
+        self,
+        step: _Step,
+        relative_pose: np.ndarray | None,
+        covariance: np.ndarray | None,
+        reference_ns: int | None,
+        prediction: np.ndarray,
+    ) -> np.ndarray:
+        """The front-end relative pose as a robust factor unless the gate rejects it.
+
+        Returns the initial guess of the body motion (the measurement when accepted, else the
+        prediction); clears ``step.still`` when vision disagrees with a standstill.
+        """
         reference = None
         if relative_pose is not None and covariance is not None:
             reference = self._reference_index(reference_ns)
             if reference is None:
-                notes.append(
+                step.notes.append(
                     f"relative pose not used (reference frame {reference_ns} is unknown or "
                     "older than the latest reference)"
                 )
-        if reference is not None:
-            assert relative_pose is not None and covariance is not None
-            body_measured = nearest_rigid(
-                self.body_from_camera @ relative_pose @ self.camera_from_body
+        if reference is None:
+            return prediction
+        assert relative_pose is not None and covariance is not None
+        previous = step.previous
+        body_measured = nearest_rigid(self.body_from_camera @ relative_pose @ self.camera_from_body)
+        # The measurement seen as a motion from the previous frame, through the current
+        # estimates: for the gate and the initial guess (and as the factor itself when the
+        # reference has already left the window).
+        body_motion = body_measured
+        live = reference == previous or self._in_window(reference, step.cutoff)
+        if reference != previous:
+            reference_pose = (
+                self._pose_estimate(reference) if live else self._frames[int(reference_ns)][1]
             )
-            # The measurement seen as a motion from the previous frame, through the current
-            # estimates: for the gate and the initial guess (and as the factor itself when the
-            # reference has already left the window).
-            body_motion = body_measured
-            live = reference == previous or self._in_window(reference, cutoff)
-            if reference != previous:
-                reference_pose = (
-                    self._pose_estimate(reference) if live else self._frames[int(reference_ns)][1]
-                )
-                body_motion = nearest_rigid(
-                    invert_pose(self._body_pose) @ reference_pose @ body_measured
-                )
-            if still:  # vision must agree with the standstill too
-                moved = gtsam.Pose3.Logmap(gtsam.Pose3(body_motion))
-                still = float(moved @ np.linalg.solve(covariance, moved)) <= _STILL_CHI2
-            distance = self._gate_distance(body_motion, prediction, covariance, preintegration, dt)
-            gate = self.config.outlier_gate_chi2
-            if gate is None or distance <= gate:
-                accepted = True
-                guess = body_motion
-                base = gtsam.noiseModel.Gaussian.Covariance(covariance)
-                source, measured = (reference, body_measured) if live else (previous, body_motion)
-                factors.add(
-                    gtsam.BetweenFactorPose3(
-                        _pose_key(source),
-                        _pose_key(current),
-                        gtsam.Pose3(measured),
-                        robust(base, self.config.robust_kernel, self.config.robust_parameter),
-                    )
-                )
-                self._oldest_reference = max(self._oldest_reference, reference)
-            else:
-                notes.append(
-                    f"relative pose rejected (squared Mahalanobis distance {distance:.0f} "
-                    f"> {gate:g} from the prediction)"
-                )
-        if self.config.motion_prior == "always" or not (accepted or inertial is not None):
-            # With the gyro the prior carries translation only: its rotation part would
-            # otherwise leak into the bias estimate.
-            rotation_sigma = (
-                _FREE_ROTATION_SIGMA
-                if preintegration is not None
-                else self.config.cv_rotation_sigma_rad
+            body_motion = nearest_rigid(
+                invert_pose(self._body_pose) @ reference_pose @ body_measured
             )
-            factors.add(
-                gtsam.BetweenFactorPose3(
-                    _pose_key(previous),
-                    _pose_key(current),
-                    gtsam.Pose3(motion),
-                    pose_noise(rotation_sigma, self.config.cv_translation_sigma_m),
-                )
+        if step.still:  # vision must agree with the standstill too
+            moved = gtsam.Pose3.Logmap(gtsam.Pose3(body_motion))
+            step.still = float(moved @ np.linalg.solve(covariance, moved)) <= _STILL_CHI2
+        distance = self._gate_distance(
+            body_motion, prediction, covariance, step.preintegration, step.dt
+        )
+        gate = self.config.outlier_gate_chi2
+        if not (gate is None or distance <= gate):
+            step.notes.append(
+                f"relative pose rejected (squared Mahalanobis distance {distance:.0f} "
+                f"> {gate:g} from the prediction)"
             )
-        if still:
-            assert rest_samples is not None
-            if self._rest is None:
-                self._rest = RestWindow.of(
-                    rest_samples.timestamps_ns, rest_samples.gyro, rest_samples.accel
-                )
-            else:
-                self._rest.extend(
-                    rest_samples.timestamps_ns, rest_samples.gyro, rest_samples.accel
-                )
-            factors.add(
-                gtsam.BetweenFactorPose3(
-                    _pose_key(previous),
-                    _pose_key(current),
-                    gtsam.Pose3(),
-                    pose_noise(self.config.zero_motion_sigma_rad, self.config.zero_motion_sigma_m),
-                )
+            return prediction
+        step.accepted = True
+        base = gtsam.noiseModel.Gaussian.Covariance(covariance)
+        source, measured = (reference, body_measured) if live else (previous, body_motion)
+        step.factors.add(
+            gtsam.BetweenFactorPose3(
+                _pose_key(source),
+                _pose_key(step.current),
+                gtsam.Pose3(measured),
+                robust(base, self.config.robust_kernel, self.config.robust_parameter),
             )
-            guess = np.eye(4)
-        elif self._starting:
-            self._end_start_up(notes)
-        values.insert(_pose_key(current), gtsam.Pose3(nearest_rigid(self._body_pose @ guess)))
+        )
+        self._oldest_reference = max(self._oldest_reference, reference)
+        return body_motion
 
+    def _add_motion_prior(self, step: _Step, motion: np.ndarray) -> None:
+        """Constant-velocity prior from the previous frame (loose)."""
+        # With the gyro the prior carries translation only: its rotation part would
+        # otherwise leak into the bias estimate.
+        rotation_sigma = (
+            _FREE_ROTATION_SIGMA
+            if step.preintegration is not None
+            else self.config.cv_rotation_sigma_rad
+        )
+        step.factors.add(
+            gtsam.BetweenFactorPose3(
+                _pose_key(step.previous),
+                _pose_key(step.current),
+                gtsam.Pose3(motion),
+                pose_noise(rotation_sigma, self.config.cv_translation_sigma_m),
+            )
+        )
+
+    def _add_standstill(self, step: _Step, guess: np.ndarray) -> np.ndarray:
+        """During the start-up rest: extend it and tie the poses by a zero-motion factor;
+        the first interval that moves ends the start-up. Returns the initial guess."""
+        if not step.still:
+            if self._starting:
+                self._end_start_up(step.notes)
+            return guess
+        samples = step.rest_samples
+        assert samples is not None
+        if self._rest is None:
+            self._rest = RestWindow.of(samples.timestamps_ns, samples.gyro, samples.accel)
+        else:
+            self._rest.extend(samples.timestamps_ns, samples.gyro, samples.accel)
+        step.factors.add(
+            gtsam.BetweenFactorPose3(
+                _pose_key(step.previous),
+                _pose_key(step.current),
+                gtsam.Pose3(),
+                pose_noise(self.config.zero_motion_sigma_rad, self.config.zero_motion_sigma_m),
+            )
+        )
+        return np.eye(4)
+
+    def _commit(self, step: _Step, timestamp_ns: int, guess: np.ndarray) -> np.ndarray:
+        """Update the smoother with the step (restarting it after a numerical failure).
+
+        Returns the previous frame's pose estimate after the update.
+        """
+        previous = step.previous
         # The previous frame's keys would be marginalised by this update when the gap exceeds
         # the lag (its estimate is needed just below): restamped, it stays in the window.
-        if self._open[previous].stamp_s <= cutoff + _STAMP_MARGIN_S:
-            keep += [_pose_key(previous)] + ([_bias_key(previous)] if self.use_imu else [])
-            self._open[previous].stamp_s = stamp
+        if self._open[previous].stamp_s <= step.cutoff + _STAMP_MARGIN_S:
+            step.keep += [_pose_key(previous)] + ([_bias_key(previous)] if self.use_imu else [])
+            self._open[previous].stamp_s = step.stamp
         if self._use_accel:
-            keep += [_GRAVITY_KEY, _ACCEL_BIAS_KEY]
+            step.keep += [_GRAVITY_KEY, _ACCEL_BIAS_KEY]
         self._last_ns = timestamp_ns
-        self._index = current
-        self._finish_before(cutoff)
+        self._index = step.current
+        self._finish_before(step.cutoff)
         try:
-            self._update(factors, values, keys, tuple(keep))
-            previous_pose = self._pose_estimate(previous)
+            self._update(step.factors, step.values, step.keys, tuple(step.keep))
+            return self._pose_estimate(previous)
         except RuntimeError as error:  # numerical failure inside GTSAM: restart the graph
-            previous_pose = self._body_pose
             self._finish_before(float("inf"), read=False)
-            self._restart(current, self._body_pose @ guess)
-            notes.append(f"back end restarted at this frame ({str(error).strip().splitlines()[0]})")
+            self._restart(step.current, self._body_pose @ guess)
+            reason = str(error).strip().splitlines()[0]
+            step.notes.append(f"back end restarted at this frame ({reason})")
+            return self._body_pose
 
-        if accepted:
-            status = FrameStatus.OK
+    def _status(self, step: _Step) -> FrameStatus:
+        """OK with accepted vision, else DEGRADED (gyro) or LOST; counts the misses."""
+        if step.accepted:
             self._misses = 0
-        else:
-            self._misses += 1
-            if preintegration is not None:
-                status = FrameStatus.DEGRADED
-                notes.insert(0, "no vision: rotation from gyro, translation from motion prior")
-            else:
-                status = FrameStatus.LOST
-                notes.insert(0, "no vision, no gyro: pose from the constant-velocity prior")
-        self._previous_motion = invert_pose(previous_pose) @ self._pose_estimate(current)
-        self._previous_dt = dt
-        return self._estimate(status, "; ".join(notes), self._previous_motion.copy(), delta)
+            return FrameStatus.OK
+        self._misses += 1
+        if step.preintegration is not None:
+            step.notes.insert(0, "no vision: rotation from gyro, translation from motion prior")
+            return FrameStatus.DEGRADED
+        step.notes.insert(0, "no vision, no gyro: pose from the constant-velocity prior")
+        return FrameStatus.LOST
 
     def _estimate(
         self,

@@ -359,10 +359,11 @@ def _pipeline_run(runs: _Runs, path: Path, seed: int, imu: bool) -> RunResult:
     """``RunResult`` of the default pipeline (pso-robust, back end on) on ``path``."""
     from estimator.formats.datasets import open_sequence
     from estimator.pipeline import build_config, run_sequence
+    from estimator.registration.methods import DEFAULT_ESTIMATOR
 
     key = (path, seed, imu)
     if key not in runs:
-        config = build_config("pso-robust", seed, imu=imu, backend=True)
+        config = build_config(DEFAULT_ESTIMATOR, seed, imu=imu, backend=True)
         runs[key] = run_sequence(open_sequence(path), config, use_imu=imu)
     return runs[key]
 

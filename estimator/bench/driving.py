@@ -22,6 +22,7 @@ import numpy as np
 
 from estimator.formats.datasets import open_sequence
 from estimator.pipeline import ESTIMATORS, build_config, run_sequence, write_outputs
+from estimator.registration.methods import Estimator
 from estimator.rendered.synthetic import SynthOptions, synthesize
 
 __all__ = ["add_arguments", "run"]
@@ -51,7 +52,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--length-m", type=float, default=520.0, help="drive length [m]")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument(
-        "--estimators", nargs="+", choices=ESTIMATORS, default=["pso-robust", "msac"]
+        "--estimators",
+        nargs="+",
+        choices=ESTIMATORS,
+        default=[Estimator.PSO_ROBUST.value, Estimator.MSAC.value],  # the swarm and the classic
     )
     parser.add_argument(
         "--data",

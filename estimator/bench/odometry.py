@@ -29,6 +29,7 @@ from typing import Any
 from estimator.evaluation.metrics import evaluate_trajectory
 from estimator.formats.datasets import Sequence, open_sequence
 from estimator.pipeline import build_config, run_sequence, write_outputs
+from estimator.registration.methods import DEFAULT_ESTIMATOR
 from estimator.registration.registry import available_methods
 from estimator.rendered.synthetic import SynthOptions, synthesize
 
@@ -91,7 +92,7 @@ def _estimators(args: argparse.Namespace) -> list[str]:
     if unknown:
         raise ValueError(f"unknown estimator(s) {unknown}; registered: {', '.join(known)}")
     # The default first, as the tables lead with it.
-    return sorted(chosen, key=lambda name: (name != "pso-robust", name))
+    return sorted(chosen, key=lambda name: (name != DEFAULT_ESTIMATOR, name))
 
 
 def _open(path: Path) -> Sequence:
@@ -202,7 +203,7 @@ def _real_table(results: dict[str, Any]) -> str:
         ]
         estimators = sorted(
             {label.split(" ")[0] for label in runs if not label.startswith(PEER)},
-            key=lambda e: (e != "pso-robust", e),
+            key=lambda e: (e != DEFAULT_ESTIMATOR, e),
         )
         for estimator in estimators:
             for refine in (True, False):
@@ -220,7 +221,7 @@ def _real_table(results: dict[str, Any]) -> str:
 
 
 def _noise_line(runs: dict[str, Any]) -> str:
-    default = runs.get(_real_label("pso-robust", True, False)) or {}
+    default = runs.get(_real_label(DEFAULT_ESTIMATOR, True, False)) or {}
     noise = default.get("noise") or {}
     if not noise:
         return ""
@@ -296,7 +297,7 @@ def _rendered_table(results: dict[str, Any]) -> str:
             f"median {CHI2_3_MEDIAN}): "
             + ", ".join(f"{e} {_noise_cell(r)}" for e, r in runs.items())
         )
-    fused = results.get("rendered", {}).get("pso-robust", {}).get("fused")
+    fused = results.get("rendered", {}).get(DEFAULT_ESTIMATOR, {}).get("fused")
     if fused is not None:
         ate_ok = fused["ate_pct_of_path"] is not None and fused["ate_pct_of_path"] < TARGET_ATE_PCT
         rot_ok = fused["rpe_rot_rmse_deg"] < TARGET_RPE_ROT_DEG

@@ -20,6 +20,7 @@ from typing import Any
 from estimator.config import SwarmvoConfig
 from estimator.formats.datasets import Sequence, open_sequence
 from estimator.pipeline import build_config, load_config, run_sequence, summarize
+from estimator.registration.methods import Estimator
 from estimator.rendered.perturb import PERTURBATIONS, perturb_sequence
 
 __all__ = ["SETTINGS", "add_arguments", "run", "run_one"]
@@ -29,7 +30,7 @@ DEFAULT_DATA = Path(__file__).resolve().parents[2].parent / "shared/data/euroc_m
 SETTINGS: dict[str, dict[str, Any]] = {
     "default": {},
     "no-sigmas": {"registration": {"use_point_sigmas": False}},
-    "msac": {"registration": {"method": "msac"}},
+    Estimator.MSAC.value: {"registration": {"method": Estimator.MSAC.value}},
 }
 MODES = ("vision", "fused")
 
@@ -58,9 +59,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _config(
     setting: str, mode: str, seed: int, base: SwarmvoConfig | None = None
 ) -> SwarmvoConfig:
-    data = (base or SwarmvoConfig()).model_dump()
+    # Only the fields set in ``base`` are carried over, as ``swarmvo run`` does: a full dump
+    # would mark every field as configured and stop the rig-derived settings (the search
+    # window that scales with the frame interval) from being derived.
+    data = (base or SwarmvoConfig()).model_dump(exclude_unset=True)
     for section, values in SETTINGS[setting].items():
-        data[section].update(values)
+        data.setdefault(section, {}).update(values)
     return build_config(seed=seed, imu=mode == "fused", backend=True,
                         base=SwarmvoConfig.model_validate(data))  # fmt: skip
 

@@ -24,11 +24,16 @@ import numpy as np
 
 from estimator.geometry import quat_to_matrix, rotation_angle_deg, rotation_vector_to_quat
 from estimator.registration.refine import refine_pose_mahalanobis
-from estimator.registration.registry import available_methods, register
+from estimator.registration.registry import (
+    Estimator,
+    available_methods,
+    estimator_spec,
+    register,
+)
 
 __all__ = ["RIGS", "StereoPair", "StereoRigModel", "run_stereo_grid", "simulate_stereo_pair"]
 
-TARGET = "pso-robust"
+TARGET = Estimator.PSO_ROBUST.value
 TARGET_SUCCESS = 0.99
 TARGET_ERROR_RATIO = 1.1
 MAX_TARGET_RATIO = 0.9
@@ -137,7 +142,7 @@ def _solve(method: str, pair: StereoPair, seed: int) -> tuple[np.ndarray, np.nda
         rotation, translation = _oracle(pair)
         return rotation, translation, True
     options = {}
-    if method == "pso-robust":
+    if estimator_spec(method).takes_covariances:
         options = {"source_cov": pair.source_cov, "target_cov": pair.target_cov}
     result = register(pair.source, pair.target, method=method, seed=seed, **options)
     return result.rotation, result.translation, result.success

@@ -37,14 +37,29 @@ def package_version() -> str:
         return "unknown"
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The full parser, or with ``only`` just that command's options loaded.
+
+    Loading a command's module can import the whole estimator; ``swarmvo serve`` then keeps
+    a few hundred MB in the server process that only its workers need.
+    """
     parser = argparse.ArgumentParser(prog="swarmvo", description=DESCRIPTION)
     parser.add_argument("--version", action="version", version=f"swarmvo {package_version()}")
     subparsers = parser.add_subparsers(dest="command", required=True)
     for name, (module_name, help_text) in COMMANDS.items():
-        sub = subparsers.add_parser(name, help=help_text)
+        # Only the chosen command's module is imported (`swarmvo serve` must not load the
+        # estimator's numba and GTSAM); its user-facing DESCRIPTION / EPILOG when it has one.
+        module = importlib.import_module(module_name) if only in (None, name) else None
+        sub = subparsers.add_parser(
+            name,
+            help=help_text,
+            description=getattr(module, "DESCRIPTION", help_text),
+            epilog=getattr(module, "EPILOG", None),
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
         sub.set_defaults(_module=module_name)
-        importlib.import_module(module_name).add_arguments(sub)
+        if module is not None:
+            module.add_arguments(sub)
     return parser
 
 
@@ -54,7 +69,9 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    words = sys.argv[1:] if argv is None else argv
+    command = words[0] if words and words[0] in COMMANDS else None
+    args = build_parser(only=command).parse_args(argv)
     warnings.showwarning = _show_warning
     module = importlib.import_module(args._module)
     try:

@@ -14,6 +14,12 @@ Two readings of "the covariance of the relative motion" from what a message carr
   gravity) get the sum P_j + Ad P_i Ad^T instead, the bound for independent ends;
 * ``twist``: the twist covariances integrated over the window as independent increments,
   C = sum_k Ad_k (dt_k^2 Sigma_k) Ad_k^T, the way a filter fusing the twist uses them.
+
+The front end's own measurements are checked one by one too (:func:`measurement_nees`): each
+T_ref_cur (left camera, keyframe to frame) against the ground-truth motion, with the covariance
+it was reported with. This separates the two ways a window can go wrong: measurements whose
+covariance is too small, or errors that are not independent from one measurement to the next
+(``lag1_correlation``: consecutive measurements against the same keyframe share its points).
 """
 
 from __future__ import annotations
@@ -29,7 +35,13 @@ from estimator.formats.datasets import GroundTruth
 from estimator.formats.odometry_msg import OdometryMessage
 from estimator.geometry import invert_pose
 
-__all__ = ["NeesResult", "body_pose_covariance", "relative_nees"]
+__all__ = [
+    "MeasurementCheck",
+    "NeesResult",
+    "body_pose_covariance",
+    "measurement_nees",
+    "relative_nees",
+]
 
 CovarianceSource = Literal["pose", "twist"]
 DOF = 6
@@ -125,3 +137,65 @@ def relative_nees(
         translation.append(float(error[3:] @ np.linalg.solve(covariance[3:, 3:], error[3:])))
         start = end
     return NeesResult(np.array(values), np.array(rotation), np.array(translation))
+
+
+@dataclass(frozen=True)
+class MeasurementCheck:
+    """Per-measurement NEES of the front end, and how its errors follow each other."""
+
+    nees: NeesResult
+    # Correlation of consecutive measurement errors (mean over the six axes): against the same
+    # keyframe, and across a keyframe change (0 for independent measurements).
+    lag1_same_reference: float
+    lag1_new_reference: float
+
+    def summary(self) -> dict[str, float | int]:
+        return {
+            **self.nees.summary(),
+            "lag1_same_reference": self.lag1_same_reference,
+            "lag1_new_reference": self.lag1_new_reference,
+        }
+
+
+def measurement_nees(
+    reports: list, ground_truth: GroundTruth, body_from_camera: np.ndarray
+) -> MeasurementCheck:
+    """NEES of each reported front-end measurement T_ref_cur (right perturbation of the left
+    camera, GTSAM order) against the ground-truth motion of the left camera."""
+    pose_of = {r.timestamp_ns: r.frontend_pose for r in reports}
+    measured = [
+        r for r in reports
+        if r.measurement_covariance is not None and r.reference_timestamp_ns in pose_of
+        and ground_truth.covers(np.array([r.reference_timestamp_ns, r.timestamp_ns])).all()
+    ]
+    stamps = np.array([[r.reference_timestamp_ns, r.timestamp_ns] for r in measured], np.int64)
+    truth = ground_truth.interpolate(stamps.reshape(-1)).reshape(-1, 2, 4, 4) @ body_from_camera
+    errors, covariances, references = [], [], []
+    for report, (first, last) in zip(measured, truth, strict=True):
+        actual = invert_pose(first) @ last
+        motion = invert_pose(pose_of[report.reference_timestamp_ns]) @ report.frontend_pose
+        errors.append(gtsam.Pose3.Logmap(gtsam.Pose3(invert_pose(actual) @ motion)))
+        covariances.append(report.measurement_covariance)
+        references.append(report.reference_timestamp_ns)
+    error, covariance = np.array(errors).reshape(-1, 6), np.array(covariances).reshape(-1, 6, 6)
+    values = np.einsum("ni,ni->n", error, np.linalg.solve(covariance, error[:, :, None])[..., 0])
+    rotation = np.einsum(
+        "ni,ni->n", error[:, :3], np.linalg.solve(covariance[:, :3, :3], error[:, :3, None])[..., 0]
+    )
+    translation = np.einsum(
+        "ni,ni->n", error[:, 3:], np.linalg.solve(covariance[:, 3:, 3:], error[:, 3:, None])[..., 0]
+    )
+    same = np.array(references[1:]) == np.array(references[:-1])
+    return MeasurementCheck(
+        NeesResult(values, rotation, translation),
+        _lag1_correlation(error, same),
+        _lag1_correlation(error, ~same),
+    )
+
+
+def _lag1_correlation(error: np.ndarray, pairs: np.ndarray) -> float:
+    """Mean over the axes of the correlation of error k with error k + 1, where ``pairs``."""
+    if pairs.sum() < 3:
+        return float("nan")
+    before, after = error[:-1][pairs], error[1:][pairs]
+    return float(np.mean([np.corrcoef(before[:, k], after[:, k])[0, 1] for k in range(6)]))

@@ -207,15 +207,21 @@ def detect_format(path: Path) -> DatasetFormat:
     )
 
 
-def open_sequence(path: Path, format: DatasetFormat | None = None) -> Sequence:
-    """Open a EuRoC or KITTI sequence folder (format detected when not given)."""
+def open_sequence(
+    path: Path, format: DatasetFormat | None = None, stereo_sync_tolerance_ns: int | None = None
+) -> Sequence:
+    """Open a EuRoC or KITTI sequence folder (format detected when not given).
+
+    EuRoC's left and right rows pair by the nearest stamp within ``stereo_sync_tolerance_ns``
+    (default: a tenth of the frame period); KITTI pairs by file name.
+    """
     path = Path(path)
     if format is None:
         format = detect_format(path)
     elif not path.is_dir():
         raise FileNotFoundError(f"dataset folder not found: {path}")
     if format == "euroc":
-        return _open_euroc(path)
+        return _open_euroc(path, stereo_sync_tolerance_ns)
     if format == "kitti":
         return _open_kitti(path)
     raise ValueError(f"unknown dataset format {format!r}; expected 'euroc' or 'kitti'")
@@ -345,18 +351,25 @@ def _warn(message: str) -> None:
     warnings.warn(message, stacklevel=3)
 
 
-def _pair_frames(left: dict[int, Path], right: dict[int, Path], where: Path) -> list[FrameRecord]:
-    """Frames present in both cameras with both image files on disk, in time order."""
-    unpaired = sorted(set(left) ^ set(right))
-    if unpaired:
-        _warn(
-            f"{where}: skipping {len(unpaired)} camera row(s) without a partner in the other "
-            f"camera (first at {unpaired[0]} ns)"
-        )
+def _pair_frames(
+    left: dict[int, Path], right: dict[int, Path], where: Path, tolerance_ns: int | None = None
+) -> list[FrameRecord]:
+    """Frames present in both cameras (stamps nearest each other within the tolerance, see
+    ``estimator.formats.stereo_sync``) with both image files on disk, in time order."""
+    from estimator.formats.stereo_sync import pair_stamps
+
+    pairing = pair_stamps(
+        np.fromiter(left, np.int64, len(left)), np.fromiter(right, np.int64, len(right)),
+        tolerance_ns,
+    )
+    if pairing.dropped:
+        _warn(pairing.summary(str(where)))
     frames, missing = [], []
-    for timestamp in sorted(set(left) & set(right)):
-        if left[timestamp].is_file() and right[timestamp].is_file():
-            frames.append(FrameRecord(timestamp, left[timestamp], right[timestamp]))
+    for timestamp, partner in zip(
+        pairing.left_ns.tolist(), pairing.right_ns.tolist(), strict=True
+    ):
+        if left[timestamp].is_file() and right[partner].is_file():
+            frames.append(FrameRecord(timestamp, left[timestamp], right[partner]))
         else:
             missing.append(timestamp)
     if missing:
@@ -367,7 +380,7 @@ def _pair_frames(left: dict[int, Path], right: dict[int, Path], where: Path) -> 
     return frames
 
 
-def _open_euroc(path: Path) -> Sequence:
+def _open_euroc(path: Path, stereo_sync_tolerance_ns: int | None = None) -> Sequence:
     mav0 = euroc_root(path)
     if mav0 is None:
         raise FileNotFoundError(f"{path}: no EuRoC mav0/cam0 and mav0/cam1 folders")
@@ -380,6 +393,7 @@ def _open_euroc(path: Path) -> Sequence:
         _read_camera_csv(mav0 / "cam0" / "data.csv"),
         _read_camera_csv(mav0 / "cam1" / "data.csv"),
         mav0,
+        stereo_sync_tolerance_ns,
     )
     if not frames:
         raise ValueError(f"{mav0}: no stereo pair with both images on disk")

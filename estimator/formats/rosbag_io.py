@@ -2,10 +2,11 @@
 
 Reads ROS 1 ``.bag`` files and ROS 2 bag folders (sqlite3 or mcap storage) with the ``rosbags``
 library. Left and right images (sensor_msgs/Image in mono8, mono16, bgr8, rgb8, or
-sensor_msgs/CompressedImage) are paired by their header stamps, as the EuRoC folder pairs
-its CSV rows; the IMU topic (sensor_msgs/Imu) becomes the sequence's IMU stream. Topics are
-guessed when the bag holds one stereo pair (two image topics whose names tell left from right,
-e.g. ``cam0``/``cam1`` or ``left``/``right``) and one IMU; otherwise the error lists them.
+sensor_msgs/CompressedImage) are paired by their header stamps, nearest within a tolerance
+(``estimator.formats.stereo_sync``: cameras without a common trigger are stamped apart); the
+IMU topic (sensor_msgs/Imu) becomes the sequence's IMU stream. Topics are guessed when the bag
+holds one stereo pair (two image topics whose names tell left from right, e.g. ``cam0``/``cam1``
+or ``left``/``right``) and one IMU; otherwise the error lists them.
 
 Images stay in the bag and are decoded frame by frame while the run streams through it, so a
 long recording never sits in memory. The calibration comes from elsewhere
@@ -27,6 +28,7 @@ from rosbags.highlevel import AnyReader, AnyReaderError
 
 from estimator.formats.bag_calibration import BagCalibration
 from estimator.formats.datasets import FrameRecord, Sequence, UnreadableImageError
+from estimator.formats.stereo_sync import pair_stamps
 from estimator.types import ImuBatch, StereoFrame
 
 __all__ = ["BagSequence", "BagTopics", "decode_image", "is_bag", "open_bag"]
@@ -115,6 +117,8 @@ def _guess_topics(
     listing = ", ".join(f"{t} ({kind})" for t, kind in sorted(connections.items())) or "none"
     left = left or calibration.left_topic
     right = right or calibration.right_topic
+    if imu is None and connections.get(calibration.imu_topic or "") == IMU_TYPE:
+        imu = calibration.imu_topic  # named by the IMU calibration and present
     if left is None or right is None:
         lefts = [t for t in images if _LEFT.search(t) and not _RIGHT.search(t)]
         rights = [t for t in images if _RIGHT.search(t) and not _LEFT.search(t)]
@@ -144,6 +148,8 @@ class BagSequence(Sequence):
     """A Sequence whose images are decoded from the bag as the run streams through it."""
 
     topics: BagTopics | None = None
+    # Right image stamp of each frame (frames carry the left image's stamp).
+    right_stamps: list[int] = field(default_factory=list)
     _stream: Iterator[tuple[int, StereoFrame | UnreadableImageError]] | None = field(
         default=None, repr=False
     )
@@ -173,7 +179,10 @@ class BagSequence(Sequence):
     def _pairs(self) -> Iterator[tuple[int, StereoFrame | UnreadableImageError]]:
         """(frame index, stereo pair or why it cannot be read) in time order, one pass."""
         assert self.topics is not None
-        position = {frame.timestamp_ns: i for i, frame in enumerate(self.frames)}
+        position = {
+            self.topics.left: {frame.timestamp_ns: i for i, frame in enumerate(self.frames)},
+            self.topics.right: {stamp: i for i, stamp in enumerate(self.right_stamps)},
+        }
         pending: dict[int, dict[str, np.ndarray | UnreadableImageError]] = {}
         ready: dict[int, StereoFrame | UnreadableImageError] = {}
         wanted = 0
@@ -182,22 +191,23 @@ class BagSequence(Sequence):
             chosen = [c for c in reader.connections if c.topic in side_of]
             for connection, _, raw in _messages(reader, chosen, self.root):
                 message = _deserialize(reader, raw, connection, self.root)
-                stamp = _stamp_ns(message)
-                if stamp not in position:
+                index = position[connection.topic].get(_stamp_ns(message))
+                if index is None:
                     continue
-                sides = pending.setdefault(stamp, {})
+                sides = pending.setdefault(index, {})
                 try:
                     image = decode_image(message, connection.msgtype, connection.topic)
                 except UnreadableImageError as error:
                     image = error
                 sides[side_of[connection.topic]] = image
                 if len(sides) == 2:
-                    del pending[stamp]
+                    del pending[index]
                     left, right = sides["left"], sides["right"]
                     broken = next(
                         (s for s in (left, right) if isinstance(s, UnreadableImageError)), None
                     )
-                    ready[position[stamp]] = broken or StereoFrame(stamp, left, right)
+                    stamp = self.frames[index].timestamp_ns
+                    ready[index] = broken or StereoFrame(stamp, left, right)
                 while wanted in ready:
                     yield wanted, ready.pop(wanted)
                     wanted += 1
@@ -262,8 +272,13 @@ def open_bag(
     left_topic: str | None = None,
     right_topic: str | None = None,
     imu_topic: str | None = None,
+    stereo_sync_tolerance_ns: int | None = None,
 ) -> BagSequence:
-    """A stereo recording in a ROS 1 or ROS 2 bag as a Sequence (module doc)."""
+    """A stereo recording in a ROS 1 or ROS 2 bag as a Sequence (module doc).
+
+    Left and right images pair when their stamps are nearest each other and at most
+    ``stereo_sync_tolerance_ns`` apart (default: a tenth of the frame period).
+    """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"bag not found: {path}")
@@ -274,19 +289,20 @@ def open_bag(
         is_ros1 = reader.is2 is False
     topics = _guess_topics(connections, left_topic, right_topic, imu_topic, calibration)
     stamps, imu = _scan(path, topics)
-    left, right = set(stamps[topics.left]), set(stamps[topics.right])
-    paired = sorted(left & right)
-    if not paired:
+    pairing = pair_stamps(
+        np.array(stamps[topics.left], dtype=np.int64),
+        np.array(stamps[topics.right], dtype=np.int64),
+        stereo_sync_tolerance_ns,
+    )
+    if not len(pairing.left_ns):
         raise ValueError(
-            f"{path}: no left/right image pair with equal header stamps on {topics.left} "
-            f"({len(left)} images) and {topics.right} ({len(right)} images)"
+            f"{path}: no left/right image pair within {pairing.tolerance_ns / 1e6:g} ms on "
+            f"{topics.left} ({len(stamps[topics.left])} images) and {topics.right} "
+            f"({len(stamps[topics.right])} images); see --stereo-sync-tolerance"
         )
-    unpaired = len(left ^ right)
-    if unpaired:
-        warnings.warn(
-            f"{path}: skipping {unpaired} image(s) without a partner in the other camera",
-            stacklevel=2,
-        )
+    if pairing.dropped:
+        warnings.warn(pairing.summary(str(path)), stacklevel=2)
+    paired = pairing.left_ns.tolist()
     frames = [FrameRecord(stamp, path, path) for stamp in paired]
     name = path.stem if path.is_file() else path.name
     return BagSequence(
@@ -299,4 +315,5 @@ def open_bag(
         imu_noise=calibration.imu_noise if imu is not None else None,
         ground_truth=None,
         topics=topics,
+        right_stamps=pairing.right_ns.tolist(),
     )

@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from estimator.geometry import is_degenerate, kabsch, kabsch_batched
-from estimator.registration.methods import register_method
+from estimator.registration.methods import Estimator, EstimatorSpec, register_method
 from estimator.registration.result import (
     RegistrationResult,
     check_positive,
@@ -28,12 +28,12 @@ from estimator.registration.result import (
 __all__ = ["msac", "svd"]
 
 
-@register_method("svd")
+@register_method(EstimatorSpec(Estimator.SVD, "least squares on all pairs"))
 def svd(
     source: np.ndarray, target: np.ndarray, *, seed: int | None = None, **unknown: object
 ) -> RegistrationResult:
     """Arun et al. (1987) least squares on all pairs (``seed`` unused: deterministic)."""
-    reject_unknown_options("svd", unknown)
+    reject_unknown_options(Estimator.SVD, unknown)
     count = len(source)
     if count < 3:
         return failed_result(count, f"svd needs at least 3 pairs, got {count}")
@@ -50,7 +50,13 @@ def svd(
     )
 
 
-@register_method("msac")
+@register_method(
+    EstimatorSpec(
+        Estimator.MSAC,
+        "random 3-point hypotheses, truncated quadratic cost",
+        takes_sigmas=True,
+    )
+)
 def msac(
     source: np.ndarray,
     target: np.ndarray,
@@ -72,7 +78,7 @@ def msac(
     ``sigmas`` (N,) per-pair residual std: residuals are divided by sigma_j / median(sigma)
     (T then applies to a median pair), as ``pso-robust`` does; the refits stay unweighted.
     """
-    reject_unknown_options("msac", unknown)
+    reject_unknown_options(Estimator.MSAC, unknown)
     check_positive(threshold=threshold, batch_size=batch_size, max_iterations=max_iterations)
     if not 0.0 < confidence < 1.0:
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")

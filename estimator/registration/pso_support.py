@@ -1,5 +1,8 @@
 """Rigid registration by a particle swarm over rotations with a support count.
 
+(About 590 lines: the estimator's steps read as one algorithm here; its compiled kernels live
+in ``rigidity.py`` (steps 1-2) and ``swarm_kernels.py`` (steps 3-4).)
+
 ``pso`` follows the paper ("Robot Pose Estimation Based on Visual Information and Particle
 Swarm Optimization"): both point sets are centred on the centroids of *all* pairs, each
 particle is a rotation, its cost is eq. 13, sum_j ||r'_j - q r_j q^-1||^2, and its support
@@ -57,7 +60,6 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 
-import numba
 import numpy as np
 
 from estimator.geometry import (
@@ -66,7 +68,7 @@ from estimator.geometry import (
     matrix_to_quat,
     quat_to_rotation_vector,
 )
-from estimator.registration.methods import register_method
+from estimator.registration.methods import Estimator, EstimatorSpec, register_method
 from estimator.registration.pso import optimise
 from estimator.registration.refine import refine_pose_mahalanobis, squared_mahalanobis
 from estimator.registration.result import (
@@ -77,10 +79,27 @@ from estimator.registration.result import (
     relative_scales,
     residual_norms,
 )
+from estimator.registration.rigidity import (
+    graph_sample,
+    rigid_core,
+    rigidity_scores,
+    rigidity_weights,
+    top_ranked,
+)
+from estimator.registration.swarm_kernels import (
+    MIN_SUPPORT,
+    degenerate_points,
+    degenerate_rows,
+    fit_pose,
+    horn_fit,
+    pair_forms,
+    refit_loop,
+    swarm_residuals,
+    swarm_scores,
+)
 
-__all__ = ["PsoSupportEstimator", "rigidity_scores", "rigidity_weights"]
+__all__ = ["PsoSupportEstimator", "weighted_horn"]
 
-MIN_SUPPORT = 4
 GATE_CHI2 = 16.266  # chi-square quantile 0.999 with 3 degrees of freedom
 # Scale ladder: double the threshold while support grows by at least this fraction.
 LADDER_GAIN = 0.05
@@ -163,7 +182,7 @@ class PsoSupportEstimator:
         known = _option_names(cls)
         unknown = sorted(set(options) - known)
         if unknown:
-            name = "pso-robust" if robust else "pso"
+            name = Estimator.PSO_ROBUST if robust else Estimator.PSO
             raise ValueError(f"{name}: unknown option(s) {unknown}; known: {sorted(known)}")
         return cls(robust=robust, **options)  # type: ignore[arg-type]
 
@@ -223,14 +242,14 @@ class PsoSupportEstimator:
     ) -> RegistrationResult:
         # The O(M^2) graph only has to find a small rigid core: on a random subset of at most
         # ``graph_pairs`` pairs (same outlier ratio) the cost stops growing with N.
-        sample = _graph_sample(len(source), self.graph_pairs, rng)
+        sample = graph_sample(len(source), self.graph_pairs, rng)
         sample_scales = None if scales is None else scales[sample]
         weights = rigidity_weights(source[sample], target[sample], self.rigidity, sample_scales)
         # Only the top of the ranking is ever looked at: select it, do not sort all pairs.
-        ranking = _top_ranked(rigidity_scores(weights), 4 * self.core_size)
-        local_core = _rigid_core(weights, ranking, self.core_size)
+        ranking = top_ranked(rigidity_scores(weights), 4 * self.core_size)
+        local_core = rigid_core(weights, ranking, self.core_size)
         core = sample[local_core]
-        if _degenerate_rows(source, target, core):
+        if degenerate_rows(source, target, core):
             return failed_result(len(source), "no rigid, non-collinear core of pairs found")
         delta = self.delta or self._delta_from_core(weights[local_core[:, None], local_core])
 
@@ -281,10 +300,10 @@ class PsoSupportEstimator:
         settle (or is too small) within ``refits`` rounds. With a ``floor`` the fits weigh
         each pair by 1 / max(u, floor)^2 of its normalised residual u at the previous pose
         (``residual`` to start): the ladder's stand-in for unknown per-pair noise.
-        The whole loop is one compiled call (``_refit_loop``).
+        The whole loop is one compiled call (``refit_loop``).
         """
         weighted = floor is not None and residual is not None
-        supporters, delta, quaternion, rotation, translation, residual, settled = _refit_loop(
+        supporters, delta, quaternion, rotation, translation, residual, settled = refit_loop(
             pairs.source,
             pairs.target,
             supporters,
@@ -387,12 +406,12 @@ class _Pairs:
 
     def fit(self, source: np.ndarray, target: np.ndarray, mask: np.ndarray) -> Pose:
         """Horn's least squares on the pairs in ``mask``, weighted by 1 / scale^2."""
-        return _fit_pose(source, target, mask, self.weights, self.inverse)
+        return fit_pose(source, target, mask, self.weights, self.inverse)
 
     def pose_of(self, supporters: np.ndarray) -> Pose | None:
         """The fit of the supporters and everyone's normalised residual; None if degenerate."""
         rows = np.flatnonzero(supporters)
-        if len(rows) < MIN_SUPPORT or _degenerate_points(self.source, rows):
+        if len(rows) < MIN_SUPPORT or degenerate_points(self.source, rows):
             return None
         return self.fit(self.source, self.target, supporters)
 
@@ -403,7 +422,7 @@ class _RotationObjective:
     The pairs are anchored as R (p - c) and p' - c', with c, c' the centroids of the
     ``anchor`` rows, and divided by their scale (which divides the residual by it); each
     then enters as its Horn form, compressed to the 10 distinct coefficients of the
-    symmetric 4x4 matrix (``_pair_forms``).
+    symmetric 4x4 matrix (``pair_forms``).
     """
 
     def __init__(
@@ -417,21 +436,21 @@ class _RotationObjective:
     ) -> None:
         if inverse_scales is None:
             inverse_scales = np.ones(len(source))
-        self.forms, self.norms = _pair_forms(source, target, anchor, rotation, inverse_scales)
+        self.forms, self.norms = pair_forms(source, target, anchor, rotation, inverse_scales)
         self.delta_squared = float(delta * delta)
 
     def squared_residuals(self, positions: np.ndarray) -> np.ndarray:
         """(P, M) ||t_j - q_p s_j q_p^-1||^2 via |t|^2 + |s|^2 - 2 q^T N_j q (normalised)."""
         positions = np.ascontiguousarray(positions, dtype=float)
-        return _swarm_residuals(positions, self.forms, self.norms)
+        return swarm_residuals(positions, self.forms, self.norms)
 
     def sum_of_squares(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The paper: support (eq. 15) and the plain sum of squared residuals (eq. 13)."""
-        return _swarm_scores(positions, self.forms, self.norms, self.delta_squared, False)
+        return swarm_scores(positions, self.forms, self.norms, self.delta_squared, False)
 
     def truncated(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Support and the MSAC cost sum min(r^2, delta^2), which outliers cannot dominate."""
-        return _swarm_scores(positions, self.forms, self.norms, self.delta_squared, True)
+        return swarm_scores(positions, self.forms, self.norms, self.delta_squared, True)
 
     def supporters(self, position: np.ndarray) -> np.ndarray:
         return self.squared_residuals(position[None, :])[0] < self.delta_squared
@@ -447,7 +466,7 @@ def weighted_horn(
     source = np.ascontiguousarray(source, dtype=float)
     target = np.ascontiguousarray(target, dtype=float)
     weights = np.ascontiguousarray(weights, dtype=float)
-    return _horn_fit(source, target, weights, np.ones(len(source), dtype=np.bool_))
+    return horn_fit(source, target, weights, np.ones(len(source), dtype=np.bool_))
 
 
 def _arun(source: np.ndarray, target: np.ndarray, mask: np.ndarray) -> Pose:
@@ -480,20 +499,13 @@ def _finish(
             f"delta={delta:.3g} m may be too small for the noise",
             iterations=iterations,
         )
-    if _degenerate_rows(source, target, rows):
+    if degenerate_rows(source, target, rows):
         return failed_result(count, "the supporting pairs are collinear", iterations=iterations)
     quaternion, rotation, translation, residual = pose or fit(source, target, supporters)
     cost = float(np.minimum(residual * residual, delta * delta).sum())
     return pose_result(
         rotation, translation, supporters, cost=cost, iterations=iterations, quaternion=quaternion
     )
-
-
-def _graph_sample(count: int, limit: int, rng: np.random.Generator) -> np.ndarray:
-    """All pair indices, or ``limit`` of them drawn at random (sorted) when there are more."""
-    if count <= limit:
-        return np.arange(count)
-    return np.sort(rng.choice(count, limit, replace=False))
 
 
 def _covariances(
@@ -552,572 +564,31 @@ def _mahalanobis_support(
     return supporters, (matrix_to_quat(rotation), rotation, translation, np.sqrt(squared))
 
 
-def _rigid_core(weights: np.ndarray, ranking: np.ndarray, size: int) -> np.ndarray:
-    """Top-ranked pairs taken greedily when rigid-consistent with all pairs taken before.
-
-    ``ranking`` is best first (at least its first 4 * size entries). Falls back to the plain
-    top of the ranking when no consistent core of 3 exists.
-    """
-    candidates = ranking[: 4 * size]
-    taken = _greedy_core(weights, candidates, size)
-    if len(taken) < 3:
-        return ranking[:size]
-    return candidates[taken]
+_TUNING_OPTIONS = _option_names(PsoSupportEstimator) - {"sigmas", "source_cov", "target_cov"}
 
 
-def rigidity_weights(
-    source: np.ndarray,
-    target: np.ndarray,
-    tolerance: float,
-    scales: np.ndarray | None = None,
-) -> np.ndarray:
-    """(N, N) weights max(0, 1 - (||p_i - p_j|| - ||p'_i - p'_j||)^2 / tolerance^2), 0 diagonal.
-
-    With per-pair noise ``scales`` s the tolerance of i, j is tolerance * sqrt((s_i^2 +
-    s_j^2) / 2): the distance error has variance sigma_i^2 + sigma_j^2.
-    O(N^2) time and memory, independent of the outlier ratio. Compiled, in float32 on
-    centred coordinates (distance rounding ~1e-6 relative, far below any useful
-    tolerance) so that the inner loop vectorises; numpy would need several (N, N)
-    temporaries per step.
-    """
-    source = np.ascontiguousarray(source, dtype=float)
-    target = np.ascontiguousarray(target, dtype=float)
-    if scales is None:
-        return _rigidity_kernel(source, target, float(tolerance))
-    half_squares = np.ascontiguousarray(0.5 * np.asarray(scales) ** 2, dtype=np.float32)
-    return _scaled_rigidity_kernel(source, target, float(tolerance), half_squares)
-
-
-def rigidity_scores(weights: np.ndarray, power_steps: int = 2) -> np.ndarray:
-    """Leading-eigenvector approximation of the weight matrix (spectral matching).
-
-    The degree counts consistent partners; each power step also rewards partners that are
-    themselves consistent with many, which is what separates a rigid cluster of inliers
-    from chance agreements of outliers.
-    """
-    return _spectral_scores(np.ascontiguousarray(weights, dtype=np.float32), power_steps)
-
-
-# ----------------------------------------------------------------------------- kernels
-# Each call of pso-robust runs these on a few hundred pairs: compiled, a step costs
-# microseconds, where the equivalent dozen small numpy calls would cost ten times more.
-# They are written as scalar loops (no array expressions, matmul or linalg), which keeps
-# their one-off compilation (cached on disk) short. error_model="numpy": a division is a
-# plain IEEE division, not a ZeroDivisionError check, whose branch would stop the loops
-# from vectorising (the scaled rigidity kernel ran 6x slower with it).
-
-
-@numba.njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
-def _spectral_scores(weights: np.ndarray, power_steps: int) -> np.ndarray:
-    # Row sums, then power steps scaled to a peak of 1, all in float32 (as the weights).
-    count = weights.shape[0]
-    scores = np.empty(count, dtype=np.float32)
-    if count == 0:
-        return scores
-    for i in range(count):
-        row = weights[i]
-        total = np.float32(0.0)
-        for j in range(count):
-            total += row[j]
-        scores[i] = total
-    for _ in range(power_steps):
-        stepped = np.empty(count, dtype=np.float32)
-        for i in range(count):
-            row = weights[i]
-            total = np.float32(0.0)
-            for j in range(count):
-                total += row[j] * scores[j]
-            stepped[i] = total
-        peak = stepped[0]
-        for i in range(1, count):
-            peak = max(peak, stepped[i])
-        if peak <= 0.0:
-            return stepped
-        for i in range(count):
-            stepped[i] /= peak
-        scores = stepped
-    return scores
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _top_ranked(scores: np.ndarray, count: int) -> np.ndarray:
-    # Indices of the ``count`` highest scores, highest first, ties by index: the head of a
-    # stable descending argsort, by insertion into a short sorted list.
-    size = max(min(count, len(scores)), 0)
-    top = np.empty(size, dtype=np.int64)
-    if size == 0:
-        return top
-    filled = 0
-    for index in range(len(scores)):
-        value = scores[index]
-        if filled == size and not value > scores[top[size - 1]]:
-            continue
-        slot = min(filled, size - 1)  # the last slot is dropped when the list is full
-        while slot > 0 and value > scores[top[slot - 1]]:
-            top[slot] = top[slot - 1]
-            slot -= 1
-        top[slot] = index
-        filled = min(filled + 1, size)
-    return top
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _greedy_core(weights: np.ndarray, candidates: np.ndarray, size: int) -> np.ndarray:
-    # Positions in ``candidates`` of the greedy core: each consistent (w > 0) with all before.
-    taken = np.empty(max(min(size, len(candidates)), 0), dtype=np.int64)
-    if len(taken) == 0:
-        return taken
-    taken[0] = 0
-    found = 1
-    for position in range(1, len(candidates)):
-        if found == len(taken):
-            break
-        pair = candidates[position]
-        consistent = True
-        for earlier in range(found):
-            if not weights[candidates[taken[earlier]], pair] > 0.0:
-                consistent = False
-                break
-        if consistent:
-            taken[found] = position
-            found += 1
-    return taken[:found]
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _symmetric_eigen(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    # Cyclic Jacobi for a small symmetric matrix: eigenvalues ascending, unit eigenvectors
-    # as columns. For 3x3 and 4x4 it is faster than a LAPACK call and compiles in a
-    # fraction of the time of numba's linalg wrappers. Accuracy ~1e-16 of the norm, as
-    # LAPACK's: off-diagonal elements below 1e-18 of the norm are dropped, which also ends
-    # the sweeps (quadratic convergence: a handful for 4x4).
-    size = matrix.shape[0]
-    a = np.empty((size, size))
-    vectors = np.zeros((size, size))
-    squares = 0.0
-    for p in range(size):
-        vectors[p, p] = 1.0
-        for q in range(size):
-            a[p, q] = matrix[p, q]
-            squares += matrix[p, q] * matrix[p, q]
-    negligible = 1e-18 * math.sqrt(squares)
-    for _ in range(64):
-        rotated = False
-        for p in range(size - 1):
-            for q in range(p + 1, size):
-                apq = a[p, q]
-                if abs(apq) <= negligible:
-                    continue
-                rotated = True
-                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
-                if abs(theta) > 1e150:
-                    tangent = 0.5 / theta
-                elif theta >= 0.0:
-                    tangent = 1.0 / (theta + math.sqrt(theta * theta + 1.0))
-                else:
-                    tangent = -1.0 / (-theta + math.sqrt(theta * theta + 1.0))
-                cosine = 1.0 / math.sqrt(tangent * tangent + 1.0)
-                sine = tangent * cosine
-                for k in range(size):  # A <- A J (columns p, q)
-                    akp, akq = a[k, p], a[k, q]
-                    a[k, p] = cosine * akp - sine * akq
-                    a[k, q] = sine * akp + cosine * akq
-                for k in range(size):  # A <- J^T A (rows p, q)
-                    apk, aqk = a[p, k], a[q, k]
-                    a[p, k] = cosine * apk - sine * aqk
-                    a[q, k] = sine * apk + cosine * aqk
-                a[p, q] = 0.0
-                a[q, p] = 0.0
-                for k in range(size):  # V <- V J
-                    vkp, vkq = vectors[k, p], vectors[k, q]
-                    vectors[k, p] = cosine * vkp - sine * vkq
-                    vectors[k, q] = sine * vkp + cosine * vkq
-        if not rotated:
-            break
-    values = np.empty(size)
-    for k in range(size):
-        values[k] = a[k, k]
-    for k in range(1, size):  # insertion sort, ascending, columns along
-        j = k
-        while j > 0 and values[j - 1] > values[j]:
-            values[j - 1], values[j] = values[j], values[j - 1]
-            for row in range(size):
-                vectors[row, j - 1], vectors[row, j] = vectors[row, j], vectors[row, j - 1]
-            j -= 1
-    return values, vectors
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _degenerate_points(points: np.ndarray, rows: np.ndarray) -> bool:
-    # ``geometry.is_degenerate`` of points[rows], without the copy: the same two criteria
-    # on the singular values of the centred set (square roots of the scatter's eigenvalues).
-    if len(rows) < 3:
-        return True
-    mean = np.zeros(3)
-    peak = 0.0
-    for row in rows:
-        for axis in range(3):
-            mean[axis] += points[row, axis]
-            peak = max(peak, abs(points[row, axis]))
-    for axis in range(3):
-        mean[axis] /= len(rows)
-    scatter = np.zeros((3, 3))
-    for row in rows:
-        for a in range(3):
-            offset = points[row, a] - mean[a]
-            for b in range(3):
-                scatter[a, b] += offset * (points[row, b] - mean[b])
-    values = _symmetric_eigen(scatter)[0]
-    middle, largest = math.sqrt(max(values[1], 0.0)), math.sqrt(max(values[2], 0.0))
-    return largest <= 1e-12 * max(peak, 1e-300) or middle <= 1e-6 * largest
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _degenerate_rows(source: np.ndarray, target: np.ndarray, rows: np.ndarray) -> bool:
-    return _degenerate_points(source, rows) or _degenerate_points(target, rows)
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _pair_forms(
-    source: np.ndarray,
-    target: np.ndarray,
-    anchor: np.ndarray,
-    rotation: np.ndarray,
-    inverse_scales: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    # s_j = R (p_j - c) / scale_j, t_j = (p'_j - c') / scale_j with c, c' the centroids of
-    # the anchor rows; returns the (10, M) forms
-    # -2 (N00, N11, N22, N33, 2 N01, 2 N02, 2 N03, 2 N12, 2 N13, 2 N23) of Horn's matrix
-    # N(s_j t_j^T) and |s_j|^2 + |t_j|^2, so that ||t_j - q s_j q^-1||^2 is
-    # norms_j + forms[:, j] . (q0q0, q1q1, q2q2, q3q3, q0q1, q0q2, q0q3, q1q2, q1q3, q2q3).
-    source_centre = np.zeros(3)
-    target_centre = np.zeros(3)
-    for row in anchor:
-        for a in range(3):
-            source_centre[a] += source[row, a]
-            target_centre[a] += target[row, a]
-    for a in range(3):
-        source_centre[a] /= len(anchor)
-        target_centre[a] /= len(anchor)
-    count = len(source)
-    forms = np.empty((10, count))
-    norms = np.empty(count)
-    s = np.empty(3)
-    t = np.empty(3)
-    for j in range(count):
-        scale = inverse_scales[j]
-        for a in range(3):
-            s[a] = (
-                rotation[a, 0] * (source[j, 0] - source_centre[0])
-                + rotation[a, 1] * (source[j, 1] - source_centre[1])
-                + rotation[a, 2] * (source[j, 2] - source_centre[2])
-            ) * scale
-            t[a] = (target[j, a] - target_centre[a]) * scale
-        xx, xy, xz = s[0] * t[0], s[0] * t[1], s[0] * t[2]
-        yx, yy, yz = s[1] * t[0], s[1] * t[1], s[1] * t[2]
-        zx, zy, zz = s[2] * t[0], s[2] * t[1], s[2] * t[2]
-        forms[0, j] = -2.0 * (xx + yy + zz)
-        forms[1, j] = -2.0 * (xx - yy - zz)
-        forms[2, j] = -2.0 * (yy - xx - zz)
-        forms[3, j] = -2.0 * (zz - xx - yy)
-        forms[4, j] = -4.0 * (yz - zy)
-        forms[5, j] = -4.0 * (zx - xz)
-        forms[6, j] = -4.0 * (xy - yx)
-        forms[7, j] = -4.0 * (xy + yx)
-        forms[8, j] = -4.0 * (zx + xz)
-        forms[9, j] = -4.0 * (yz + zy)
-        norms[j] = s[0] ** 2 + s[1] ** 2 + s[2] ** 2 + t[0] ** 2 + t[1] ** 2 + t[2] ** 2
-    return forms, norms
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _quat_products(rotation_vector: np.ndarray, products: np.ndarray) -> None:
-    # The exponential map (as geometry.rotation_vector_to_quat), then the 10 products of
-    # the quaternion's components in the order of ``_pair_forms``, into ``products``.
-    angle = math.sqrt(rotation_vector[0] ** 2 + rotation_vector[1] ** 2 + rotation_vector[2] ** 2)
-    half = 0.5 * angle
-    scale = 0.5 - angle * angle / 48.0 if angle < 1e-8 else math.sin(half) / angle
-    w = math.cos(half)
-    x, y, z = rotation_vector[0] * scale, rotation_vector[1] * scale, rotation_vector[2] * scale
-    products[0], products[1], products[2], products[3] = w * w, x * x, y * y, z * z
-    products[4], products[5], products[6] = w * x, w * y, w * z
-    products[7], products[8], products[9] = x * y, x * z, y * z
-
-
-@numba.njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
-def _swarm_residuals(positions: np.ndarray, forms: np.ndarray, norms: np.ndarray) -> np.ndarray:
-    # (P, M) squared residuals of every particle against every pair.
-    squared = np.empty((positions.shape[0], len(norms)))
-    products = np.empty(10)
-    for particle in range(positions.shape[0]):
-        _quat_products(positions[particle], products)
-        for j in range(len(norms)):
-            value = norms[j]
-            for k in range(10):
-                value += forms[k, j] * products[k]
-            squared[particle, j] = max(value, 0.0)
-    return squared
-
-
-@numba.njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
-def _swarm_scores(
-    positions: np.ndarray, forms: np.ndarray, norms: np.ndarray, limit: float, truncate: bool
-) -> tuple[np.ndarray, np.ndarray]:
-    # Support (squared residual < limit) and cost (sum of squares, truncated at limit or not)
-    # of every particle, without the (P, M) matrix. fastmath lets the sums vectorise
-    # (reordered additions: ~1e-14 relative, deterministic for a given machine).
-    support = np.zeros(positions.shape[0], dtype=np.int64)
-    cost = np.zeros(positions.shape[0])
-    products = np.empty(10)
-    for particle in range(positions.shape[0]):
-        _quat_products(positions[particle], products)
-        count = 0
-        total = 0.0
-        for j in range(len(norms)):
-            value = norms[j]
-            for k in range(10):
-                value += forms[k, j] * products[k]
-            value = max(value, 0.0)
-            if value < limit:
-                count += 1
-            total += min(value, limit) if truncate else value
-        support[particle] = count
-        cost[particle] = total
-    return support, cost
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _horn_fit(
-    source: np.ndarray, target: np.ndarray, weights: np.ndarray, mask: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    # Weighted Horn on the pairs in mask: centroids, correlation, top eigenvector of the
-    # 4x4 Horn matrix as the quaternion (w >= 0), its rotation, t = c' - R c.
-    total = 0.0
-    for j in range(len(source)):
-        if mask[j]:
-            total += weights[j]
-    source_mean = np.zeros(3)
-    target_mean = np.zeros(3)
-    for j in range(len(source)):
-        if mask[j]:
-            for a in range(3):
-                source_mean[a] += weights[j] * source[j, a]
-                target_mean[a] += weights[j] * target[j, a]
-    for a in range(3):
-        source_mean[a] /= total
-        target_mean[a] /= total
-    c = np.zeros((3, 3))
-    for j in range(len(source)):
-        if mask[j]:
-            share = weights[j] / total
-            for a in range(3):
-                offset = share * (source[j, a] - source_mean[a])
-                for b in range(3):
-                    c[a, b] += offset * (target[j, b] - target_mean[b])
-    horn_matrix = np.empty((4, 4))
-    horn_matrix[0, 0] = c[0, 0] + c[1, 1] + c[2, 2]
-    horn_matrix[1, 1] = c[0, 0] - c[1, 1] - c[2, 2]
-    horn_matrix[2, 2] = c[1, 1] - c[0, 0] - c[2, 2]
-    horn_matrix[3, 3] = c[2, 2] - c[0, 0] - c[1, 1]
-    horn_matrix[0, 1] = horn_matrix[1, 0] = c[1, 2] - c[2, 1]
-    horn_matrix[0, 2] = horn_matrix[2, 0] = c[2, 0] - c[0, 2]
-    horn_matrix[0, 3] = horn_matrix[3, 0] = c[0, 1] - c[1, 0]
-    horn_matrix[1, 2] = horn_matrix[2, 1] = c[0, 1] + c[1, 0]
-    horn_matrix[1, 3] = horn_matrix[3, 1] = c[2, 0] + c[0, 2]
-    horn_matrix[2, 3] = horn_matrix[3, 2] = c[1, 2] + c[2, 1]
-    vectors = _symmetric_eigen(horn_matrix)[1]
-    top = vectors[:, 3]
-    length = math.sqrt(top[0] ** 2 + top[1] ** 2 + top[2] ** 2 + top[3] ** 2)
-    sign = -1.0 if top[0] < 0.0 else 1.0
-    quaternion = np.empty(4)
-    for k in range(4):
-        quaternion[k] = sign * top[k] / length
-    w, x, y, z = quaternion[0], quaternion[1], quaternion[2], quaternion[3]
-    rotation = np.empty((3, 3))
-    rotation[0, 0], rotation[0, 1], rotation[0, 2] = (
-        1 - 2 * (y * y + z * z),
-        2 * (x * y - w * z),
-        2 * (x * z + w * y),
+@register_method(
+    EstimatorSpec(
+        Estimator.PSO,
+        "the paper's swarm: all-pairs centroids, SVD refit",
+        options=_TUNING_OPTIONS,
+        takes_sigmas=True,
     )
-    rotation[1, 0], rotation[1, 1], rotation[1, 2] = (
-        2 * (x * y + w * z),
-        1 - 2 * (x * x + z * z),
-        2 * (y * z - w * x),
-    )
-    rotation[2, 0], rotation[2, 1], rotation[2, 2] = (
-        2 * (x * z - w * y),
-        2 * (y * z + w * x),
-        1 - 2 * (x * x + y * y),
-    )
-    translation = np.empty(3)
-    for a in range(3):
-        translation[a] = target_mean[a] - (
-            rotation[a, 0] * source_mean[0]
-            + rotation[a, 1] * source_mean[1]
-            + rotation[a, 2] * source_mean[2]
-        )
-    return quaternion, rotation, translation
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _normalised_residuals(
-    source: np.ndarray,
-    target: np.ndarray,
-    rotation: np.ndarray,
-    translation: np.ndarray,
-    inverse_scales: np.ndarray,
-) -> np.ndarray:
-    # ||p'_j - (R p_j + t)|| / scale_j for every pair.
-    residual = np.empty(len(source))
-    for j in range(len(source)):
-        total = 0.0
-        for a in range(3):
-            difference = (
-                target[j, a]
-                - rotation[a, 0] * source[j, 0]
-                - rotation[a, 1] * source[j, 1]
-                - rotation[a, 2] * source[j, 2]
-                - translation[a]
-            )
-            total += difference * difference
-        residual[j] = math.sqrt(total) * inverse_scales[j]
-    return residual
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _fit_pose(
-    source: np.ndarray,
-    target: np.ndarray,
-    mask: np.ndarray,
-    weights: np.ndarray,
-    inverse_scales: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    quaternion, rotation, translation = _horn_fit(source, target, weights, mask)
-    residual = _normalised_residuals(source, target, rotation, translation, inverse_scales)
-    return quaternion, rotation, translation, residual
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _refit_loop(
-    source: np.ndarray,
-    target: np.ndarray,
-    supporters: np.ndarray,
-    delta: float,
-    weights: np.ndarray,
-    inverse_scales: np.ndarray,
-    residual: np.ndarray,
-    floor: float,
-    weighted: bool,
-    adapt: bool,
-    refits: int,
-    delta_min: float,
-    delta_max: float,
-) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
-    # PsoSupportEstimator._refine: fit (weights, or with ``weighted`` weights /
-    # max(residual, floor)^2 from the previous pose), recount, until the set repeats.
-    # Adaptive delta: 4 sigma of the supporters' residuals, sigma = RMS / sqrt(3).
-    quaternion, rotation, translation = np.zeros(4), np.zeros((3, 3)), np.zeros(3)
-    fit_weights = weights.copy()
-    for _ in range(refits):
-        support = 0
-        for j in range(len(supporters)):
-            support += supporters[j]
-        if support < MIN_SUPPORT:
-            break
-        if weighted:
-            for j in range(len(supporters)):
-                if supporters[j]:
-                    fit_weights[j] = weights[j] / max(residual[j], floor) ** 2
-        quaternion, rotation, translation = _horn_fit(source, target, fit_weights, supporters)
-        residual = _normalised_residuals(source, target, rotation, translation, inverse_scales)
-        if adapt:
-            squares = 0.0
-            for j in range(len(supporters)):
-                if supporters[j]:
-                    squares += residual[j] * residual[j]
-            delta = 4.0 * math.sqrt(squares / support / 3.0)
-            delta = min(max(delta, delta_min), delta_max)
-        refreshed = np.empty_like(supporters)
-        settled = True
-        for j in range(len(supporters)):
-            refreshed[j] = residual[j] < delta
-            settled = settled and refreshed[j] == supporters[j]
-        if settled:
-            return supporters, delta, quaternion, rotation, translation, residual, True
-        supporters = refreshed
-    return supporters, delta, quaternion, rotation, translation, residual, False
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _centred_float32(points: np.ndarray) -> np.ndarray:
-    # (3, N) float32 coordinates relative to the centroid: small numbers keep the float32
-    # distances accurate, and rows of one coordinate make the kernels' inner loops SIMD.
-    count = len(points)
-    mean = np.zeros(3)
-    for row in range(count):
-        for axis in range(3):
-            mean[axis] += points[row, axis]
-    for axis in range(3):
-        mean[axis] /= count
-    centred = np.empty((3, count), dtype=np.float32)
-    for row in range(count):
-        for axis in range(3):
-            centred[axis, row] = points[row, axis] - mean[axis]
-    return centred
-
-
-@numba.njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
-def _rigidity_kernel(source: np.ndarray, target: np.ndarray, tolerance: float) -> np.ndarray:
-    # Full rows over structure-of-arrays inputs: branch-free, SIMD-friendly inner loop.
-    source32, target32 = _centred_float32(source), _centred_float32(target)
-    count = source32.shape[1]
-    weights = np.empty((count, count), dtype=np.float32)
-    scale = np.float32(1.0 / (tolerance * tolerance))
-    zero, one = np.float32(0.0), np.float32(1.0)
-    sx, sy, sz = source32[0], source32[1], source32[2]
-    tx, ty, tz = target32[0], target32[1], target32[2]
-    for i in range(count):
-        row = weights[i]
-        for j in range(count):
-            source_sq = (sx[j] - sx[i]) ** 2 + (sy[j] - sy[i]) ** 2 + (sz[j] - sz[i]) ** 2
-            target_sq = (tx[j] - tx[i]) ** 2 + (ty[j] - ty[i]) ** 2 + (tz[j] - tz[i]) ** 2
-            error = np.sqrt(source_sq) - np.sqrt(target_sq)
-            row[j] = max(one - error * error * scale, zero)
-        row[i] = zero
-    return weights
-
-
-@numba.njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
-def _scaled_rigidity_kernel(
-    source: np.ndarray, target: np.ndarray, tolerance: float, half_squares: np.ndarray
-) -> np.ndarray:
-    # As _rigidity_kernel, dividing by tolerance^2 (s_i^2 + s_j^2) / 2 per pair of pairs.
-    source32, target32 = _centred_float32(source), _centred_float32(target)
-    count = source32.shape[1]
-    weights = np.empty((count, count), dtype=np.float32)
-    scale = np.float32(1.0 / (tolerance * tolerance))
-    zero, one = np.float32(0.0), np.float32(1.0)
-    sx, sy, sz = source32[0], source32[1], source32[2]
-    tx, ty, tz = target32[0], target32[1], target32[2]
-    for i in range(count):
-        row = weights[i]
-        own = half_squares[i]
-        for j in range(count):
-            source_sq = (sx[j] - sx[i]) ** 2 + (sy[j] - sy[i]) ** 2 + (sz[j] - sz[i]) ** 2
-            target_sq = (tx[j] - tx[i]) ** 2 + (ty[j] - ty[i]) ** 2 + (tz[j] - tz[i]) ** 2
-            error = np.sqrt(source_sq) - np.sqrt(target_sq)
-            row[j] = max(one - error * error * scale / (own + half_squares[j]), zero)
-        row[i] = zero
-    return weights
-
-
-@register_method("pso")
+)
 def pso(source: np.ndarray, target: np.ndarray, *, seed: int | None = None, **options: object):
     """The paper's swarm: all-pairs centroids, eq. 13 cost, eq. 15 support, SVD refit."""
     return PsoSupportEstimator.from_options(False, options).estimate(source, target, seed)
 
 
-@register_method("pso-robust")
+@register_method(
+    EstimatorSpec(
+        Estimator.PSO_ROBUST,
+        "rigidity-seeded, core-anchored swarm with an adaptive threshold",
+        options=_TUNING_OPTIONS,
+        takes_sigmas=True,
+        takes_covariances=True,
+    )
+)
 def pso_robust(
     source: np.ndarray, target: np.ndarray, *, seed: int | None = None, **options: object
 ):

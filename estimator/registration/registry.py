@@ -2,7 +2,8 @@
 
 ``register(source, target, method=...)`` validates the input once, then dispatches to an
 estimator registered under ``method``. Estimators register themselves with
-``@register_method("name")``; every one returns a :class:`RegistrationResult`.
+``@register_method(EstimatorSpec(...))`` (name and capabilities, ``methods.py``); every one
+returns a :class:`RegistrationResult`.
 """
 
 from __future__ import annotations
@@ -11,15 +12,39 @@ import time
 
 import numpy as np
 
-from estimator.registration.methods import METHODS, register_method
+from estimator.registration.methods import (
+    DEFAULT_ESTIMATOR,
+    METHODS,
+    SPECS,
+    Estimator,
+    EstimatorSpec,
+    register_method,
+)
 from estimator.registration.result import RegistrationResult
 
-__all__ = ["METHODS", "RegistrationResult", "available_methods", "register", "register_method"]
+__all__ = [
+    "METHODS",
+    "Estimator",
+    "EstimatorSpec",
+    "RegistrationResult",
+    "available_methods",
+    "estimator_spec",
+    "register",
+    "register_method",
+]
 
 
 def available_methods() -> list[str]:
     _load_builtin_methods()
     return sorted(METHODS)
+
+
+def estimator_spec(method: str) -> EstimatorSpec:
+    """The declared capabilities of estimator ``method`` (``ValueError`` for an unknown one)."""
+    _load_builtin_methods()
+    if method not in SPECS:
+        raise ValueError(f"unknown method {method!r}; available: {', '.join(sorted(SPECS))}")
+    return SPECS[method]
 
 
 def _load_builtin_methods() -> None:
@@ -42,7 +67,7 @@ def _validated(points: np.ndarray, name: str) -> np.ndarray:
 def register(
     source: np.ndarray,
     target: np.ndarray,
-    method: str = "pso-robust",
+    method: str = DEFAULT_ESTIMATOR,
     seed: int | None = None,
     **options,
 ) -> RegistrationResult:

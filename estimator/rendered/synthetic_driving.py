@@ -25,16 +25,10 @@ from scipy.interpolate import CubicHermiteSpline
 from scipy.spatial import cKDTree
 
 from estimator.geometry import make_pose
-from estimator.rendered.synthetic import (
-    KITTI_CAMERA,
-    R_HEADING_CAM,
-    Plane,
-    SimCamera,
-    TrajectoryState,
-    World,
-    _add_plane,
-    euler_attitude,
-)
+from estimator.rendered.camera import KITTI_CAMERA, R_HEADING_CAM, SimCamera
+from estimator.rendered.render import Plane
+from estimator.rendered.trajectory import TrajectoryState, euler_attitude
+from estimator.rendered.world import World, add_plane
 
 __all__ = [
     "DRIVING_CAMERA",
@@ -186,7 +180,7 @@ def _add_upright_box(
         (top - half_l - half_d, across, depth),  # n = -along
     )
     for origin, u, width in faces:
-        _add_plane(planes, tuple(origin), u, down, width, height, px_per_m, rng)
+        add_plane(planes, tuple(origin), u, down, width, height, px_per_m, rng)
 
 
 def _footprint(center: np.ndarray, heading: float, length: float, depth: float) -> np.ndarray:
@@ -220,7 +214,7 @@ def build_street(trajectory: DrivingTrajectory, rng: np.random.Generator, px_per
     near = tree.query(corners + 0.5 * tile)[0] < 40.0
     ex, ey = np.eye(3)[0], np.eye(3)[1]
     for x, y in corners[near]:
-        _add_plane(planes, (x, y, 0.0), ex, ey, tile, tile, px_per_m, rng)
+        add_plane(planes, (x, y, 0.0), ex, ey, tile, tile, px_per_m, rng)
 
     # Building blocks on both sides, with the odd side street.
     for side in (-1.0, 1.0):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import math
 
 from fastapi import APIRouter, Request
 
@@ -47,12 +48,21 @@ async def post_frame(record: ActiveSession, request: Request, state: State) -> F
     try:
         future = live.submit(timestamp_ns, left, right, imu)
     except FrameRejected as error:
-        raise Refusal(error.status_code, error.detail, error.kind) from error
+        raise frame_refusal(error, error.kind) from error
     try:
         # Shielded: a client that hangs up does not cancel a frame already accepted.
-        return await asyncio.shield(future)
+        answered = await asyncio.shield(future)
     except FrameRejected as error:  # counted by the session's consumer
-        raise Refusal(error.status_code, error.detail, None) from error
+        raise frame_refusal(error, None) from error
+    return answered.answer
+
+
+def frame_refusal(error: FrameRejected, kind: str | None) -> Refusal:
+    """The HTTP answer to a refused frame; a passing 503 says when to retry (Retry-After)."""
+    headers = None
+    if error.retry_after_s is not None:
+        headers = {"Retry-After": str(max(1, math.ceil(error.retry_after_s)))}
+    return Refusal(error.status_code, error.detail, kind, headers)
 
 
 @router.post("/imu", response_model=ImuBatchOut, responses=ERROR_RESPONSES)

@@ -9,7 +9,12 @@ from starlette.concurrency import run_in_threadpool
 
 from service.dependencies import Owner, ServiceState, State, StoredSession
 from service.errors import ERROR_RESPONSES, Refusal
-from service.estimator_adapter import euroc_calibration, euroc_imu_noise, kitti_calibration
+from service.estimator_adapter import (
+    euroc_calibration,
+    euroc_frame_rate,
+    euroc_imu_noise,
+    kitti_calibration,
+)
 from service.limits import image_size_problems, work_limit_problems
 from service.multipart import (
     BINARY,
@@ -19,6 +24,7 @@ from service.multipart import (
     int_field,
     json_object_field,
     multipart_body,
+    rate_field,
     read_form,
     text_field,
 )
@@ -30,7 +36,7 @@ _MULTIPART_EUROC = multipart_body(
     ["cam0", "cam1"],
     {"cam0": BINARY, "cam1": BINARY, "imu0": BINARY, "name": {"type": "string"},
      "config": CONFIG_FIELD},
-)
+)  # the frame rate is cam0/sensor.yaml's rate_hz
 _MULTIPART_KITTI = multipart_body(
     ["calib", "width", "height"],
     {
@@ -39,8 +45,12 @@ _MULTIPART_KITTI = multipart_body(
         "height": {"type": "integer", "minimum": 1},
         "name": {"type": "string"},
         "config": CONFIG_FIELD,
+        "frame_rate_hz": {"type": "number", "exclusiveMinimum": 0,
+                          "description": "camera frame rate (else from the first two frames)"},
     },
 )
+# The most frames per second a session may declare.
+MAX_FRAME_RATE_HZ = 10_000.0
 
 
 def _create_session(
@@ -50,6 +60,7 @@ def _create_session(
     calibration: dict[str, Any],
     config: dict[str, Any],
     imu_noise: dict[str, Any] | None,
+    frame_rate_hz: float | None = None,
 ) -> SessionOut:
     """Check the key's quota and the prepared session's limits, then store it."""
     if state.store.count_sessions(owner) >= state.settings.max_sessions_per_key:
@@ -60,16 +71,13 @@ def _create_session(
             "too_many_sessions",
         )
     try:
-        prepared = state.factory.prepare(calibration, config, imu_noise)
+        prepared = state.factory.prepare(calibration, config, imu_noise, frame_rate_hz)
         problems = work_limit_problems(prepared.config) + image_size_problems(
             prepared.image_size, state.settings
         )
         if problems:
             raise ValueError("; ".join(problems))
-        # Optional: a factory may try the session out before it is stored.
-        check = getattr(state.factory, "check", None)
-        if callable(check):
-            check(prepared)
+        state.manager.runner.check_session(prepared)
     except ValueError as error:
         raise Refusal(422, str(error), "bad_session") from error
     record = state.store.create_session(
@@ -81,7 +89,8 @@ def _create_session(
 @router.post("", status_code=201, response_model=SessionOut)
 def create_session(body: SessionCreate, owner: Owner, state: State) -> SessionOut:
     noise = None if body.imu_noise is None else body.imu_noise.model_dump()
-    return _create_session(state, owner, body.name, body.calibration, body.config, noise)
+    return _create_session(state, owner, body.name, body.calibration, body.config, noise,
+                           body.frame_rate_hz)
 
 
 @router.post("/euroc", status_code=201, response_model=SessionOut, openapi_extra=_MULTIPART_EUROC)
@@ -96,28 +105,30 @@ async def create_session_euroc(request: Request, owner: Owner, state: State) -> 
     try:
         calibration = await run_in_threadpool(euroc_calibration, cam0, cam1)
         noise = None if imu0 is None else await run_in_threadpool(euroc_imu_noise, imu0)
+        rate = await run_in_threadpool(euroc_frame_rate, cam0)
     except ValueError as error:
         raise Refusal(422, str(error), "bad_session") from error
     return await run_in_threadpool(
-        _create_session, state, owner, name[:200], calibration, config, noise
+        _create_session, state, owner, name[:200], calibration, config, noise, rate
     )
 
 
 @router.post("/kitti", status_code=201, response_model=SessionOut, openapi_extra=_MULTIPART_KITTI)
 async def create_session_kitti(request: Request, owner: Owner, state: State) -> SessionOut:
     """Session from a KITTI ``calib.txt`` plus the image size."""
-    form = await read_form(request, max_files=1, max_fields=4)
+    form = await read_form(request, max_files=1, max_fields=5)
     calib = await file_field(form, "calib", MAX_CALIBRATION_FILE)
     width = int_field(form, "width", 1, state.settings.max_image_width)
     height = int_field(form, "height", 1, state.settings.max_image_height)
     name = text_field(form, "name", required=False) or ""
     config = json_object_field(form, "config")
+    rate = rate_field(form, "frame_rate_hz", MAX_FRAME_RATE_HZ)
     try:
         calibration = await run_in_threadpool(kitti_calibration, calib, (width, height))
     except ValueError as error:
         raise Refusal(422, str(error), "bad_session") from error
     return await run_in_threadpool(
-        _create_session, state, owner, name[:200], calibration, config, None
+        _create_session, state, owner, name[:200], calibration, config, None, rate
     )
 
 

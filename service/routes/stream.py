@@ -5,16 +5,17 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 from dataclasses import dataclass
 from typing import Any
 
 from fastapi import APIRouter, HTTPException, WebSocket
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ValidationError
+from sqlalchemy.exc import DBAPIError
 from starlette.types import Message
 from starlette.websockets import WebSocketDisconnect
 
-from service.answer import FrameAnswer
 from service.auth import AuthError, bearer_token, owner_for
 from service.dependencies import live_session, lookup_live_first, service_state
 from service.imu_input import brief, imu_arrays
@@ -31,22 +32,34 @@ from service.messages import (
     PoseMessage,
     RejectedMessage,
     ServerMessage,
+    SmoothedMessage,
 )
 from service.sessions import (
+    Answered,
     FrameDropped,
     FrameRejected,
     ImuSamples,
     LiveSession,
     SessionGone,
 )
-from service.storage import SessionRecord
+from service.storage import SessionRecord, SmoothedPose
+
+logger = logging.getLogger("swarmvo.service")
 
 # Answers (poses, refusals, errors) a WebSocket client may leave unread before the server
 # stops reading its socket; each is a small JSON message (images are not kept with them).
 MAX_UNSENT_REPLIES = 64
 
-# Answers in order: a ready message, or (future, timestamp_ns) of a frame being processed.
-_Outgoing = BaseModel | tuple[asyncio.Future[FrameAnswer], int]
+# Outbox marker: flush the session's back end once the answers before it are sent.
+_FLUSH = object()
+# How long a stream of a deleted session may take to send its last message.
+FINAL_MESSAGE_TIMEOUT_S = 5.0
+
+# Answers in order: a ready message, (future, timestamp_ns) of a frame being processed, or
+# the flush marker.
+_Outgoing = BaseModel | tuple[asyncio.Future[Answered], int] | object
+# Flushes after a normal close, kept referenced until they are done.
+_PENDING_FLUSHES: set[asyncio.Task[Any]] = set()
 
 router = APIRouter()
 
@@ -80,12 +93,16 @@ class StreamConnection:
         self.ending: tuple[int, str] | None = None
         self.stop = asyncio.Event()
 
-    def terminate(self, code: int, reason: str) -> None:
-        """End this stream from outside: its loop stops reading and closes with ``code``."""
+    def terminate(self, code: int, reason: str, last: list[SmoothedPose] | None = None) -> None:
+        """End this stream from outside: its loop stops reading and closes with ``code``,
+        after a last ``smoothed`` message when the session's back end was flushed."""
         if self.ending is None:
             self.ending = (code, reason)
         self.stop.set()
-        if self.sender is not None:
+        if last is not None and self.sender is not None and not self.sender.done():
+            self.outbox.put_nowait(SmoothedMessage.of(self.session_id, last))
+            self.outbox.put_nowait(None)
+        elif self.sender is not None:
             self.sender.cancel()
 
     async def _receive(self) -> Message | None:
@@ -104,8 +121,11 @@ class StreamConnection:
         return None
 
     async def _deny(self, status: int, detail: str) -> None:
-        self.state.metrics.errors.labels("auth" if status == 401 else "unknown_session").inc()
-        await self.websocket.send_denial_response(JSONResponse({"detail": detail}, status))
+        kind = {401: "auth", 503: "storage"}.get(status, "unknown_session")
+        self.state.metrics.errors.labels(kind).inc()
+        headers = {"Retry-After": "1"} if status == 503 else None
+        await self.websocket.send_denial_response(
+            JSONResponse({"detail": detail}, status, headers=headers))
 
     async def run(self) -> None:
         websocket = self.websocket
@@ -124,12 +144,18 @@ class StreamConnection:
             await self._deny(404 if isinstance(error, SessionGone) else error.status_code,
                              str(error.detail))
             return
+        except DBAPIError as error:  # the database is away: the robot retries later
+            logger.error("stream refused, database unavailable: %s", str(error).splitlines()[0])
+            await self._deny(503, "database unavailable; retry later")
+            return
+        finished = False
         try:
-            await self._serve(record, live)
+            finished = await self._serve(record, live)
         finally:
-            self.state.manager.detach(record.id, self)
+            self.state.manager.detach(record.id, self, finished)
 
-    async def _serve(self, record: SessionRecord, live: LiveSession) -> None:
+    async def _serve(self, record: SessionRecord, live: LiveSession) -> bool:
+        """Serve the stream; True when the robot ended it with a close message."""
         websocket = self.websocket
         await websocket.accept()
         self.image_size = (record.image_width, record.image_height)
@@ -145,7 +171,14 @@ class StreamConnection:
         try:
             while True:
                 message = await self._receive()
-                if message is None or message["type"] == "websocket.disconnect":
+                if message is None:
+                    break
+                if message["type"] == "websocket.disconnect":
+                    # A normal close ends the session's stream as a close message does (the
+                    # answers have nobody to go to); a lost connection keeps the window.
+                    live = self.state.manager.live.get(record.id)
+                    if message.get("code") in (1000, 1001) and live is not None:
+                        _flush_later(live)
                     break
                 if message.get("text") is not None:
                     if await self._on_text(message["text"], record):
@@ -156,8 +189,12 @@ class StreamConnection:
         except (WebSocketDisconnect, RuntimeError):
             pass
         finally:
+            if graceful and self.ending is None:
+                # The back end's window follows the answers, then the stream closes.
+                await self.outbox.put(_FLUSH)
             await self.outbox.put(None)
             if self.ending is not None:
+                await asyncio.wait({sender}, timeout=FINAL_MESSAGE_TIMEOUT_S)
                 sender.cancel()
                 await asyncio.wait({sender})
                 with contextlib.suppress(Exception):
@@ -172,6 +209,7 @@ class StreamConnection:
                 # are shielded), only the answers have nobody to go to.
                 sender.cancel()
                 await asyncio.wait({sender})
+        return graceful
 
     async def _reply(self, message: ServerMessage) -> None:
         await self._acquire_credit()
@@ -305,12 +343,19 @@ class StreamConnection:
             item = await self.outbox.get()
             if item is None:
                 return
+            if item is _FLUSH:
+                live = self.state.manager.live.get(self.session_id)
+                last = [] if live is None else await live.flush_after_queued()
+                await self.websocket.send_json(
+                    SmoothedMessage.of(self.session_id, last).model_dump(mode="json")
+                )
+                continue
             message = item if isinstance(item, BaseModel) else await self._outcome(*item)
             await self.websocket.send_json(message.model_dump(mode="json"))
             self.credit.release()
 
     @staticmethod
-    async def _outcome(future: asyncio.Future[FrameAnswer], timestamp_ns: int) -> ServerMessage:
+    async def _outcome(future: asyncio.Future[Answered], timestamp_ns: int) -> ServerMessage:
         """The answer to a submitted frame, once its pose is stored (or it was refused)."""
         try:
             result = await asyncio.shield(future)
@@ -318,8 +363,15 @@ class StreamConnection:
             return DroppedMessage(timestamp_ns=timestamp_ns, detail=error.detail)
         except FrameRejected as error:
             return RejectedMessage(timestamp_ns=timestamp_ns, status=error.status_code,
-                                   detail=error.detail)
-        return PoseMessage(**dict(result))
+                                   detail=error.detail, retry_after_s=error.retry_after_s)
+        return PoseMessage(**dict(result.answer), duplicate=result.duplicate)
+
+
+def _flush_later(live: LiveSession) -> None:
+    """Flush once the frames already sent are done, without waiting for it here."""
+    task = asyncio.get_running_loop().create_task(live.flush_after_queued())
+    _PENDING_FLUSHES.add(task)
+    task.add_done_callback(_PENDING_FLUSHES.discard)
 
 
 @dataclass

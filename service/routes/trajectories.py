@@ -10,7 +10,6 @@ import numpy as np
 from fastapi import APIRouter, Query, Response
 from fastapi.responses import JSONResponse, PlainTextResponse
 
-from service.answer import SmoothedPose, matrix_of
 from service.dependencies import State, StoredSession
 from service.errors import ERROR_RESPONSES
 from service.schemas import SmoothedOut, TrajectoryOut
@@ -22,10 +21,6 @@ router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["sessions"])
 _TRAJECTORY_CONTENT: dict[str, Any] = {
     "description": "JSON for format=json; text for format=tum (t x y z qx qy qz qw per line) "
     "and format=kitti (12 numbers of the 3x4 pose per line)",
-    "content": {"text/plain": {"schema": {"type": "string"}}},
-}
-_SMOOTHED_CONTENT: dict[str, Any] = {
-    "description": "JSON for format=json; text for format=tum (t x y z qx qy qz qw per line)",
     "content": {"text/plain": {"schema": {"type": "string"}}},
 }
 
@@ -53,31 +48,25 @@ def get_trajectory(
 
 
 @router.get(
-    "/smoothed", responses={**ERROR_RESPONSES, 200: _SMOOTHED_CONTENT},
+    "/smoothed", responses={**ERROR_RESPONSES, 200: _TRAJECTORY_CONTENT},
     response_model=SmoothedOut,
 )
 def get_smoothed(
     record: StoredSession,
     state: State,
-    format: Annotated[Literal["tum", "json"], Query()] = "json",
+    format: Annotated[Literal["tum", "kitti", "json"], Query()] = "json",
 ) -> Response:
-    """The smoother's final poses handed out so far by the live session (left camera in
-    world; each frame once, the newest 20000): the smoothed twin of ``/trajectory``. Not
-    stored: empty for a session that is not live in this server."""
-    live = state.manager.live.get(record.id)
-    smoothed = list(live.smoothed) if live is not None else []
+    """The smoother's final poses (left camera in world, each frame once, oldest first):
+    the smoothed twin of ``/trajectory``, stored as the frames are finalised; the last
+    frames follow when the session's stream ends (``close``) or the session is unloaded."""
+    smoothed = state.store.smoothed(record.id)
     if format == "json":
-        body = SmoothedOut(
-            session_id=record.id,
-            poses=[SmoothedPose(timestamp_ns=t, pose=matrix_of(p))
-                   for t, p in smoothed],
-        )
-        return JSONResponse(body.model_dump(mode="json"))
+        return JSONResponse(SmoothedOut.of(record.id, smoothed).model_dump(mode="json"))
     return trajectory_file(
-        "tum",
+        format,
         np.array([t for t, _ in smoothed], dtype=np.int64),
         np.array([p for _, p in smoothed], dtype=float).reshape(-1, 4, 4),
-        f"{record.id}.smoothed.tum.txt",
+        f"{record.id}.smoothed.{format}.txt",
     )
 
 

@@ -223,13 +223,14 @@ class WatchConnection:
         return sent_any
 
     async def _send_smoothed(self) -> None:
-        """The smoother's final poses since the last sent (kept by the live session)."""
-        live = self.state.manager.live.get(self.session_id)
-        if live is None or self.world is None or not live.smoothed:
+        """The smoother's final poses stored since the last sent."""
+        if self.world is None:
             return
-        if live.smoothed[-1][0] <= self.smoothed_ns:
+        new = await run_in_threadpool(
+            self.state.store.smoothed, self.session_id, self.smoothed_ns
+        )
+        if not new:
             return
-        new = [(t, pose) for t, pose in live.smoothed if t > self.smoothed_ns]
         self.smoothed_ns = new[-1][0]
         await self._send(smoothed_columns(new))
 
@@ -263,6 +264,7 @@ class WatchConnection:
                 quiet_since = time.monotonic()
                 await self._send_smoothed()
             if time.monotonic() >= state_due:
+                await self._send_smoothed()  # also those flushed when a stream ended
                 await self._send_state(count)
                 state_due = time.monotonic() + STATE_EVERY_S
 

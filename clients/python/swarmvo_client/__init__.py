@@ -16,6 +16,7 @@ from swarmvo_client.errors import (
 )
 from swarmvo_client.evaluation import TrajectoryError, trajectory_error
 from swarmvo_client.models import DroppedFrame, ImuData, Pose, RejectedFrame, Session
+from swarmvo_client.reliable import Backoff, ReliableStream, reliable_stream
 from swarmvo_client.replay import ReplayResult, replay, replay_http, replay_ws, write_tum
 from swarmvo_client.stream import FrameStream, stream
 
@@ -23,6 +24,7 @@ __all__ = [
     "ApiError",
     "AsyncClient",
     "AuthenticationError",
+    "Backoff",
     "Client",
     "ConflictError",
     "DroppedFrame",
@@ -35,6 +37,7 @@ __all__ = [
     "Pose",
     "RateLimitedError",
     "RejectedFrame",
+    "ReliableStream",
     "ReplayResult",
     "ServerError",
     "Session",
@@ -42,6 +45,7 @@ __all__ = [
     "SwarmvoError",
     "TrajectoryError",
     "open_local_sequence",
+    "reliable_stream",
     "replay",
     "replay_http",
     "replay_ws",

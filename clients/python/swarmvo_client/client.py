@@ -178,7 +178,7 @@ class Client:
         return _trajectory(response, format)
 
     def smoothed(self, session_id: str) -> list[tuple[int, np.ndarray]]:
-        """The back end's final poses so far (live session): (timestamp_ns, 4x4 left camera)."""
+        """The back end's stored final poses, oldest first: (timestamp_ns, 4x4 left camera)."""
         response = self._request("GET", f"/v1/sessions/{session_id}/smoothed")
         return [
             (int(item["timestamp_ns"]), np.array(item["pose"], dtype=float))

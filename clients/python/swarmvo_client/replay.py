@@ -32,6 +32,8 @@ class ReplayResult:
     rejected: list[RejectedFrame] = field(default_factory=list)
     wall_time_s: float = 0.0
     error: TrajectoryError | None = None
+    # The back end's final poses of the last frames, sent when the stream ended (WebSocket).
+    final_smoothed: list[tuple[int, np.ndarray]] = field(default_factory=list)
 
     @property
     def timestamps_ns(self) -> np.ndarray:
@@ -156,7 +158,7 @@ async def replay_ws(
         finally:
             producer.cancel()
             bar.close()
-        await connection.close()
+        result.final_smoothed = await connection.finish()
     result.wall_time_s = time.perf_counter() - began
     return result
 

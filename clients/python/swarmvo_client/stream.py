@@ -3,6 +3,7 @@
     async with stream(url, session_id, api_key) as s:
         await s.send_frame(timestamp_ns, left_png, right_png, imu)
         event = await s.recv()   # Pose | DroppedFrame | RejectedFrame, in send order
+        last = await s.finish()  # the back end's final poses of the last frames
 
 Sending and receiving are independent: a producer may run ahead of the answers (the server
 queues a bounded number of frames per session and says which ones it drops or rejects).
@@ -15,6 +16,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
 
+import numpy as np
 import websockets
 from websockets.asyncio.client import ClientConnection
 
@@ -99,6 +101,21 @@ class FrameStream:
             if kind == "error":
                 raise StreamError(message.get("detail", "unknown stream error"))
             # "pong" and future informational messages are skipped
+
+    async def finish(self) -> list[tuple[int, np.ndarray]]:
+        """End the session's stream and wait for it: the server answers the frames already
+        sent (read them with :meth:`recv` first), flushes the back end and sends the final
+        poses of the frames still in its window, returned here as (timestamp_ns, 4x4)."""
+        await self.close()
+        final: list[tuple[int, np.ndarray]] = []
+        try:
+            while True:
+                message = json.loads(await self.connection.recv())
+                if message.get("type") == "smoothed":
+                    final = [(int(item["timestamp_ns"]), np.array(item["pose"], dtype=float))
+                             for item in message["poses"]]
+        except websockets.ConnectionClosed:
+            return final
 
     async def close(self) -> None:
         """Ask the server to finish: it answers every frame already sent, then closes."""

@@ -20,6 +20,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from estimator.cli.results_table import results_table
+from estimator.evaluation.metrics import path_length
 from estimator.formats.datasets import Sequence, open_sequence
 from estimator.pipeline import (
     ESTIMATORS,
@@ -31,7 +33,27 @@ from estimator.pipeline import (
     write_odometry,
     write_outputs,
 )
+from estimator.registration.methods import DEFAULT_ESTIMATOR
 from estimator.rig_settings import apply_rig_settings, format_settings
+
+DESCRIPTION = """\
+Run the odometry over a recorded stereo sequence (EuRoC folder with mav0/, KITTI sequence,
+or a ROS 1 .bag / ROS 2 bag folder) and write the trajectory. The IMU is fused when the
+dataset has one. At the end a results table: frames tracked / coasted / lost, path length,
+ATE and RPE against the ground truth when the dataset has it, and the speed."""
+
+EPILOG = """\
+outputs (in --out, default runs/<sequence>):
+  trajectory.tum            left-camera pose of every frame, as answered when it arrived
+  trajectory_smoothed.tum   each frame's final estimate from the smoother (back end on)
+  metrics.json              accuracy against ground truth, failures, stage times
+  trajectory.png            top view against the ground truth
+  odometry.jsonl / .tum     the odometry in the robotics convention (base_link in odom)
+
+examples:
+  swarmvo run ../shared/data/euroc_mh01_moving
+  swarmvo run ../shared/data/euroc_mh01_moving --no-imu --out runs/vision-only
+  swarmvo run recording.bag --calibration camchain.yaml"""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -47,7 +69,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="SwarmvoConfig as JSON or YAML (the flags below override its fields)",
     )
     parser.add_argument(
-        "--estimator", choices=ESTIMATORS, help="registration method (default: pso-robust)"
+        "--estimator",
+        choices=ESTIMATORS,
+        help=f"registration method (default: {DEFAULT_ESTIMATOR})",
     )
     parser.add_argument("--seed", type=int, help="default: 0")
     parser.add_argument("--out", type=Path, help="output folder (default: runs/<sequence>)")
@@ -80,6 +104,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     bags.add_argument("--right-topic", help="right images (default: guessed)")
     bags.add_argument("--imu-topic", help="sensor_msgs/Imu (default: the bag's only one)")
     bags.add_argument(
+        "--stereo-sync-tolerance",
+        type=float,
+        metavar="MS",
+        help="bags and EuRoC folders: pair left/right images whose stamps are nearest each "
+        "other and at most MS milliseconds apart (default: a tenth of the frame period; 0 = "
+        "equal stamps only); others are dropped with one warning",
+    )
+    bags.add_argument(
         "--export-bag",
         type=Path,
         help="also write the result as a bag: PATH.bag = ROS 1, else a ROS 2 folder",
@@ -91,10 +123,14 @@ def open_input(args: argparse.Namespace) -> Sequence:
     """The dataset folder, or a bag with its calibration and topics."""
     from estimator.formats.rosbag_io import is_bag
 
+    tolerance_ms = args.stereo_sync_tolerance
+    if tolerance_ms is not None and not tolerance_ms >= 0:
+        raise ValueError(f"--stereo-sync-tolerance must be >= 0 ms, got {tolerance_ms}")
+    tolerance = None if tolerance_ms is None else round(tolerance_ms * 1e6)
     if not is_bag(args.dataset):
         if args.calibration is not None:
             raise ValueError("--calibration is for bags; a dataset folder has its own")
-        return open_sequence(args.dataset, args.format)
+        return open_sequence(args.dataset, args.format, tolerance)
     from estimator.formats.bag_calibration import load_bag_calibration
     from estimator.formats.rosbag_io import open_bag
 
@@ -104,7 +140,9 @@ def open_input(args: argparse.Namespace) -> Sequence:
             "camchain YAML or a rig JSON/YAML"
         )
     calibration = load_bag_calibration(args.calibration)
-    return open_bag(args.dataset, calibration, args.left_topic, args.right_topic, args.imu_topic)
+    return open_bag(
+        args.dataset, calibration, args.left_topic, args.right_topic, args.imu_topic, tolerance
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -134,24 +172,10 @@ def run(args: argparse.Namespace) -> int:
     out = args.out if args.out is not None else Path("runs") / sequence.name
     summary = write_outputs(result, out)
     write_odometry(result, out, args.export_bag, args.export_storage)
-    line = f"{summary['frames']} frames, {summary['frames_failed']} failed"
-    if summary["frames_skipped"]:
-        line += f", {summary['frames_skipped']} skipped (unreadable images)"
-    if "ate_rmse_m" in summary:
-        line += (
-            f"; ATE {summary['ate_rmse_m']:.4f} m, RPE {summary['rpe_trans_rmse_m']:.4f} m / "
-            f"{summary['rpe_rot_rmse_deg']:.4f} deg per frame, "
-            f"path {summary['path_length_m']:.2f} m"
-        )
-    if summary.get("kitti_segments"):
-        line += (
-            f"; KITTI segment errors {summary['kitti_trans_err_pct']:.2f} % / "
-            f"{summary['kitti_rot_err_deg_per_100m']:.3f} deg per 100 m "
-            f"({summary['kitti_segments']} segments)"
-        )
+    print(results_table(summary, path_length(result.poses())))
     kitti_path = kitti_poses_path(result, out)
     print(
-        f"{line}\nwrote {out / 'trajectory.tum'}, {out / 'metrics.json'}, {out / 'trajectory.png'}"
+        f"wrote {out / 'trajectory.tum'}, {out / 'metrics.json'}, {out / 'trajectory.png'}"
         + (f", {out / 'trajectory_smoothed.tum'}" if config.backend.enabled else "")
         + f", {out / 'odometry.jsonl'}, {out / 'odometry.tum'}"
         + (f", {args.export_bag}" if args.export_bag is not None else "")
