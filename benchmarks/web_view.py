@@ -32,8 +32,9 @@ from pathlib import Path
 
 import httpx
 
+from service.answer import FrameAnswer, matrix_of
 from service.settings import hash_key
-from service.storage import PoseRecord, Store
+from service.storage import Store
 from service.web.browser import Browser, find_chromium
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
@@ -41,7 +42,7 @@ RESULTS = PROJECT_ROOT / "benchmarks" / "results" / "web_view"
 SHARED_DATA = PROJECT_ROOT.parent / "shared" / "data"
 
 
-def spiral_pose(index: int, rate_hz: float) -> PoseRecord:
+def spiral_pose(session_id: str, index: int, rate_hz: float) -> FrameAnswer:
     """Frame ``index`` of a climbing spiral flown at 1 m/s (what a long survey looks like)."""
     t = index / rate_hz
     radius = 4.0 + 0.002 * index
@@ -54,12 +55,14 @@ def spiral_pose(index: int, rate_hz: float) -> PoseRecord:
     pose = [*rotation[0], position[0], *rotation[1], position[1], *rotation[2], position[2],
             0.0, 0.0, 0.0, 1.0]
     status = "lost" if index % 997 == 500 else "degraded" if index % 101 == 50 else "ok"
-    return PoseRecord(
-        frame_index=index, timestamp_ns=int(1e9 * t) + 1, pose=pose, frontend_pose=pose,
-        relative_pose=[1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0],
-        status=status, matches=400, inliers=250 + (index * 37) % 150,
-        timings={"queue_wait": 0.001, "decode": 0.004, "odometry": 0.03 + 0.01 * (index % 7),
-                 "transfer": 0.001},
+    return FrameAnswer(
+        session_id=session_id, index=index, timestamp_ns=int(1e9 * t) + 1,
+        pose=matrix_of(pose), frontend_pose=matrix_of(pose),
+        relative_pose=matrix_of([1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0]),
+        status=status, matches=400, inliers=250 + (index * 37) % 150, support=0, message="",
+        resumed=False,
+        timings_s={"queue_wait": 0.001, "decode": 0.004, "odometry": 0.03 + 0.01 * (index % 7),
+                   "transfer": 0.001},
     )
 
 
@@ -138,7 +141,7 @@ def bench(args: argparse.Namespace) -> int:
         record = store.create_session(hash_key(key), "10k-pose spiral", {}, {}, None, (752, 480))
         began = time.perf_counter()
         for index in range(args.poses):
-            store.add_pose(record.id, spiral_pose(index, args.rate))
+            store.add_pose(spiral_pose(record.id, index, args.rate))
         print(f"wrote {args.poses} poses in {time.perf_counter() - began:.1f} s")
         with Service(data, key) as service, Browser(chromium) as browser:
             open_page(browser, service.url, key, record.id)
@@ -201,7 +204,7 @@ def follow(browser: Browser, store: Store, session_id: str, args: argparse.Names
         index = args.poses
         next_at = time.perf_counter()
         while not stop.is_set():
-            store.add_pose(session_id, spiral_pose(index, args.rate))
+            store.add_pose(spiral_pose(session_id, index, args.rate))
             index += 1
             next_at += 1.0 / args.rate
             time.sleep(max(0.0, next_at - time.perf_counter()))

@@ -47,7 +47,14 @@ from estimator.geometry import (
 )
 from estimator.registration.refine import refine_pose_mahalanobis
 from estimator.registration.registry import RegistrationResult, estimator_spec, register
-from estimator.types import FrameReport, FrameStatus, ImuBatch, ImuNoise, StereoFrame
+from estimator.types import (
+    FrameReport,
+    FrameStatus,
+    ImuBatch,
+    ImuNoise,
+    StereoFrame,
+    check_timestamp_order,
+)
 
 if TYPE_CHECKING:
     from estimator.backend import FusedEstimate
@@ -274,10 +281,7 @@ class Odometry:
 
     def _validated(self, frame: StereoFrame) -> tuple[np.ndarray, np.ndarray]:
         timestamp = int(frame.timestamp_ns)
-        if self._last_timestamp_ns is not None and timestamp <= self._last_timestamp_ns:
-            raise ValueError(
-                f"frame timestamps must increase: {timestamp} ns after {self._last_timestamp_ns} ns"
-            )
+        check_timestamp_order(timestamp, self._last_timestamp_ns)
         left = to_grey8(frame.left, "left image")
         right = to_grey8(frame.right, "right image")
         expected = (self.rig.left.height, self.rig.left.width)

@@ -52,6 +52,19 @@ class ImuNoise:
     rate_hz: float = 200.0
 
 
+class TimestampOrderError(ValueError):
+    """A frame whose timestamp does not come after the previous frame's."""
+
+
+def check_timestamp_order(timestamp_ns: int, last_ns: int | None) -> None:
+    """Frames come in strictly increasing time: the IMU windows and the smoother rely on it."""
+    if last_ns is not None and timestamp_ns <= last_ns:
+        raise TimestampOrderError(
+            f"timestamp_ns {timestamp_ns} does not increase: the last frame is at {last_ns} "
+            "(frame timestamps must increase)"
+        )
+
+
 class FrameStatus(StrEnum):
     OK = "ok"  # vision gave an accepted relative pose
     DEGRADED = "degraded"  # vision failed, pose advanced from IMU / motion prior

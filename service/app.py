@@ -1,7 +1,7 @@
 """The FastAPI application: state, middleware, error handlers and the routers of each resource.
 
 Routes validate, authenticate, queue and persist; the odometry itself runs in
-:mod:`service.sessions` workers behind a :class:`~service.pipeline.PipelineFactory`.
+:mod:`service.sessions` workers behind a :class:`~service.estimator_adapter.PipelineFactory`.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from starlette.concurrency import run_in_threadpool
 from service.body_limit import BodyLimit
 from service.dependencies import ServiceState
 from service.errors import install_error_handlers
+from service.estimator_adapter import EstimatorFactory, PipelineFactory
 from service.metrics import Metrics
-from service.pipeline import EstimatorFactory, PipelineFactory
 from service.routes import frames, operations, sessions, stream, trajectories
 from service.sessions import SessionManager
 from service.settings import ServiceSettings

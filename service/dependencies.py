@@ -16,9 +16,9 @@ from starlette.requests import HTTPConnection
 
 from service.auth import AuthError, bearer_token, owner_for
 from service.errors import Refusal, unknown_session
+from service.estimator_adapter import PipelineFactory
 from service.metrics import Metrics
-from service.pipeline import PipelineFactory
-from service.sessions import SessionGone, SessionManager, SessionWorker
+from service.sessions import LiveSession, SessionGone, SessionManager
 from service.settings import ServiceSettings
 from service.storage import SessionRecord, Store
 
@@ -68,21 +68,21 @@ def lookup(state: ServiceState, session_id: str, owner: str) -> SessionRecord:
 
 
 async def lookup_live_first(state: ServiceState, session_id: str, owner: str) -> SessionRecord:
-    """The session's record, from its live worker when it has one (no database round trip)."""
-    worker = state.manager.workers.get(session_id)
-    if worker is not None and worker.owner == owner:
-        return worker.record
+    """The session's record, from its live session when it has one (no database round trip)."""
+    live = state.manager.live.get(session_id)
+    if live is not None and live.owner == owner:
+        return live.record
     return await run_in_threadpool(lookup, state, session_id, owner)
 
 
-def live_worker(state: ServiceState, record: SessionRecord) -> SessionWorker:
-    """The session's worker (started on first use), or 404 when it was deleted meanwhile.
+def live_session(state: ServiceState, record: SessionRecord) -> LiveSession:
+    """The live session (started on first use), or 404 when it was deleted meanwhile.
 
-    Called right before a frame is submitted, not as a dependency: a worker fetched before a
+    Called right before a frame is submitted, not as a dependency: a live session fetched before a
     slow upload could be unloaded as idle while the body arrives.
     """
     try:
-        return state.manager.worker(record)
+        return state.manager.live_session(record)
     except SessionGone as error:
         raise unknown_session(record.id) from error
 
@@ -93,7 +93,7 @@ def stored_session(session_id: str, owner: Owner, state: State) -> SessionRecord
 
 
 async def active_session(session_id: str, owner: Owner, state: State) -> SessionRecord:
-    """Path dependency: the session for sending data, from its live worker when it has one."""
+    """Path dependency: the session for sending data, from its live session when it has one."""
     return await lookup_live_first(state, session_id, owner)
 
 

@@ -13,7 +13,8 @@ from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, Field, Strict, TypeAdapter, model_validator
 
-from service.schemas import ImuSample, PoseOut, SmoothedOut, TimestampNs
+from service.answer import FrameAnswer
+from service.schemas import ImuSample, SmoothedOut, TimestampNs
 from service.settings import QueuePolicy
 
 PositiveInt = Annotated[int, Strict(), Field(gt=0)]
@@ -88,7 +89,7 @@ class HelloMessage(BaseModel):
     queue_policy: QueuePolicy
 
 
-class PoseMessage(PoseOut):
+class PoseMessage(FrameAnswer):
     """A frame's stored pose: the same body as the REST answer, with its ``type``."""
 
     type: Literal["pose"] = "pose"

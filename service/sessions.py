@@ -16,30 +16,30 @@ import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 from sqlalchemy.exc import DBAPIError
 
-from estimator.types import ImuBatch
+from estimator.types import ImuBatch, TimestampOrderError, check_timestamp_order
+from service.answer import FrameAnswer, flat_of
+from service.estimator_adapter import PipelineFactory, PreparedSession
 from service.images import ImageLimits
 from service.lease import Held, LeaseBook, LeaseHeld, replica_id
 from service.metrics import Metrics
-from service.pipeline import PipelineFactory, PreparedSession
 from service.pose_writer import PoseWriter
 from service.settings import ServiceSettings
 from service.storage import (
     LeaseLost,
     PendingPose,
-    PoseRecord,
     SessionRecord,
     SmoothedPose,
     Store,
 )
 from service.workers import (
     FrameFailure,
-    FrameOutcome,
+    FrameProcessed,
     FrameRequest,
     PipelineSpec,
     ProcessRunner,
@@ -105,20 +105,19 @@ class FrameJob:
     timestamp_ns: int
     left: bytes
     right: bytes
-    future: asyncio.Future[Any]  # FrameResult; the flushed poses for a flush job
+    future: asyncio.Future[Any]  # Answered; the flushed poses for a flush job
     raw: bool = False
     received: float = field(default_factory=time.perf_counter)
     flush: bool = False  # not a frame: flush the back end once the frames before it are done
 
 
 @dataclass(frozen=True)
-class FrameResult:
-    session_id: str
-    record: PoseRecord
-    imu_samples: int
-    odometry: dict[str, Any] | None = None  # the frame's odometry message (not stored)
-    smoothed: list[SmoothedPose] = field(default_factory=list)  # finalised at this frame
-    duplicate: bool = False  # a resent frame answered from its stored pose
+class Answered:
+    """A frame's answer as a session hands it out: ``duplicate`` when the frame was sent again
+    and this is its stored answer (it was not processed twice)."""
+
+    answer: FrameAnswer
+    duplicate: bool = False
 
 
 @dataclass
@@ -130,7 +129,7 @@ class _ImuTake:
     parts: int
 
 
-class SessionWorker:
+class LiveSession:
     """The live state of one session: its queue, its worker slot and its IMU buffer."""
 
     def __init__(
@@ -164,7 +163,7 @@ class SessionWorker:
         self.leases = leases
         self.lease: Held | None = None  # this replica's lease on the session, when it has one
         # Frames queued or in flight by timestamp: a resent one shares the first one's answer.
-        self.pending: dict[int, asyncio.Future[FrameResult]] = {}
+        self.pending: dict[int, asyncio.Future[Answered]] = {}
         self.limits = ImageLimits(
             settings.max_image_width, settings.max_image_height, settings.max_image_pixels
         )
@@ -216,7 +215,7 @@ class SessionWorker:
         right: bytes,
         imu: ImuSamples | None,
         raw: bool = False,
-    ) -> asyncio.Future[FrameResult]:
+    ) -> asyncio.Future[Answered]:
         """Queue one frame; the future resolves once its pose is stored (or it is refused)."""
         if self.closed:
             raise SessionGone()
@@ -230,7 +229,7 @@ class SessionWorker:
             # Samples sent with a frame join the session buffer at once: they stay valid
             # measurements even if this frame is refused or dropped below.
             self.add_imu(imu)
-        future: asyncio.Future[FrameResult] = asyncio.get_running_loop().create_future()
+        future: asyncio.Future[Answered] = asyncio.get_running_loop().create_future()
         # Nobody may be left to read the outcome (client gone): mark it read, not leaked.
         future.add_done_callback(lambda f: f.cancelled() or f.exception())
         job = FrameJob(timestamp_ns, left, right, future, raw)
@@ -258,27 +257,29 @@ class SessionWorker:
         future.add_done_callback(lambda _f: self.pending.pop(timestamp_ns, None))
         return future
 
-    async def _stored_answer(self, timestamp_ns: int) -> FrameResult:
+    async def _stored_answer(self, timestamp_ns: int) -> Answered:
         """A frame already processed gets its stored pose; any other old timestamp a 409."""
         loop = asyncio.get_running_loop()
         stored = await loop.run_in_executor(
             self.io_pool, self.store.pose_at, self.session_id, timestamp_ns
         )
         if stored is None:
-            raise FrameRejected(
-                409,
-                f"timestamp_ns {timestamp_ns} does not increase: the session is already at "
-                f"{self.last_submitted_ns}",
-                "timestamp_order",
-            )
+            try:
+                check_timestamp_order(timestamp_ns, self.last_submitted_ns)
+            except TimestampOrderError as error:
+                raise FrameRejected(409, str(error), "timestamp_order") from error
+        if stored is None:  # not older after all (the session moved back): still refused
+            raise FrameRejected(409, f"timestamp_ns {timestamp_ns} was not stored",
+                                "timestamp_order")
         self.metrics.frames.labels("duplicate").inc()
-        return FrameResult(self.session_id, stored, 0, duplicate=True)
+        return Answered(stored, duplicate=True)
 
     async def _hold_lease(self) -> None:
         """Own the session before processing: take or renew its lease (PostgreSQL only).
 
         A new fencing token means another replica may have written meanwhile: the counters are
-        read again and the pipeline is rebuilt from the stored state.
+        read again, and the pipeline is rebuilt from the stored state only if they moved (a
+        lease given up and taken back by this replica keeps its pipeline).
         """
         if self.leases is None or not self.leases.enabled:
             return
@@ -296,9 +297,10 @@ class SessionWorker:
                                                 self.session_id)
             if record is None:
                 raise SessionGone()
-            self.next_index = record.frame_count
-            self.last_processed_ns = record.last_timestamp_ns
-            self.pipeline_ready = False
+            stored = (record.frame_count, record.last_timestamp_ns)
+            if stored != (self.next_index, self.last_processed_ns):  # written by another
+                self.next_index, self.last_processed_ns = stored
+                self.pipeline_ready = False
         self.lease = self.leases.held(fence)
 
     def release_lease(self) -> None:
@@ -381,10 +383,10 @@ class SessionWorker:
         known = ("its motion and back-end biases carried over" if state is not None
                  else "motion since then is not known to the estimator")
         message = (
-            f"resumed from the stored pose of frame {last.frame_index} "
+            f"resumed from the stored pose of frame {last.index} "
             f"(timestamp {last.timestamp_ns}); {known}"
         )
-        return PipelineSpec(self.prepared, initial, last.frame_index + 1, state), message
+        return PipelineSpec(self.prepared, initial, last.index + 1, state), message
 
     def _peek_imu(self, timestamp_ns: int) -> _ImuTake:
         """IMU samples with previous frame < t <= this frame; later ones stay buffered."""
@@ -414,7 +416,7 @@ class SessionWorker:
             self._imu = [*take.remainder, *self._imu[take.parts :]]
             self._imu_count = sum(len(p) for p in self._imu)
 
-    async def _process(self, job: FrameJob) -> FrameResult:
+    async def _process(self, job: FrameJob) -> Answered:
         """Decode + odometry in the session's worker, then persist in an I/O thread."""
         loop = asyncio.get_running_loop()
         started = time.perf_counter()
@@ -424,7 +426,7 @@ class SessionWorker:
             return await self._stored_answer(job.timestamp_ns)  # stored by another replica
         take = self._peek_imu(job.timestamp_ns)
         resume_message = ""
-        outcome: FrameOutcome | FrameFailure | None = None
+        outcome: FrameProcessed | FrameFailure | None = None
         for _attempt in range(2):
             spec = None
             if not self.pipeline_ready:
@@ -432,8 +434,8 @@ class SessionWorker:
                     self.io_pool, self._pipeline_spec
                 )
             request = FrameRequest(
-                self.session_id, job.timestamp_ns, job.left, job.right, self.limits,
-                self.prepared.image_size, take.batch, job.raw, spec,
+                self.session_id, self.next_index, job.timestamp_ns, job.left, job.right,
+                self.limits, self.prepared.image_size, take.batch, job.raw, spec,
                 self.settings.frame_cpu_budget_s,
             )
             sent = time.perf_counter()
@@ -461,32 +463,23 @@ class SessionWorker:
             kind = "internal" if outcome.kind == "pipeline_missing" else outcome.kind
             raise FrameRejected(outcome.status_code, outcome.detail, kind)
         self._consume_imu(take)
-        timings.update(outcome.timings)
-        timings["transfer"] = max(
-            0.0, answered - sent - outcome.timings["decode"] - outcome.timings["odometry"]
-        )
+        worked = outcome.answer.timings_s
+        timings.update(worked)
+        timings["transfer"] = max(0.0, answered - sent - worked["decode"] - worked["odometry"])
         resumed = outcome.created and spec is not None and spec.initial_pose is not None
-        message = "; ".join(m for m in (resume_message if resumed else "", outcome.message) if m)
-        record = PoseRecord(
-            frame_index=self.next_index,
-            timestamp_ns=job.timestamp_ns,
-            pose=outcome.pose,
-            frontend_pose=outcome.frontend_pose,
-            relative_pose=outcome.relative_pose,
-            status=outcome.status,
-            matches=outcome.matches,
-            inliers=outcome.inliers,
-            support=outcome.support,
-            timings=dict(timings),
-            message=message,
-            resumed=resumed,
+        message = "; ".join(
+            m for m in (resume_message if resumed else "", outcome.answer.message) if m
+        )
+        answer = outcome.answer.model_copy(
+            update={"timings_s": dict(timings), "message": message, "resumed": resumed}
         )
         stored = time.perf_counter()
         fence = self.lease.fence if self.lease is not None else None
         try:
-            await self.pose_writer.add(
-                PendingPose(self.session_id, record, fence, outcome.state, outcome.smoothed)
-            )
+            await self.pose_writer.add(PendingPose(
+                answer, fence, outcome.state,
+                [(p.timestamp_ns, flat_of(p.pose)) for p in answer.smoothed],
+            ))
         except LeaseLost as error:
             # Another replica took the session over: this one must not write, and its
             # pipeline is out of date; the client resends the frame to the new owner.
@@ -515,13 +508,8 @@ class SessionWorker:
         self.stored_at.append(time.time())
         for stage, seconds in timings.items():
             self.metrics.stage_latency.labels(stage).observe(seconds)
-        self.metrics.frames.labels(record.status).inc()
-        return FrameResult(
-            self.session_id, replace(record, timings=timings),
-            0 if take.batch is None else len(take.batch.timestamps_ns),
-            outcome.odometry,
-            outcome.smoothed,
-        )
+        self.metrics.frames.labels(answer.status).inc()
+        return Answered(answer.model_copy(update={"timings_s": timings}))
 
     def start_flush(self) -> asyncio.Future[list[SmoothedPose]]:
         """Ask the worker to finalise the back end's window; call only between frames.
@@ -627,7 +615,7 @@ class SessionManager:
             max(2, min(settings.workers, 8)), thread_name_prefix="swarmvo-io"
         )
         self.pose_writer = PoseWriter(store, self.io_pool)  # one group commit for all sessions
-        self.workers: OrderedDict[str, SessionWorker] = OrderedDict()
+        self.live: OrderedDict[str, LiveSession] = OrderedDict()
         self.leases = LeaseBook(store, settings.replica_id or replica_id(), settings.lease_ttl_s,
                                 settings.leases)
         # Recently deleted ids (uuid4: never reused), so that a request that looked the session
@@ -636,7 +624,7 @@ class SessionManager:
         self.streams: dict[str, set[StreamHandle]] = {}
         self._background: set[asyncio.Task[None]] = set()
         self._on_change: Callable[[], None] = lambda: metrics.sessions_active.set(
-            len(self.workers)
+            len(self.live)
         )
 
     async def start(self) -> None:
@@ -647,30 +635,30 @@ class SessionManager:
             self.io_pool.shutdown(wait=False)
             raise
 
-    def worker(self, record: SessionRecord) -> SessionWorker:
+    def live_session(self, record: SessionRecord) -> LiveSession:
         """The session's live state, created on first use; SessionGone once it was deleted."""
         if record.id in self.deleted:
             raise SessionGone()
-        worker = self.workers.get(record.id)
+        worker = self.live.get(record.id)
         if worker is not None:
-            self.workers.move_to_end(record.id)
+            self.live.move_to_end(record.id)
             return worker
         self._evict_idle()
         slot = self.runner.assign(record.id)
-        worker = SessionWorker(
+        worker = LiveSession(
             record, self.settings, self.store, self.runner, slot, self.io_pool, self.metrics,
             self.leases, self.pose_writer,
         )
-        self.workers[record.id] = worker
+        self.live[record.id] = worker
         self._on_change()
         return worker
 
     def _evict_idle(self) -> None:
-        while len(self.workers) >= self.settings.max_active_sessions:
-            victim = next((sid for sid, w in self.workers.items() if w.idle), None)
+        while len(self.live) >= self.settings.max_active_sessions:
+            victim = next((sid for sid, w in self.live.items() if w.idle), None)
             if victim is None:
                 return  # all busy: exceed the soft cap rather than refuse work
-            worker = self.workers.pop(victim)
+            worker = self.live.pop(victim)
             # Flushed and freed now, not when the close task runs: the session may come back
             # before that, and its new pipeline must not be dropped by this late release.
             flushed = worker.start_flush()
@@ -679,7 +667,7 @@ class SessionManager:
 
     @staticmethod
     async def _unload(
-        worker: SessionWorker, flushed: asyncio.Future[list[SmoothedPose]]
+        worker: LiveSession, flushed: asyncio.Future[list[SmoothedPose]]
     ) -> None:
         """An evicted session: its back end's last poses are stored, its consumer stopped."""
         await worker.close("session unloaded")
@@ -698,13 +686,13 @@ class SessionManager:
             streams.discard(stream)
             if not streams:
                 del self.streams[session_id]
-        worker = self.workers.get(session_id)
+        worker = self.live.get(session_id)
         if finished and worker is not None and session_id not in self.streams:
             task = asyncio.get_running_loop().create_task(self._release_when_idle(worker))
             self._background.add(task)  # referenced until done (the loop keeps weak ones)
             task.add_done_callback(self._background.discard)
 
-    async def _release_when_idle(self, worker: SessionWorker, wait_s: float = 30.0) -> None:
+    async def _release_when_idle(self, worker: LiveSession, wait_s: float = 30.0) -> None:
         deadline = time.monotonic() + wait_s
 
         def drained() -> bool:
@@ -723,7 +711,7 @@ class SessionManager:
         self.deleted[session_id] = None
         while len(self.deleted) > MAX_REMEMBERED_DELETIONS:
             self.deleted.popitem(last=False)
-        worker = self.workers.pop(session_id, None)
+        worker = self.live.pop(session_id, None)
         last: list[SmoothedPose] = []
         if worker is not None:
             self._on_change()
@@ -733,8 +721,8 @@ class SessionManager:
             stream.terminate(STREAM_CLOSE_DELETED, "session deleted", last)
 
     async def shutdown(self, drain_seconds: float = 10.0) -> None:
-        workers = list(self.workers.values())
-        self.workers.clear()
+        workers = list(self.live.values())
+        self.live.clear()
         self._on_change()
         await asyncio.gather(
             *(w.close("server shutting down", drain_seconds) for w in workers),

@@ -13,7 +13,7 @@ import datetime as dt
 import json
 import uuid
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +36,8 @@ from sqlalchemy import (
 )
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
+
+from service.answer import FrameAnswer, flat_of, matrix_of
 
 MIGRATIONS_DIR = Path(__file__).resolve().parent / "migrations"
 # PostgreSQL advisory lock id held while migrating (any constant other applications do not use).
@@ -160,51 +162,17 @@ class SessionRecord:
 
 
 @dataclass(frozen=True)
-class PoseRecord:
-    frame_index: int
-    timestamp_ns: int
-    pose: list[float]
-    frontend_pose: list[float]
-    relative_pose: list[float]
-    status: str
-    matches: int = 0
-    inliers: int = 0
-    support: int = 0
-    timings: dict[str, float] = field(default_factory=dict)
-    message: str = ""
-    resumed: bool = False
-
-
-@dataclass(frozen=True)
 class PendingPose:
-    """One answered pose waiting to be stored, with the writer's lease and resume state."""
+    """One answered frame waiting to be stored, with the writer's lease and resume state."""
 
-    session_id: str
-    pose: PoseRecord
+    answer: FrameAnswer
     fence: Fence | None = None
     resume_state: dict[str, Any] | None = None
     smoothed: Sequence[SmoothedPose] = ()  # the back end's poses finalised at this frame
 
-
-def _pose_row(entry: PendingPose) -> PoseRow:
-    pose, fence = entry.pose, entry.fence
-    return PoseRow(
-        session_id=entry.session_id,
-        frame_index=pose.frame_index,
-        timestamp_ns=pose.timestamp_ns,
-        pose=pose.pose,
-        frontend_pose=pose.frontend_pose,
-        relative_pose=pose.relative_pose,
-        status=pose.status,
-        matches=pose.matches,
-        inliers=pose.inliers,
-        support=pose.support,
-        timings=pose.timings,
-        message=pose.message,
-        resumed=pose.resumed,
-        fence_token=None if fence is None else fence.token,
-        writer=None if fence is None else fence.holder,
-    )
+    @property
+    def session_id(self) -> str:
+        return self.answer.session_id
 
 
 def _session_record(row: SessionRow) -> SessionRecord:
@@ -229,20 +197,44 @@ def _session_record(row: SessionRow) -> SessionRecord:
     )
 
 
-def _pose_record(row: PoseRow) -> PoseRecord:
-    return PoseRecord(
-        frame_index=row.frame_index,
+def _answer_of(session_id: str, row: PoseRow) -> FrameAnswer:
+    """A stored row as the frame's answer (the live-only fields stay at their defaults)."""
+    return FrameAnswer(
+        session_id=session_id,
+        index=row.frame_index,
         timestamp_ns=row.timestamp_ns,
-        pose=row.pose,
-        frontend_pose=row.frontend_pose,
-        relative_pose=row.relative_pose,
+        pose=matrix_of(row.pose),
+        frontend_pose=matrix_of(row.frontend_pose),
+        relative_pose=matrix_of(row.relative_pose),
         status=row.status,
         matches=row.matches,
         inliers=row.inliers,
         support=row.support,
-        timings=row.timings,
+        timings_s=row.timings,
         message=row.message,
         resumed=row.resumed,
+    )
+
+
+def _row_of(answer: FrameAnswer, fence: Fence | None = None) -> PoseRow:
+    """What storage keeps of an answer: everything but the live-only fields, with the lease
+    it was written under."""
+    return PoseRow(
+        session_id=answer.session_id,
+        frame_index=answer.index,
+        timestamp_ns=answer.timestamp_ns,
+        pose=flat_of(answer.pose),
+        frontend_pose=flat_of(answer.frontend_pose),
+        relative_pose=flat_of(answer.relative_pose),
+        status=answer.status,
+        matches=answer.matches,
+        inliers=answer.inliers,
+        support=answer.support,
+        timings=answer.timings_s,
+        message=answer.message,
+        resumed=answer.resumed,
+        fence_token=None if fence is None else fence.token,
+        writer=None if fence is None else fence.holder,
     )
 
 
@@ -398,15 +390,14 @@ class Store:
 
     def add_pose(
         self,
-        session_id: str,
-        pose: PoseRecord,
+        answer: FrameAnswer,
         fence: Fence | None = None,
         resume_state: dict[str, Any] | None = None,
         smoothed: Sequence[SmoothedPose] = (),
     ) -> None:
-        """Store one answered pose (with the smoothed poses finalised at its frame) and advance
-        the session counters, all in one transaction."""
-        self.add_poses([PendingPose(session_id, pose, fence, resume_state, tuple(smoothed))])
+        """Store one answered frame (with the smoothed poses finalised at it) and advance the
+        session counters, all in one transaction."""
+        self.add_poses([PendingPose(answer, fence, resume_state, tuple(smoothed))])
 
     def add_poses(self, poses: list[PendingPose]) -> None:
         """Store answered poses of any sessions in one transaction (all or none).
@@ -420,15 +411,15 @@ class Store:
             for entry in poses:
                 self._advance_counters(db, entry)
                 _put_smoothed(db, entry.session_id, entry.smoothed)
-                db.add(_pose_row(entry))
+                db.add(_row_of(entry.answer, entry.fence))
 
     @staticmethod
     def _advance_counters(db: Any, entry: PendingPose) -> None:
-        pose, fence = entry.pose, entry.fence
+        answer, fence = entry.answer, entry.fence
         # The state always belongs to the last pose (None: its pipeline has none to give).
         counters: dict[str, Any] = {
-            "frame_count": pose.frame_index + 1,
-            "last_timestamp_ns": pose.timestamp_ns,
+            "frame_count": answer.index + 1,
+            "last_timestamp_ns": answer.timestamp_ns,
             "resume_state": entry.resume_state,
         }
         if fence is None:
@@ -450,7 +441,7 @@ class Store:
                 f"{entry.session_id} (token {fence.token}); the pose was not stored"
             )
 
-    def pose_at(self, session_id: str, timestamp_ns: int) -> PoseRecord | None:
+    def pose_at(self, session_id: str, timestamp_ns: int) -> FrameAnswer | None:
         """The stored pose of the frame taken at ``timestamp_ns`` (a resent frame's answer)."""
         with self._sessions() as db:
             row = db.scalars(
@@ -458,9 +449,11 @@ class Store:
                     PoseRow.session_id == session_id, PoseRow.timestamp_ns == timestamp_ns
                 )
             ).first()
-            return None if row is None else _pose_record(row)
+            return None if row is None else _answer_of(session_id, row)
 
-    def resume_point(self, session_id: str) -> tuple[PoseRecord | None, dict[str, Any] | None]:
+    def resume_point(
+        self, session_id: str
+    ) -> tuple[FrameAnswer | None, dict[str, Any] | None]:
         """The last stored pose and the estimator state stored with it, read together."""
         with self._sessions() as db:
             state = db.scalar(select(SessionRow.resume_state).where(SessionRow.id == session_id))
@@ -472,9 +465,9 @@ class Store:
             ).first()
             if row is None:
                 return None, None
-            return _pose_record(row), state
+            return _answer_of(session_id, row), state
 
-    def last_pose(self, session_id: str) -> PoseRecord | None:
+    def last_pose(self, session_id: str) -> FrameAnswer | None:
         with self._sessions() as db:
             row = db.scalars(
                 select(PoseRow)
@@ -482,11 +475,11 @@ class Store:
                 .order_by(PoseRow.frame_index.desc())
                 .limit(1)
             ).first()
-            return None if row is None else _pose_record(row)
+            return None if row is None else _answer_of(session_id, row)
 
     def poses(
         self, session_id: str, start: int = 0, limit: int | None = None
-    ) -> list[PoseRecord]:
+    ) -> list[FrameAnswer]:
         """The session's poses from frame ``start`` on (a watcher catching up reads only new)."""
         with self._sessions() as db:
             rows = db.scalars(
@@ -495,7 +488,7 @@ class Store:
                 .order_by(PoseRow.frame_index)
                 .limit(limit)
             )
-            return [_pose_record(row) for row in rows]
+            return [_answer_of(session_id, row) for row in rows]
 
     # -- smoothed poses
 

@@ -38,10 +38,11 @@ import numpy as np
 
 from estimator.geometry import nearest_rigid
 from estimator.types import ImuBatch, StereoFrame
+from service.answer import FrameAnswer, OdometryOut, SmoothedPose
+from service.estimator_adapter import Pipeline, PipelineFactory, PreparedSession
 from service.images import ImageError, ImageLimits, decode_pair, decode_raw_pair
-from service.pipeline import Pipeline, PipelineFactory, PreparedSession
 from service.settings import Executor
-from service.storage import SmoothedPose
+from service.storage import SmoothedPose as StoredSmoothedPose
 
 logger = logging.getLogger("swarmvo.service")
 
@@ -62,6 +63,7 @@ class FrameRequest:
     """One frame for one session, as sent to a worker (encoded images, not arrays)."""
 
     session_id: str
+    frame_index: int
     timestamp_ns: int
     left: bytes
     right: bytes
@@ -74,23 +76,11 @@ class FrameRequest:
 
 
 @dataclass(frozen=True)
-class FrameOutcome:
-    """A processed frame, in plain values so it crosses the process boundary cheaply."""
+class FrameProcessed:
+    """A frame's answer as the worker computed it (the session adds queueing and storage)."""
 
-    pose: list[float]
-    frontend_pose: list[float]
-    relative_pose: list[float]
-    status: str
-    matches: int
-    inliers: int
-    support: int
-    message: str
-    timings: dict[str, float]
-    created: bool
-    worker_pid: int
-    odometry: dict[str, Any] | None = None  # OdometryMessage.to_dict() of this frame
-    # Earlier frames the back end finished with at this frame: (timestamp_ns, flat 4x4 pose).
-    smoothed: list[SmoothedPose] = field(default_factory=list)
+    answer: FrameAnswer
+    created: bool  # the worker built the session's pipeline for this frame
     # The pipeline's state after this frame, stored with the pose so that any replica can
     # continue the session (pipelines without state() give None).
     state: dict[str, Any] | None = None
@@ -140,13 +130,17 @@ def cpu_budget(seconds: float) -> Iterator[None]:
         signal.signal(signal.SIGPROF, previous)
 
 
+def _rows(matrix: np.ndarray) -> list[list[float]]:
+    return np.asarray(matrix, dtype=float).reshape(4, 4).tolist()
+
+
 def _flat(matrix: np.ndarray) -> list[float]:
-    return [float(v) for v in np.asarray(matrix, dtype=float).reshape(16)]
+    return np.asarray(matrix, dtype=float).reshape(16).tolist()
 
 
 def compute_frame(
     pipelines: dict[str, Pipeline], factory: PipelineFactory, request: FrameRequest
-) -> FrameOutcome | FrameFailure:
+) -> FrameProcessed | FrameFailure:
     """Decode and run the odometry of one frame within its CPU budget; never raises."""
     try:
         with cpu_budget(request.cpu_budget_s):
@@ -167,7 +161,7 @@ def compute_frame(
 
 def _compute_frame(
     pipelines: dict[str, Pipeline], factory: PipelineFactory, request: FrameRequest
-) -> FrameOutcome | FrameFailure:
+) -> FrameProcessed | FrameFailure:
     started = time.perf_counter()
     try:
         if request.raw:
@@ -225,22 +219,29 @@ def _compute_frame(
     timings = {"decode": decoded - started, "odometry": done - decoded}
     for stage, seconds in report.timings_s.items():
         timings[f"odometry.{stage}"] = float(seconds)
-    return FrameOutcome(
-        pose=_flat(report.pose),
-        frontend_pose=_flat(report.frontend_pose),
-        relative_pose=_flat(report.relative_pose),
+    odometry = getattr(pipeline, "last_odometry", None)
+    answer = FrameAnswer(
+        session_id=request.session_id,
+        index=request.frame_index,
+        timestamp_ns=request.timestamp_ns,
+        pose=_rows(report.pose),
+        frontend_pose=_rows(report.frontend_pose),
+        relative_pose=_rows(report.relative_pose),
         status=str(report.status),
         matches=int(report.matches),
         inliers=int(report.inliers),
         support=int(report.support),
+        timings_s=timings,
         message="; ".join(m for m in (note, report.message) if m),
-        timings=timings,
-        created=created,
-        worker_pid=os.getpid(),
-        odometry=getattr(pipeline, "last_odometry", None),
-        smoothed=[(int(stamp), _flat(pose)) for stamp, pose in report.final_poses],
-        state=_pipeline_state(pipeline),
+        resumed=False,
+        imu_samples=0 if request.imu is None else len(request.imu.timestamps_ns),
+        odometry=None if odometry is None else OdometryOut.model_validate(odometry),
+        smoothed=[
+            SmoothedPose(timestamp_ns=int(stamp), pose=_rows(pose))
+            for stamp, pose in report.final_poses
+        ],
     )
+    return FrameProcessed(answer, created, _pipeline_state(pipeline))
 
 
 def _pipeline_state(pipeline: Pipeline) -> dict[str, Any] | None:
@@ -259,7 +260,9 @@ def session_problem(factory: PipelineFactory, prepared: PreparedSession) -> str 
     return None
 
 
-def finish_pipeline(pipelines: dict[str, Pipeline], session_id: str) -> list[SmoothedPose]:
+def finish_pipeline(
+    pipelines: dict[str, Pipeline], session_id: str
+) -> list[StoredSmoothedPose]:
     """End a session's pipeline: the back end finalises the frames still in its window.
 
     The pipeline is dropped (its smoother cannot go on after a flush): a later frame of the
@@ -288,12 +291,12 @@ class Runner(Protocol):
 
     def release(self, slot: int, session_id: str) -> None: ...
 
-    async def run(self, slot: int, request: FrameRequest) -> FrameOutcome | FrameFailure: ...
+    async def run(self, slot: int, request: FrameRequest) -> FrameProcessed | FrameFailure: ...
 
     def check_session(self, prepared: PreparedSession) -> None: ...
 
 
-    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[SmoothedPose]]:
+    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[StoredSmoothedPose]]:
         """Drop the session's pipeline after flushing its back end; the future holds the
         flushed poses. Submitted at once, so it runs before any later frame of the session."""
 
@@ -322,7 +325,7 @@ class ThreadRunner:
     def release(self, slot: int, session_id: str) -> None:
         self.pipelines.pop(session_id, None)
 
-    async def run(self, slot: int, request: FrameRequest) -> FrameOutcome | FrameFailure:
+    async def run(self, slot: int, request: FrameRequest) -> FrameProcessed | FrameFailure:
         loop = asyncio.get_running_loop()
         return await loop.run_in_executor(
             self.pool, compute_frame, self.pipelines, self.factory, request
@@ -334,7 +337,7 @@ class ThreadRunner:
             raise ValueError(problem)
 
 
-    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[SmoothedPose]]:
+    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[StoredSmoothedPose]]:
         # Taken out now: a pipeline built for a later frame is a new one, never this.
         pipeline = self.pipelines.pop(session_id, None)
         if pipeline is None:
@@ -378,7 +381,7 @@ def _worker_init(factory: PipelineFactory) -> None:
         warm_up()
 
 
-def _worker_frame(request: FrameRequest) -> FrameOutcome | FrameFailure:
+def _worker_frame(request: FrameRequest) -> FrameProcessed | FrameFailure:
     assert _factory is not None
     return compute_frame(_pipelines, _factory, request)
 
@@ -388,7 +391,7 @@ def _worker_check(prepared: PreparedSession) -> str | None:
     return session_problem(_factory, prepared)
 
 
-def _worker_finish(session_id: str) -> list[SmoothedPose]:
+def _worker_finish(session_id: str) -> list[StoredSmoothedPose]:
     return finish_pipeline(_pipelines, session_id)
 
 
@@ -482,7 +485,7 @@ class ProcessRunner:
             return  # a dead or replaced worker holds nothing any more
         future.add_done_callback(_ignore_outcome)
 
-    async def run(self, slot: int, request: FrameRequest) -> FrameOutcome | FrameFailure:
+    async def run(self, slot: int, request: FrameRequest) -> FrameProcessed | FrameFailure:
         for _attempt in range(2):
             state = self.slots[slot]
             generation = state.generation
@@ -525,7 +528,7 @@ class ProcessRunner:
             pipeline_lost=True,
         )
 
-    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[SmoothedPose]]:
+    def finish(self, slot: int, session_id: str) -> asyncio.Future[list[StoredSmoothedPose]]:
         """Flush the session's back end in its worker, queued before any later frame of it."""
         try:
             future = self.slots[slot].executor.submit(_worker_finish, session_id)

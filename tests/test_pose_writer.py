@@ -6,13 +6,18 @@ import asyncio
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from service.answer import FrameAnswer, matrix_of
 from service.pose_writer import PoseWriter
-from service.storage import PendingPose, PoseRecord, Store
+from service.storage import PendingPose, Store
 
 
-def _pose(index: int) -> PoseRecord:
-    values = [float(index)] * 16
-    return PoseRecord(index, 1000 + index, values, values, values, "ok")
+def _pose(session_id: str, index: int) -> FrameAnswer:
+    matrix = matrix_of([float(index)] * 16)
+    return FrameAnswer(
+        session_id=session_id, index=index, timestamp_ns=1000 + index, pose=matrix,
+        frontend_pose=matrix, relative_pose=matrix, status="ok", matches=0, inliers=0,
+        support=0, timings_s={}, message="", resumed=False,
+    )
 
 
 def _store(tmp_path: Path) -> tuple[Store, list[str]]:
@@ -35,7 +40,7 @@ def test_waiting_poses_share_a_transaction_and_all_are_stored(tmp_path: Path) ->
     async def main() -> None:
         writer = PoseWriter(store, ThreadPoolExecutor(2))
         for index in range(4):
-            await asyncio.gather(*(writer.add(PendingPose(sid, _pose(index))) for sid in sessions))
+            await asyncio.gather(*(writer.add(PendingPose(_pose(sid, index))) for sid in sessions))
 
     asyncio.run(main())
     assert max(batches) > 1  # the poses of the sessions waiting together went in one commit
@@ -43,7 +48,7 @@ def test_waiting_poses_share_a_transaction_and_all_are_stored(tmp_path: Path) ->
         record = store.get_session(sid, "o")
         assert record is not None and record.frame_count == 4
         last = store.last_pose(sid)
-        assert last is not None and last.frame_index == 3 and last.timestamp_ns == 1003
+        assert last is not None and last.index == 3 and last.timestamp_ns == 1003
 
 
 def test_a_bad_pose_fails_only_its_own_frame(tmp_path: Path) -> None:
@@ -51,12 +56,12 @@ def test_a_bad_pose_fails_only_its_own_frame(tmp_path: Path) -> None:
 
     async def main() -> list[object]:
         writer = PoseWriter(store, ThreadPoolExecutor(2))
-        await writer.add(PendingPose(sessions[0], _pose(0)))
+        await writer.add(PendingPose(_pose(sessions[0], 0)))
         # Frame index 0 of session 0 exists already: that pose breaks the batch's uniqueness.
         return await asyncio.gather(
-            writer.add(PendingPose(sessions[0], _pose(0))),
-            writer.add(PendingPose(sessions[1], _pose(0))),
-            writer.add(PendingPose(sessions[2], _pose(0))),
+            writer.add(PendingPose(_pose(sessions[0], 0))),
+            writer.add(PendingPose(_pose(sessions[1], 0))),
+            writer.add(PendingPose(_pose(sessions[2], 0))),
             return_exceptions=True,
         )
 

@@ -205,8 +205,17 @@ def test_two_replicas_racing_for_one_session_store_each_frame_once(
 def test_lease_tokens_and_fenced_writes_in_the_database(fleet: cluster.Fleet) -> None:
     """The lease rules themselves, on the fleet's PostgreSQL: one holder at a time, the token
     rises with each change of holder, and a write under an old token changes nothing."""
+    from service.answer import FrameAnswer, matrix_of
     from service.lease import LeaseBook, LeaseHeld
-    from service.storage import LeaseLost, PoseRecord, Store
+    from service.storage import LeaseLost, Store
+
+    def bare(index: int, stamp: int, value: float) -> FrameAnswer:
+        matrix = matrix_of([value] * 16)
+        return FrameAnswer(
+            session_id=session.id, index=index, timestamp_ns=stamp, pose=matrix,
+            frontend_pose=matrix, relative_pose=matrix, status="ok", matches=0, inliers=0,
+            support=0, timings_s={}, message="", resumed=False,
+        )
 
     store = Store.open(fleet.url)
     try:
@@ -217,15 +226,14 @@ def test_lease_tokens_and_fenced_writes_in_the_database(fleet: cluster.Fleet) ->
         with pytest.raises(LeaseHeld) as held:
             second.acquire(session.id)
         assert held.value.holder == "first" and 0 < held.value.retry_after_s <= 0.3
-        pose = PoseRecord(0, 10, [1.0] * 16, [1.0] * 16, [1.0] * 16, "ok")
-        store.add_pose(session.id, pose, fence, {"timestamp_ns": 10})
+        store.add_pose(bare(0, 10, 1.0), fence, {"timestamp_ns": 10})
         time.sleep(0.4)  # expired, nobody took it: the holder may still write
-        store.add_pose(session.id, PoseRecord(1, 20, *([2.0] * 16,) * 3, "ok"), fence)
+        store.add_pose(bare(1, 20, 2.0), fence)
         time.sleep(0.4)
         taken = second.acquire(session.id)
         assert taken is not None and taken.token == fence.token + 1
         with pytest.raises(LeaseLost):
-            store.add_pose(session.id, PoseRecord(2, 30, *([3.0] * 16,) * 3, "ok"), fence)
+            store.add_pose(bare(2, 30, 3.0), fence)
         assert [p.timestamp_ns for p in store.poses(session.id)] == [10, 20]
         assert store.get_session(session.id).frame_count == 2  # type: ignore[union-attr]
         second.release(session.id, taken)

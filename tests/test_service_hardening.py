@@ -129,8 +129,8 @@ def test_a_session_looked_up_before_its_deletion_stays_deleted(client: TestClien
     from service.sessions import SessionGone
 
     with pytest.raises(SessionGone):
-        state.manager.worker(record)  # a request that passed its lookup just before
-    assert sid not in state.manager.workers
+        state.manager.live_session(record)  # a request that passed its lookup just before
+    assert sid not in state.manager.live
 
 
 def test_database_errors_never_reach_a_client(client: TestClient, monkeypatch) -> None:

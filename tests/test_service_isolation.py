@@ -19,7 +19,7 @@ from test_service_units import A, B, PidPipeline, new_session, send, settings_fo
 
 from estimator.types import FrameReport, ImuBatch, StereoFrame
 from service.app import create_app
-from service.pipeline import EstimatorFactory, PreparedSession
+from service.estimator_adapter import EstimatorFactory, PreparedSession
 
 BURN_FROM_NS = 10**12  # frames at or after this timestamp spin until stopped
 BUDGET_S = 0.2

@@ -35,7 +35,8 @@ import pytest
 from swarmvo_client import Client, Pose, replay
 from test_service_server import KEY, SEED, Server, process_alive
 
-from service.storage import PoseRecord, Store
+from service.answer import FrameAnswer, flat_of, matrix_of
+from service.storage import Store
 
 psycopg = pytest.importorskip(
     "psycopg", reason="the PostgreSQL driver is missing: pip install -e '.[postgres]'"
@@ -266,6 +267,17 @@ def _awkward_floats() -> list[float]:
     return special + [float(v) for v in rng.normal(size=8) * 1e3]
 
 
+def _bare(session_id: str, index: int, timestamp: int, flat: list[float], status: str
+          ) -> FrameAnswer:
+    """An answer with only its poses and status set (the rest zero or empty)."""
+    matrix = matrix_of(flat)
+    return FrameAnswer(
+        session_id=session_id, index=index, timestamp_ns=timestamp, pose=matrix,
+        frontend_pose=matrix, relative_pose=matrix, status=status, matches=0, inliers=0,
+        support=0, timings_s={}, message="", resumed=False,
+    )
+
+
 def _fill(store: Store) -> str:
     """The same session and poses, whichever backend ``store`` is on."""
     values = _awkward_floats()
@@ -274,9 +286,11 @@ def _fill(store: Store) -> str:
                                   {"rate_hz": 200.0}, (64, 48))
     for index, timestamp in enumerate((0, 1_403_715_273_262_142_976, 2**62, 2**63 - 1)):
         pose = values[index:] + values[:index]
-        store.add_pose(record.id, PoseRecord(
-            index, timestamp, pose, pose[::-1], values, "ok" if index % 2 else "degraded",
-            matches=2**31 - 1, inliers=index, support=7, timings={"persist": 1.25e-4, "x": 0.1},
+        store.add_pose(FrameAnswer(
+            session_id=record.id, index=index, timestamp_ns=timestamp, pose=matrix_of(pose),
+            frontend_pose=matrix_of(pose[::-1]), relative_pose=matrix_of(values),
+            status="ok" if index % 2 else "degraded", matches=2**31 - 1, inliers=index,
+            support=7, timings_s={"persist": 1.25e-4, "x": 0.1},
             message="line one\nline two ✓", resumed=index == 2,
         ))
     return record.id
@@ -290,11 +304,13 @@ def test_storage_round_trips_exactly_and_equals_sqlite(
     try:
         ids = {store: _fill(store) for store in (on_postgres, on_sqlite)}
         poses = {store: store.poses(sid) for store, sid in ids.items()}
-        assert poses[on_postgres] == poses[on_sqlite]  # dataclass equality: every field
+        # Model equality, every field (the session ids differ; nothing else may).
+        assert [p.model_dump(exclude={"session_id"}) for p in poses[on_postgres]] == [
+            p.model_dump(exclude={"session_id"}) for p in poses[on_sqlite]]
         stored = poses[on_postgres]
         assert [p.timestamp_ns for p in stored] == [0, 1_403_715_273_262_142_976, 2**62, 2**63 - 1]
-        assert stored[0].relative_pose == _awkward_floats()
-        assert [np.copysign(1, v) for v in stored[0].pose] == [
+        assert flat_of(stored[0].relative_pose) == _awkward_floats()
+        assert [np.copysign(1, v) for v in flat_of(stored[0].pose)] == [
             np.copysign(1, v) for v in _awkward_floats()]  # -0.0 kept its sign
         sessions = {store: store.get_session(sid, "owner-a") for store, sid in ids.items()}
         pg_session, sqlite_session = sessions[on_postgres], sessions[on_sqlite]
@@ -312,14 +328,14 @@ def test_storage_round_trips_exactly_and_equals_sqlite(
         # A second pose for a stored frame index is refused on both backends.
         for store, sid in ids.items():
             with pytest.raises(Exception, match=r"uq_pose_frame|UNIQUE"):
-                store.add_pose(sid, PoseRecord(0, 5, [0.0] * 16, [0.0] * 16, [0.0] * 16, "ok"))
+                store.add_pose(_bare(sid, 0, 5, [0.0] * 16, "ok"))
             assert len(store.poses(sid)) == 4
 
         # Non-finite numbers are not JSON: refused on both backends, nothing half-stored.
         for store, sid in ids.items():
             nan = [float("nan")] * 16
             with pytest.raises(Exception, match="not JSON compliant"):
-                store.add_pose(sid, PoseRecord(4, 2**63 - 1, nan, nan, nan, "lost"))
+                store.add_pose(_bare(sid, 4, 2**63 - 1, nan, "lost"))
             assert len(store.poses(sid)) == 4
             assert store.get_session(sid).frame_count == 4  # type: ignore[union-attr]
 

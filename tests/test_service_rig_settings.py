@@ -15,7 +15,7 @@ from estimator.config import SwarmvoConfig
 from estimator.rig_settings import derive_rig_settings
 from estimator.types import StereoFrame
 from service.app import create_app
-from service.pipeline import EstimatorFactory, IntervalSettings
+from service.estimator_adapter import EstimatorFactory, IntervalSettings
 
 
 def _expected(name: str, rate: float) -> dict[str, float]:

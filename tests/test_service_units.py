@@ -24,13 +24,14 @@ from pydantic import ValidationError
 from test_service_server import process_alive
 
 from estimator.types import FrameReport, FrameStatus, ImuBatch, StereoFrame
+from service.answer import FrameAnswer, flat_of, matrix_of
 from service.app import create_app
 from service.auth import AuthError, owner_for
+from service.estimator_adapter import EstimatorFactory, PreparedSession
 from service.images import ImageError, ImageLimits, decode_image, decode_pair, image_size
 from service.messages import SERVER_MESSAGE
-from service.pipeline import EstimatorFactory, PreparedSession
 from service.settings import ServiceSettings, hash_key
-from service.storage import PoseRecord, Store
+from service.storage import Store
 
 WIDTH, HEIGHT = 64, 48
 KEY_A, KEY_B = "key-alpha", "key-bravo"
@@ -592,11 +593,16 @@ def test_storage_round_trip_is_exact(tmp_path: Path) -> None:
     record = store.create_session("o", "n", calibration(), {}, None, (WIDTH, HEIGHT))
     rng = np.random.default_rng(0)
     values = [float(v) for v in rng.normal(size=16) * 1e-3 + np.pi]
-    store.add_pose(record.id, PoseRecord(0, 2**62, values, values, values, "ok"))
+    matrix = matrix_of(values)
+    store.add_pose(FrameAnswer(
+        session_id=record.id, index=0, timestamp_ns=2**62, pose=matrix, frontend_pose=matrix,
+        relative_pose=matrix, status="ok", matches=0, inliers=0, support=0, timings_s={},
+        message="", resumed=False,
+    ))
     store.close()
     again = Store.open(f"sqlite:///{tmp_path / 'db.sqlite3'}")  # migrations are idempotent
     pose = again.last_pose(record.id)
-    assert pose is not None and pose.pose == values and pose.timestamp_ns == 2**62
+    assert pose is not None and flat_of(pose.pose) == values and pose.timestamp_ns == 2**62
     assert again.get_session(record.id, "other") is None
 
 

@@ -32,6 +32,7 @@ from service.redact import MASK, SecretFilter
 from service.web import watch as watch_module
 from service.web.browser import Browser, find_chromium
 from service.web.pages import STATIC_DIR
+from service.web.watch_messages import WATCH_SERVER_MESSAGE
 
 # ----------------------------------------------------------------------------- in-process
 
@@ -87,6 +88,7 @@ def _watch_messages(ws, until: str) -> list[dict]:
     messages = []
     while not messages or messages[-1]["type"] != until:
         messages.append(ws.receive_json())
+        WATCH_SERVER_MESSAGE.validate_python(messages[-1])  # one of the server's messages
     return messages
 
 
@@ -149,6 +151,8 @@ def test_watch_channel_sends_backlog_then_follows(
         ({"type": "auth", "token": KEY_B}, 404, 4404, "unknown session"),
         ({"type": "hello"}, 400, 4400, "first message"),
         ({"type": "auth", "token": KEY_A, "since": -1}, 400, 4400, "since"),
+        ({"type": "auth", "token": KEY_A, "since": "3"}, 400, 4400, "since"),
+        ({"type": "auth", "token": 5}, 400, 4400, "token"),
         ("not json", 400, 4400, "JSON"),
     ],
 )
@@ -159,6 +163,7 @@ def test_watch_channel_refuses_with_a_reason(
     with client.websocket_connect(f"/v1/sessions/{sid}/watch") as ws:
         ws.send_text(first if isinstance(first, str) else json.dumps(first))
         error = ws.receive_json()
+        WATCH_SERVER_MESSAGE.validate_python(error)
         assert error["type"] == "error" and error["status"] == status
         assert words in error["detail"]
         with pytest.raises(WebSocketDisconnect) as closed:

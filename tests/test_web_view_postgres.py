@@ -8,7 +8,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from test_service_postgres import Cluster, cluster, database  # noqa: F401 (fixtures)
 
-from service.storage import PoseRecord, Store
+from service.answer import FrameAnswer, matrix_of
+from service.storage import Store
 from service.web.feed import WorldFrame, pose_columns, read_poses
 
 
@@ -24,10 +25,11 @@ def _fill(store: Store) -> str:
         frontend = pose.copy()
         frontend[:3, 3] += 0.5
         timings = {"queue_wait": 1e-3, "odometry": 0.1 + 0.2} if index % 2 else {"decode": 1 / 3}
-        store.add_pose(record.id, PoseRecord(
-            index, 10 * index, pose.ravel().tolist(), frontend.ravel().tolist(),
-            np.eye(4).ravel().tolist(), ("ok", "degraded", "lost")[index % 3], inliers=index,
-            timings=timings, message=f"frame {index} ✓",
+        store.add_pose(FrameAnswer(
+            session_id=record.id, index=index, timestamp_ns=10 * index, pose=pose.tolist(),
+            frontend_pose=frontend.tolist(), relative_pose=matrix_of(np.eye(4).ravel().tolist()),
+            status=("ok", "degraded", "lost")[index % 3], matches=0, inliers=index, support=0,
+            timings_s=timings, message=f"frame {index} ✓", resumed=False,
         ))
     return record.id
 
@@ -46,10 +48,10 @@ def test_view_columns_are_the_same_on_postgresql(
             messages.append(pose_columns(read_poses(store, session_id), WorldFrame.of(stored[0])))
             poses = np.array([p.pose for p in stored]).reshape(-1, 4, 4)
             assert [row[5] for row in rows[-1]] == poses[1:, 0, 3].tolist()  # exact floats
-            assert np.reshape(messages[-1]["position"], (-1, 3)).tolist() == np.round(
+            assert np.reshape(messages[-1].position, (-1, 3)).tolist() == np.round(
                 poses[:, :3, 3], 4).tolist()
-            assert messages[-1]["status"] == "odlodl" and messages[-1]["message"] == "frame 5 ✓"
-            assert messages[-1]["latency_ms"][:2] == [333.33, 301.0]
+            assert messages[-1].status == "odlodl" and messages[-1].message == "frame 5 ✓"
+            assert messages[-1].latency_ms[:2] == [333.33, 301.0]
         assert rows[0] == rows[1] and messages[0] == messages[1]
     finally:
         for store in stores:

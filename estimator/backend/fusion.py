@@ -76,7 +76,7 @@ from estimator.backend.noise import (
 from estimator.backend.rest import RestWindow, at_rest
 from estimator.config import BackendConfig
 from estimator.geometry import invert_pose, make_pose, nearest_rigid
-from estimator.types import FrameStatus, ImuBatch, ImuNoise
+from estimator.types import FrameStatus, ImuBatch, ImuNoise, check_timestamp_order
 
 __all__ = ["FusedEstimate", "FusionBackend"]
 
@@ -278,10 +278,7 @@ class FusionBackend:
         refinement), takes precedence over both.
         """
         timestamp_ns = int(timestamp_ns)
-        if self._index >= 0 and timestamp_ns <= self._last_ns:
-            raise ValueError(
-                f"frame timestamps must increase: {timestamp_ns} after {self._last_ns}"
-            )
+        check_timestamp_order(timestamp_ns, self._last_ns if self._index >= 0 else None)
         if inlier_count < 0:
             raise ValueError(f"inlier_count must be >= 0, got {inlier_count}")
         if relative_pose is None:

@@ -7,11 +7,12 @@ import math
 
 from fastapi import APIRouter, Request
 
-from service.dependencies import ActiveSession, State, live_worker
+from service.answer import FrameAnswer
+from service.dependencies import ActiveSession, State, live_session
 from service.errors import ERROR_RESPONSES, Refusal
 from service.imu_input import imu_arrays, parse_imu
 from service.multipart import BINARY, file_field, int_field, multipart_body, read_form, text_field
-from service.schemas import ErrorOut, ImuBatchIn, ImuBatchOut, PoseOut
+from service.schemas import ErrorOut, ImuBatchIn, ImuBatchOut
 from service.sessions import FrameRejected
 
 router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["frames"])
@@ -32,10 +33,10 @@ _MULTIPART_FRAME = multipart_body(
 
 
 @router.post(
-    "/frames", response_model=PoseOut, openapi_extra=_MULTIPART_FRAME,
+    "/frames", response_model=FrameAnswer, openapi_extra=_MULTIPART_FRAME,
     responses={**ERROR_RESPONSES, 503: {"model": ErrorOut}},
 )
-async def post_frame(record: ActiveSession, request: Request, state: State) -> PoseOut:
+async def post_frame(record: ActiveSession, request: Request, state: State) -> FrameAnswer:
     """Process one stereo pair; answers once its pose is stored."""
     form = await read_form(request, max_files=2, max_fields=2)
     left = await file_field(form, "left")
@@ -43,19 +44,17 @@ async def post_frame(record: ActiveSession, request: Request, state: State) -> P
     timestamp_ns = int_field(form, "timestamp_ns", 0, 2**63 - 1)
     imu_text = text_field(form, "imu", required=False)
     imu = parse_imu(imu_text, state.settings) if imu_text and imu_text.strip() else None
-    worker = live_worker(state, record)
+    live = live_session(state, record)
     try:
-        future = worker.submit(timestamp_ns, left, right, imu)
+        future = live.submit(timestamp_ns, left, right, imu)
     except FrameRejected as error:
         raise frame_refusal(error, error.kind) from error
     try:
         # Shielded: a client that hangs up does not cancel a frame already accepted.
-        result = await asyncio.shield(future)
+        answered = await asyncio.shield(future)
     except FrameRejected as error:  # counted by the session's consumer
         raise frame_refusal(error, None) from error
-    return PoseOut.of(
-        result.session_id, result.record, result.imu_samples, result.odometry, result.smoothed
-    )
+    return answered.answer
 
 
 def frame_refusal(error: FrameRejected, kind: str | None) -> Refusal:
@@ -70,9 +69,9 @@ def frame_refusal(error: FrameRejected, kind: str | None) -> Refusal:
 async def post_imu(record: ActiveSession, body: ImuBatchIn, state: State) -> ImuBatchOut:
     """Buffer IMU samples; each frame consumes those up to its timestamp."""
     samples = imu_arrays(body.samples, state.settings)
-    worker = live_worker(state, record)
+    live = live_session(state, record)
     try:
-        buffered = worker.add_imu(samples)
+        buffered = live.add_imu(samples)
     except FrameRejected as error:
         raise Refusal(error.status_code, error.detail, error.kind) from error
     return ImuBatchOut(accepted=len(samples), buffered=buffered)

@@ -23,7 +23,7 @@ async def healthz(state: State) -> Health:
     except Exception as error:
         logger.error("health check: database unavailable: %s", str(error).splitlines()[:1])
         raise Refusal(503, "database unavailable", "storage") from error
-    return Health(status="ok", sessions_active=len(state.manager.workers), database="ok",
+    return Health(status="ok", sessions_active=len(state.manager.live), database="ok",
                   executor=state.manager.runner.mode, workers=state.settings.workers)
 
 

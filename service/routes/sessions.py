@@ -9,6 +9,12 @@ from starlette.concurrency import run_in_threadpool
 
 from service.dependencies import Owner, ServiceState, State, StoredSession
 from service.errors import ERROR_RESPONSES, Refusal
+from service.estimator_adapter import (
+    euroc_calibration,
+    euroc_frame_rate,
+    euroc_imu_noise,
+    kitti_calibration,
+)
 from service.limits import image_size_problems, work_limit_problems
 from service.multipart import (
     BINARY,
@@ -21,12 +27,6 @@ from service.multipart import (
     rate_field,
     read_form,
     text_field,
-)
-from service.pipeline import (
-    euroc_calibration,
-    euroc_frame_rate,
-    euroc_imu_noise,
-    kitti_calibration,
 )
 from service.schemas import SessionCreate, SessionList, SessionOut
 

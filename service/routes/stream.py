@@ -17,7 +17,7 @@ from starlette.types import Message
 from starlette.websockets import WebSocketDisconnect
 
 from service.auth import AuthError, bearer_token, owner_for
-from service.dependencies import live_worker, lookup_live_first, service_state
+from service.dependencies import live_session, lookup_live_first, service_state
 from service.imu_input import brief, imu_arrays
 from service.messages import (
     CLIENT_MESSAGE,
@@ -35,12 +35,12 @@ from service.messages import (
     SmoothedMessage,
 )
 from service.sessions import (
+    Answered,
     FrameDropped,
     FrameRejected,
-    FrameResult,
     ImuSamples,
+    LiveSession,
     SessionGone,
-    SessionWorker,
 )
 from service.storage import SessionRecord, SmoothedPose
 
@@ -57,7 +57,7 @@ FINAL_MESSAGE_TIMEOUT_S = 5.0
 
 # Answers in order: a ready message, (future, timestamp_ns) of a frame being processed, or
 # the flush marker.
-_Outgoing = BaseModel | tuple[asyncio.Future[FrameResult], int] | object
+_Outgoing = BaseModel | tuple[asyncio.Future[Answered], int] | object
 # Flushes after a normal close, kept referenced until they are done.
 _PENDING_FLUSHES: set[asyncio.Task[Any]] = set()
 
@@ -138,7 +138,7 @@ class StreamConnection:
             return
         try:
             record = await lookup_live_first(self.state, self.session_id, owner)
-            worker = live_worker(self.state, record)
+            live = live_session(self.state, record)
             self.state.manager.attach(record.id, self)
         except (HTTPException, SessionGone) as error:
             await self._deny(404 if isinstance(error, SessionGone) else error.status_code,
@@ -150,18 +150,18 @@ class StreamConnection:
             return
         finished = False
         try:
-            finished = await self._serve(record, worker)
+            finished = await self._serve(record, live)
         finally:
             self.state.manager.detach(record.id, self, finished)
 
-    async def _serve(self, record: SessionRecord, worker: SessionWorker) -> bool:
+    async def _serve(self, record: SessionRecord, live: LiveSession) -> bool:
         """Serve the stream; True when the robot ended it with a close message."""
         websocket = self.websocket
         await websocket.accept()
         self.image_size = (record.image_width, record.image_height)
         hello = HelloMessage(
-            session_id=record.id, next_index=worker.next_index,
-            last_timestamp_ns=worker.last_submitted_ns, queue_size=self.settings.queue_size,
+            session_id=record.id, next_index=live.next_index,
+            last_timestamp_ns=live.last_submitted_ns, queue_size=self.settings.queue_size,
             queue_policy=self.settings.queue_policy,
         )
         await websocket.send_json(hello.model_dump(mode="json"))
@@ -176,7 +176,7 @@ class StreamConnection:
                 if message["type"] == "websocket.disconnect":
                     # A normal close ends the session's stream as a close message does (the
                     # answers have nobody to go to); a lost connection keeps the window.
-                    live = self.state.manager.workers.get(record.id)
+                    live = self.state.manager.live.get(record.id)
                     if message.get("code") in (1000, 1001) and live is not None:
                         _flush_later(live)
                     break
@@ -240,7 +240,7 @@ class StreamConnection:
         elif isinstance(message, ImuMessage):
             try:
                 samples = imu_arrays(message.samples, self.settings)
-                live_worker(self.state, record).add_imu(samples)
+                live_session(self.state, record).add_imu(samples)
             except HTTPException as error:
                 await self._reply(ErrorMessage(detail=str(error.detail)))
             except FrameRejected as error:
@@ -315,7 +315,7 @@ class StreamConnection:
             return
         await self._acquire_credit()
         try:
-            future = live_worker(self.state, record).submit(
+            future = live_session(self.state, record).submit(
                 header.timestamp_ns, blob[:header.left_bytes], blob[header.left_bytes:], imu,
                 raw=header.encoding == "raw8",
             )
@@ -344,8 +344,8 @@ class StreamConnection:
             if item is None:
                 return
             if item is _FLUSH:
-                worker = self.state.manager.workers.get(self.session_id)
-                last = [] if worker is None else await worker.flush_after_queued()
+                live = self.state.manager.live.get(self.session_id)
+                last = [] if live is None else await live.flush_after_queued()
                 await self.websocket.send_json(
                     SmoothedMessage.of(self.session_id, last).model_dump(mode="json")
                 )
@@ -355,7 +355,7 @@ class StreamConnection:
             self.credit.release()
 
     @staticmethod
-    async def _outcome(future: asyncio.Future[FrameResult], timestamp_ns: int) -> ServerMessage:
+    async def _outcome(future: asyncio.Future[Answered], timestamp_ns: int) -> ServerMessage:
         """The answer to a submitted frame, once its pose is stored (or it was refused)."""
         try:
             result = await asyncio.shield(future)
@@ -364,14 +364,12 @@ class StreamConnection:
         except FrameRejected as error:
             return RejectedMessage(timestamp_ns=timestamp_ns, status=error.status_code,
                                    detail=error.detail, retry_after_s=error.retry_after_s)
-        pose = PoseMessage.of(result.session_id, result.record, result.imu_samples,
-                              result.odometry, result.smoothed)
-        return pose.model_copy(update={"duplicate": result.duplicate})
+        return PoseMessage(**dict(result.answer), duplicate=result.duplicate)
 
 
-def _flush_later(worker: SessionWorker) -> None:
+def _flush_later(live: LiveSession) -> None:
     """Flush once the frames already sent are done, without waiting for it here."""
-    task = asyncio.get_running_loop().create_task(worker.flush_after_queued())
+    task = asyncio.get_running_loop().create_task(live.flush_after_queued())
     _PENDING_FLUSHES.add(task)
     task.add_done_callback(_PENDING_FLUSHES.discard)
 

@@ -12,7 +12,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 
 from service.dependencies import State, StoredSession
 from service.errors import ERROR_RESPONSES
-from service.schemas import PoseOut, SmoothedOut, TrajectoryOut
+from service.schemas import SmoothedOut, TrajectoryOut
 
 # Listed with the session itself: a trajectory is a read of the session resource.
 router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["sessions"])
@@ -37,9 +37,7 @@ def get_trajectory(
     """All stored poses: TUM (``t x y z qx qy qz qw``), KITTI (3x4 rows) or JSON."""
     records = state.store.poses(record.id)
     if format == "json":
-        body = TrajectoryOut(
-            session_id=record.id, poses=[PoseOut.of(record.id, r) for r in records]
-        )
+        body = TrajectoryOut(session_id=record.id, poses=records)
         return JSONResponse(body.model_dump(mode="json"))
     return trajectory_file(
         format,

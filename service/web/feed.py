@@ -2,7 +2,7 @@
 
 A browser drawing ten thousand poses needs positions, a heading, the status and two numbers per
 frame, not three 4x4 matrices and a timing table each; columns of rounded numbers are about a
-tenth of the JSON of :class:`~service.schemas.PoseOut`.
+tenth of the JSON of :class:`~service.answer.FrameAnswer`.
 """
 
 from __future__ import annotations
@@ -10,21 +10,22 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from sqlalchemy import Row, select
 
 from estimator.geometry import invert_pose
-from service.sessions import SessionWorker
-from service.storage import PoseRecord, PoseRow, SessionRecord, Store
+from service.answer import FrameAnswer
+from service.sessions import LiveSession
+from service.storage import PoseRow, SessionRecord, Store
+from service.web.watch_messages import Activity, PosesMessage, SmoothedMessage
 
 # One letter per pose status in the ``status`` column.
 STATUS_CODES: dict[str, str] = {"ok": "o", "degraded": "d", "lost": "l"}
 # A session is live while its poses keep coming: no frame for this long and it is idle.
 LIVE_WINDOW_S = 5.0
 
-Activity = Literal["live", "idle"]
 
 
 # Stages of a frame before its pose is stored: what the view plots as the service's latency.
@@ -46,7 +47,7 @@ class WorldFrame:
     frontend_to_world: np.ndarray
 
     @classmethod
-    def of(cls, first: PoseRecord) -> WorldFrame:
+    def of(cls, first: FrameAnswer) -> WorldFrame:
         pose = np.array(first.pose, dtype=float).reshape(4, 4)
         frontend = np.array(first.frontend_pose, dtype=float).reshape(4, 4)
         levelled = not np.allclose(pose[:3, :3], np.eye(3), atol=1e-6)
@@ -96,36 +97,34 @@ def read_poses(
         return connection.execute(query).all()
 
 
-def pose_columns(rows: Sequence[Row[Any]], world: WorldFrame) -> dict[str, Any]:
+def pose_columns(rows: Sequence[Row[Any]], world: WorldFrame) -> PosesMessage:
     """A ``poses`` message of rows of :func:`read_poses`: one column per quantity."""
     numbers = np.array([row[5:] for row in rows], dtype=float).reshape(len(rows), 13)
     rotation, offset = world.frontend_to_world[:3, :3], world.frontend_to_world[:3, 3]
     frontend = numbers[:, 6:9] @ rotation.T + offset
     latency_ms = 1000.0 * np.nansum(numbers[:, 9:13], axis=1)  # a missing stage counts 0
-    return {
-        "type": "poses",
-        "index": [row.frame_index for row in rows],
-        "timestamp_ns": [row.timestamp_ns for row in rows],
+    return PosesMessage(
+        index=[row.frame_index for row in rows],
+        timestamp_ns=[row.timestamp_ns for row in rows],
         # 0.1 mm is far below what a screen shows and keeps the numbers short.
-        "position": np.round(numbers[:, 0:3], 4).ravel().tolist(),
-        "frontend_position": np.round(frontend, 4).ravel().tolist(),
+        position=np.round(numbers[:, 0:3], 4).ravel().tolist(),
+        frontend_position=np.round(frontend, 4).ravel().tolist(),
         # The camera's optical axis in the world: the heading drawn at the newest pose.
-        "forward": np.round(numbers[:, 3:6], 3).ravel().tolist(),
-        "status": "".join(STATUS_CODES.get(row.status, "l") for row in rows),
-        "inliers": [row.inliers for row in rows],
-        "latency_ms": np.round(latency_ms, 2).tolist(),
-        "message": rows[-1].message if rows else "",
-    }
+        forward=np.round(numbers[:, 3:6], 3).ravel().tolist(),
+        status="".join(STATUS_CODES.get(row.status, "l") for row in rows),
+        inliers=[row.inliers for row in rows],
+        latency_ms=np.round(latency_ms, 2).tolist(),
+        message=rows[-1].message if rows else "",
+    )
 
 
-def smoothed_columns(smoothed: Sequence[tuple[int, list[float]]]) -> dict[str, Any]:
+def smoothed_columns(smoothed: Sequence[tuple[int, list[float]]]) -> SmoothedMessage:
     """A ``smoothed`` message: the smoother's final poses (timestamp, flat 4x4) as columns."""
     matrices = np.array([pose for _, pose in smoothed], dtype=float).reshape(-1, 16)
-    return {
-        "type": "smoothed",
-        "timestamp_ns": [stamp for stamp, _ in smoothed],
-        "position": np.round(matrices[:, list(_TRANSLATION)], 4).ravel().tolist(),
-    }
+    return SmoothedMessage(
+        timestamp_ns=[stamp for stamp, _ in smoothed],
+        position=np.round(matrices[:, list(_TRANSLATION)], 4).ravel().tolist(),
+    )
 
 
 @dataclass(frozen=True)
@@ -138,21 +137,21 @@ class SessionActivity:
     queued: int
 
     @classmethod
-    def of(cls, worker: SessionWorker | None, now: float | None = None) -> SessionActivity:
-        """From the session's worker; a session without one received no frame recently."""
-        if worker is None:
+    def of(cls, session: LiveSession | None, now: float | None = None) -> SessionActivity:
+        """From the live session; a session without one received no frame recently."""
+        if session is None:
             return cls("idle", None, None, 0)
         now = time.time() if now is None else now
-        stamps = [t for t in worker.stored_at if now - t <= LIVE_WINDOW_S]
-        queued = worker.queue.qsize() + int(worker.busy)
-        live = bool(stamps) or queued > 0
+        stamps = [t for t in session.stored_at if now - t <= LIVE_WINDOW_S]
+        queued = session.queue.qsize() + int(session.busy)
+        active = bool(stamps) or queued > 0
         rate = None
         if len(stamps) >= 2 and stamps[-1] > stamps[0]:
             rate = (len(stamps) - 1) / (stamps[-1] - stamps[0])
-        elif live:
+        elif active:
             rate = 0.0
-        last = worker.stored_at[-1] if worker.stored_at else None
-        return cls("live" if live else "idle", rate, last, queued)
+        last = session.stored_at[-1] if session.stored_at else None
+        return cls("live" if active else "idle", rate, last, queued)
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -164,15 +163,15 @@ class SessionActivity:
 
 
 def session_summary(
-    record: SessionRecord, worker: SessionWorker | None, last: PoseRecord | None
+    record: SessionRecord, live: LiveSession | None, last: FrameAnswer | None
 ) -> dict[str, Any]:
     """One row of the sessions list."""
     return {
         "id": record.id,
         "name": record.name,
         "created_at": record.created_at.isoformat(),
-        "frame_count": record.frame_count if worker is None else worker.next_index,
+        "frame_count": record.frame_count if live is None else live.next_index,
         "last_timestamp_ns": record.last_timestamp_ns,
         "last_status": None if last is None else last.status,
-        **SessionActivity.of(worker).as_json(),
+        **SessionActivity.of(live).as_json(),
     }

@@ -18,12 +18,15 @@ import time
 from typing import Any
 
 from fastapi import APIRouter, WebSocket
+from pydantic import BaseModel, ValidationError
 from sqlalchemy.exc import OperationalError
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from service.auth import AuthError, owner_for
 from service.dependencies import SESSION_ID, Owner, ServiceState, State
+from service.imu_input import brief
+from service.messages import PongMessage
 from service.storage import SessionRecord
 from service.web.feed import (
     SessionActivity,
@@ -32,6 +35,16 @@ from service.web.feed import (
     read_poses,
     session_summary,
     smoothed_columns,
+)
+from service.web.watch_messages import (
+    AUTH_MESSAGE,
+    PING_MESSAGE,
+    AuthMessage,
+    StateMessage,
+    SyncedMessage,
+    WatchError,
+    WatchHello,
+    WorldMessage,
 )
 
 AUTH_TIMEOUT_S = 10.0
@@ -59,10 +72,10 @@ async def live_sessions(owner: Owner, state: State) -> dict[str, Any]:
         return [(r, state.store.last_pose(r.id)) for r in records]
 
     rows = await run_in_threadpool(read)
-    workers = state.manager.workers
+    live = state.manager.live
     return {
         "server_time": time.time(),
-        "sessions": [session_summary(r, workers.get(r.id), last) for r, last in rows],
+        "sessions": [session_summary(r, live.get(r.id), last) for r, last in rows],
     }
 
 
@@ -83,11 +96,14 @@ class WatchConnection:
         self.smoothed_ns = -1  # timestamp of the newest smoothed pose sent
         self.closed = asyncio.Event()
 
+    async def _send(self, message: BaseModel) -> None:
+        await self.websocket.send_json(message.model_dump(mode="json"))
+
     async def _fail(self, status: int, detail: str, code: int) -> None:
         label = {401: "auth", 404: "unknown_session"}.get(status, "validation")
         self.state.metrics.errors.labels(label).inc()
         with contextlib.suppress(Exception):
-            await self.websocket.send_json({"type": "error", "status": status, "detail": detail})
+            await self._send(WatchError(status=status, detail=detail))
             await self.websocket.close(code)
 
     async def run(self) -> None:
@@ -107,9 +123,7 @@ class WatchConnection:
             logger.error("watcher of session %s: database unavailable: %s", self.session_id,
                          str(error).splitlines()[0])
             with contextlib.suppress(Exception):
-                await self.websocket.send_json(
-                    {"type": "error", "status": 503, "detail": "database unavailable; retry later"}
-                )
+                await self._send(WatchError(status=503, detail="database unavailable; retry later"))
                 await self.websocket.close(1011)
         finally:
             reader.cancel()
@@ -127,11 +141,11 @@ class WatchConnection:
         except KeyError:  # a binary message
             await self._fail(400, "the first message must be text (JSON)", CLOSE_BAD_REQUEST)
             return None
-        problem, message = _auth_message(text)
-        if problem is not None:
-            await self._fail(400, problem, CLOSE_BAD_REQUEST)
+        message = _auth_message(text)
+        if isinstance(message, str):
+            await self._fail(400, message, CLOSE_BAD_REQUEST)
             return None
-        token = message.get("token") or None
+        token = message.token or None
         try:
             owner = owner_for(token, self.state.settings)
         except AuthError as error:
@@ -143,7 +157,7 @@ class WatchConnection:
         if record is None:
             await self._fail(404, f"unknown session {self.session_id!r}", CLOSE_NOT_FOUND)
             return None
-        self.sent = max(0, int(message.get("since", 0)))
+        self.sent = message.since
         return record
 
     async def _read_until_closed(self) -> None:
@@ -151,24 +165,24 @@ class WatchConnection:
         try:
             while True:
                 text = await self.websocket.receive_text()
-                with contextlib.suppress(json.JSONDecodeError):
-                    if json.loads(text) == {"type": "ping"}:
-                        await self.websocket.send_json({"type": "pong"})
-                        continue
-                await self.websocket.send_json(
-                    {"type": "error", "status": 400, "detail": "the watch channel is read-only "
-                     '(it answers {"type": "ping"}; frames go to /v1/sessions/{id}/stream)'}
-                )
+                with contextlib.suppress(ValidationError):
+                    PING_MESSAGE.validate_json(text)
+                    await self._send(PongMessage())
+                    continue
+                await self._send(WatchError(
+                    status=400, detail="the watch channel is read-only "
+                    '(it answers {"type": "ping"}; frames go to /v1/sessions/{id}/stream)'
+                ))
         except (WebSocketDisconnect, RuntimeError, KeyError):
             pass
         finally:
             self.closed.set()
 
     async def _frame_count(self) -> int | None:
-        """Stored poses of the session: from its worker here, else from the store."""
-        worker = self.state.manager.workers.get(self.session_id)
-        if worker is not None:
-            return worker.next_index
+        """Stored poses of the session: from its live session here, else from the store."""
+        live = self.state.manager.live.get(self.session_id)
+        if live is not None:
+            return live.next_index
         record = await run_in_threadpool(self.state.store.get_session, self.session_id)
         return None if record is None else record.frame_count
 
@@ -199,8 +213,8 @@ class WatchConnection:
                 if self.world is None:  # frame 0 fixes the world (its whole pose is needed)
                     first = await run_in_threadpool(store.poses, self.session_id, 0, 1)
                     self.world = WorldFrame.of(first[0])
-                    await self.websocket.send_json({"type": "world", **self.world.axes()})
-                await self.websocket.send_json(pose_columns(records, self.world))
+                    await self._send(WorldMessage(**self.world.axes()))
+                await self._send(pose_columns(records, self.world))
                 self.sent = start
                 sent_any = True
         finally:
@@ -218,24 +232,23 @@ class WatchConnection:
         if not new:
             return
         self.smoothed_ns = new[-1][0]
-        await self.websocket.send_json(smoothed_columns(new))
+        await self._send(smoothed_columns(new))
 
     async def _send_state(self, count: int) -> None:
-        worker = self.state.manager.workers.get(self.session_id)
-        activity = SessionActivity.of(worker)
-        await self.websocket.send_json(
-            {"type": "state", "frame_count": count, "server_time": time.time(),
-             **activity.as_json()}
+        live = self.state.manager.live.get(self.session_id)
+        activity = SessionActivity.of(live)
+        await self._send(
+            StateMessage(frame_count=count, server_time=time.time(), **activity.as_json())
         )
 
     async def _follow(self, record: SessionRecord) -> None:
         websocket = self.websocket
-        await websocket.send_json({"type": "hello", "session_id": record.id, "name": record.name,
-                                   "created_at": record.created_at.isoformat()})
+        await self._send(WatchHello(session_id=record.id, name=record.name,
+                                    created_at=record.created_at.isoformat()))
         count = await self._frame_count()
         await self._send_new(count or 0)
         await self._send_smoothed()
-        await websocket.send_json({"type": "synced", "frame_count": self.sent})
+        await self._send(SyncedMessage(frame_count=self.sent))
         await self._send_state(self.sent)
         state_due = time.monotonic() + STATE_EVERY_S
         quiet_since = time.monotonic()
@@ -256,18 +269,15 @@ class WatchConnection:
                 state_due = time.monotonic() + STATE_EVERY_S
 
 
-def _auth_message(text: str) -> tuple[str | None, dict[str, Any]]:
+def _auth_message(text: str) -> AuthMessage | str:
     """The parsed first message, or what is wrong with it."""
     try:
-        message = json.loads(text)
+        data = json.loads(text)
     except json.JSONDecodeError:
-        return "the first message must be JSON", {}
-    if not isinstance(message, dict) or message.get("type") != "auth":
-        return 'the first message must be {"type": "auth", "token": "<API key>"}', {}
-    token, since = message.get("token"), message.get("since", 0)
-    if token is not None and not isinstance(token, str):
-        return "token must be a string", {}
-    if not isinstance(since, int) or isinstance(since, bool) or since < 0:
-        return "since must be a non-negative integer", {}
-    return None, message
-
+        return "the first message must be JSON"
+    if not isinstance(data, dict) or data.get("type") != "auth":
+        return 'the first message must be {"type": "auth", "token": "<API key>"}'
+    try:
+        return AUTH_MESSAGE.validate_python(data)
+    except ValidationError as error:
+        return brief(error)

@@ -1,4 +1,4 @@
-"""The service's one door into the estimator: validate calibrations/configs, build pipelines.
+"""Adapter between the service and the estimator: validate calibrations/configs, build pipelines.
 
 The app receives a :class:`PipelineFactory`; production uses :class:`EstimatorFactory`
 (the real ``Odometry``), tests may inject their own. Everything here raises ``ValueError`` with a
@@ -46,12 +46,6 @@ class PipelineFactory(Protocol):
     def create(
         self, prepared: PreparedSession, initial_pose: np.ndarray | None, first_index: int
     ) -> Pipeline: ...
-
-
-class SessionChecker(Protocol):
-    """Optional: a factory that can try a session out before it is stored."""
-
-    def check(self, prepared: PreparedSession) -> None: ...
 
 
 def reject_non_finite(value: Any, where: str) -> None:
