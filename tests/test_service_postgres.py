@@ -15,12 +15,10 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
-import glob
 import os
 import pwd
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -35,6 +33,9 @@ import pytest
 from swarmvo_client import Client, Pose, replay
 from test_service_server import KEY, SEED, Server, process_alive
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from local_cluster import free_port, postgres_binaries
+
 from service.answer import FrameAnswer, flat_of, matrix_of
 from service.storage import Store
 
@@ -46,26 +47,6 @@ USER = "swarmvo"
 # A zone far from UTC: answers must still be in UTC whatever the database server's zone is.
 SERVER_TIMEZONE = "Asia/Kolkata"
 FIRST, MORE = 8, 6  # frames before the server is killed, frames after it comes back
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-def _server_binaries() -> Path | None:
-    """Folder with initdb and pg_ctl: Debian's newest /usr/lib/postgresql/N/bin, else PATH."""
-    folders = sorted(
-        (Path(p).parent for p in glob.glob("/usr/lib/postgresql/*/bin/pg_ctl")),
-        key=lambda folder: int(folder.parent.name) if folder.parent.name.isdigit() else 0,
-    )
-    if folders and (folders[-1] / "initdb").exists():
-        return folders[-1]
-    pg_ctl = shutil.which("pg_ctl")
-    if pg_ctl and (Path(pg_ctl).parent / "initdb").exists():
-        return Path(pg_ctl).parent
-    return None
 
 
 class Cluster:
@@ -85,7 +66,7 @@ class Cluster:
             self.prefix = ["runuser", "-u", "postgres", "--"]
         self.data = self.root / "data"
         self.log = self.root / "server.log"
-        self.port = _free_port()
+        self.port = free_port()
         self.postmaster: int | None = None
         try:
             self._run("initdb", "-D", str(self.data), "-U", USER, "--auth=trust", "-E", "UTF8",
@@ -149,7 +130,7 @@ class Cluster:
 
 @pytest.fixture(scope="module")
 def cluster() -> Iterator[Cluster]:
-    binaries = _server_binaries()
+    binaries = postgres_binaries()
     if binaries is None:
         pytest.skip("no PostgreSQL server binaries (initdb, pg_ctl) found in "
                     "/usr/lib/postgresql/*/bin or on PATH; install the 'postgresql' package")
