@@ -88,9 +88,15 @@ def process_alive(pid: int) -> bool:
 
 
 class Postgres:
-    """A private PostgreSQL cluster: own data folder, socket folder and port; fsync off."""
+    """A private PostgreSQL cluster: own data folder, socket folder and port; fsync off.
 
-    def __init__(self) -> None:
+    PostgreSQL refuses to run as root, so as root every server command runs as the
+    unprivileged ``postgres`` user (which Debian's package creates). ``settings`` are extra
+    server settings (``-c name=value``).
+    """
+
+    def __init__(self, settings: dict[str, str] | None = None) -> None:
+        self.settings = {"max_connections": "200", **(settings or {})}
         binaries = postgres_binaries()
         if binaries is None:
             raise RuntimeError(missing_tools() or "no PostgreSQL binaries")
@@ -122,24 +128,30 @@ class Postgres:
             raise RuntimeError(f"{program} failed:\n{finished.stdout}{finished.stderr}{log}")
 
     def start(self) -> None:
+        # fsync off: the data of a throwaway cluster need not survive a power cut of this
+        # machine, and it runs several times faster; the socket stays in our folder.
+        extra = " ".join(f"-c {name}={value}" for name, value in self.settings.items())
         options = (f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1 "
-                   "-c fsync=off -c max_connections=200")
+                   f"-c fsync=off {extra}")
         self._run("pg_ctl", "-D", str(self.data), "-l", str(self.log), "-w", "-t", "30",
                   "-o", options, "start")
         self.postmaster = int((self.data / "postmaster.pid").read_text().split()[0])
 
     def stop(self) -> None:
         """Fast shutdown (connections are cut, as when the database host goes away)."""
-        if self.postmaster is None:
+        if not (self.data / "postmaster.pid").exists() and self.postmaster is None:
             return
         with contextlib.suppress(RuntimeError, subprocess.TimeoutExpired):
             self._run("pg_ctl", "-D", str(self.data), "-m", "fast", "-w", "-t", "30", "stop")
-        if process_alive(self.postmaster):
-            os.kill(self.postmaster, signal.SIGQUIT)
+        if self.postmaster is not None and process_alive(self.postmaster):
+            os.kill(self.postmaster, signal.SIGQUIT)  # immediate shutdown of all backends
             deadline = time.monotonic() + 10
             while process_alive(self.postmaster) and time.monotonic() < deadline:
                 time.sleep(0.05)
-        self.postmaster = None
+
+    def restart(self) -> None:
+        self.stop()
+        self.start()
 
     def remove(self) -> None:
         self.stop()

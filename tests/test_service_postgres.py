@@ -13,16 +13,12 @@ Skipped with a reason when no PostgreSQL server binaries are installed; CI insta
 
 from __future__ import annotations
 
-import contextlib
 import datetime as dt
 import os
 import pwd
 import shutil
-import signal
 import subprocess
 import sys
-import tempfile
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,7 +30,7 @@ from swarmvo_client import Client, Pose, replay
 from test_service_server import KEY, SEED, Server, process_alive
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from local_cluster import free_port, postgres_binaries
+from local_cluster import Postgres, postgres_binaries
 
 from service.answer import FrameAnswer, flat_of, matrix_of
 from service.storage import Store
@@ -49,83 +45,11 @@ SERVER_TIMEZONE = "Asia/Kolkata"
 FIRST, MORE = 8, 6  # frames before the server is killed, frames after it comes back
 
 
-class Cluster:
-    """A private PostgreSQL cluster: own data directory, socket directory and port.
+class Cluster(Postgres):
+    """The test's private PostgreSQL cluster, in a time zone far from UTC."""
 
-    PostgreSQL refuses to run as root, so as root every server command runs as the
-    unprivileged ``postgres`` user (which Debian's package creates).
-    """
-
-    def __init__(self, binaries: Path) -> None:
-        self.binaries = binaries
-        self.prefix: list[str] = []
-        self.root = Path(tempfile.mkdtemp(prefix="swarmvo-pg-"))
-        if os.geteuid() == 0:
-            account = pwd.getpwnam("postgres")
-            os.chown(self.root, account.pw_uid, account.pw_gid)
-            self.prefix = ["runuser", "-u", "postgres", "--"]
-        self.data = self.root / "data"
-        self.log = self.root / "server.log"
-        self.port = free_port()
-        self.postmaster: int | None = None
-        try:
-            self._run("initdb", "-D", str(self.data), "-U", USER, "--auth=trust", "-E", "UTF8",
-                      "--locale=C", "--no-sync")
-            self.start()
-        except BaseException:
-            self.remove()
-            raise
-
-    def _run(self, program: str, *args: str) -> None:
-        command = [*self.prefix, str(self.binaries / program), *args]
-        finished = subprocess.run(command, capture_output=True, text=True, timeout=60,
-                                  cwd=self.root)
-        if finished.returncode != 0:
-            log = self.log.read_text() if self.log.exists() else ""
-            raise RuntimeError(f"{program} failed:\n{finished.stdout}{finished.stderr}{log}")
-
-    def start(self) -> None:
-        # fsync off: the data of a throwaway cluster need not survive a power cut of this
-        # machine, and the test is several times faster; the socket stays in our directory.
-        options = (f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1 "
-                   f"-c fsync=off -c timezone={SERVER_TIMEZONE}")
-        self._run("pg_ctl", "-D", str(self.data), "-l", str(self.log), "-w", "-t", "30",
-                  "-o", options, "start")
-        self.postmaster = int((self.data / "postmaster.pid").read_text().split()[0])
-
-    def stop(self) -> None:
-        if not (self.data / "postmaster.pid").exists() and self.postmaster is None:
-            return
-        with contextlib.suppress(RuntimeError, subprocess.TimeoutExpired):
-            self._run("pg_ctl", "-D", str(self.data), "-m", "fast", "-w", "-t", "30", "stop")
-        if self.postmaster is not None and process_alive(self.postmaster):
-            os.kill(self.postmaster, signal.SIGQUIT)  # immediate shutdown of all backends
-            deadline = time.monotonic() + 10
-            while process_alive(self.postmaster) and time.monotonic() < deadline:
-                time.sleep(0.05)
-
-    def restart(self) -> None:
-        self.stop()
-        self.start()
-
-    def remove(self) -> None:
-        self.stop()
-        shutil.rmtree(self.root, ignore_errors=True)
-
-    def url(self, database: str) -> str:
-        return f"postgresql+psycopg://{USER}@127.0.0.1:{self.port}/{database}"
-
-    def admin(self, sql: str) -> list[tuple]:
-        """Run one statement on the maintenance database (autocommit: CREATE DATABASE)."""
-        with psycopg.connect(host="127.0.0.1", port=self.port, user=USER, dbname="postgres",
-                             autocommit=True) as connection:
-            cursor = connection.execute(sql)
-            return cursor.fetchall() if cursor.description else []
-
-    def query(self, database: str, sql: str) -> list[tuple]:
-        with psycopg.connect(host="127.0.0.1", port=self.port, user=USER,
-                             dbname=database) as connection:
-            return connection.execute(sql).fetchall()
+    def __init__(self) -> None:
+        super().__init__({"timezone": SERVER_TIMEZONE})
 
 
 @pytest.fixture(scope="module")
@@ -141,7 +65,7 @@ def cluster() -> Iterator[Cluster]:
             pytest.skip("running as root, and there is no 'postgres' user to run PostgreSQL as")
         if shutil.which("runuser") is None:
             pytest.skip("running as root, and runuser (util-linux) is missing")
-    running = Cluster(binaries)
+    running = Cluster()
     try:
         yield running
     finally:
