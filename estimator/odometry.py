@@ -12,7 +12,10 @@ Geometry runs in the rectified left camera frame; reported poses are of the orig
 (unrectified) left camera, so the relative pose is conjugated by the rectifying rotation.
 When the keyframe cannot be tracked the previous frame is tried before giving up. A frame
 without any estimate coasts at the last measured velocity (``degraded``) for at most
-``frontend.max_coast_frames`` frames, after which the pose is held (``lost``). While it
+``frontend.max_coast_s`` since the last estimate, after which the pose is held (``lost``). An
+estimate that is implausible (its rotation far from the constant-velocity prediction) or that
+the back end's gate rejects counts as none: it neither updates the noise model nor becomes a
+reference, so one wrong fit cannot spoil the frames after it. While it
 coasts, the next frame is matched against the last good references at once (predictions scale
 with the time between frames); once the pose is held, a frame with enough points becomes the
 new reference, so tracking restarts from it. With the back end enabled, the fused
@@ -60,6 +63,8 @@ if TYPE_CHECKING:
     from estimator.backend import FusedEstimate
 
 __all__ = ["Odometry", "frame_seed", "to_grey8"]
+
+_JITTER_NS = 1_000_000  # timestamp jitter tolerated by time limits
 
 
 def frame_seed(seed: int, index: int) -> int:
@@ -142,7 +147,7 @@ class Odometry:
         self._motion = np.eye(4)  # last measured motion (rectified), constant velocity ...
         self._motion_interval_ns = 1  # ... over this time: predictions scale it to theirs
         self._frame_interval_ns = 0  # time since the previous frame
-        self._failures = 0  # consecutive frames without a vision estimate
+        self._last_fix_ns = 0  # timestamp of the last frame with a vision estimate
         self._final_poses: tuple[tuple[int, np.ndarray], ...] = ()  # from the back end
         self._restored = False  # continued from state(): the first frame is predicted
         self._answered = self._pose  # the pose answered for the last frame (fused or not)
@@ -230,7 +235,6 @@ class Odometry:
                 estimate = _Estimate(None, None, "")
             else:
                 estimate = self._track(points, left, timings)
-                self._measure_noise(estimate)
             previous_pose = self._pose
             frontend_pose, status, message = self._chain(estimate)
             relative_pose = invert_pose(previous_pose) @ frontend_pose
@@ -238,6 +242,11 @@ class Odometry:
                 pose, status, message = self._fuse(
                     frame, imu, frontend_pose, relative_pose, estimate, status, message
                 )
+            if self._fused is not None and self._fused.vision_rejected:
+                estimate = _failed(estimate, "rejected by the back end's gate")
+                frontend_pose = self._chain(estimate)[0]
+                relative_pose = invert_pose(previous_pose) @ frontend_pose
+            self._measure_noise(estimate)
             self._answered = pose
             self._update_reference(points, left, frontend_pose, estimate, frame.timestamp_ns)
         result, pairs, fused = estimate.result, estimate.pairs, self._fused
@@ -309,21 +318,25 @@ class Odometry:
         and then against the last failed frame that had points (its pose coasted)."""
         assert self._reference is not None and self._previous is not None
         assert self._last_timestamp_ns is not None
-        since_previous = self._motion_over(self._last_timestamp_ns - self._previous.timestamp_ns)
+        previous_ns = self._last_timestamp_ns - self._previous.timestamp_ns
+        since_previous = self._motion_over(previous_ns)
         keyframe_prediction = self._reference_from_previous @ since_previous
         estimate = self._estimate_against(
             self._reference, keyframe_prediction, points, image, timings
         )
-        retries = [(self._previous, since_previous, "the previous frame")]
+        estimate = self._plausible(estimate, keyframe_prediction, previous_ns)
+        retries = [(self._previous, since_previous, previous_ns, "the previous frame")]
         if self._fallback is not None:
             since_fallback = self._last_timestamp_ns - self._fallback.timestamp_ns
             retries.append(
-                (self._fallback, self._motion_over(since_fallback), "the last frame with points")
-            )
-        for reference, prediction, name in retries:
+                (self._fallback, self._motion_over(since_fallback), since_fallback,
+                 "the last frame with points")
+            )  # fmt: skip
+        for reference, prediction, span_ns, name in retries:
             if estimate.reference_from_current is not None or reference is self._reference:
                 continue
             retry = self._estimate_against(reference, prediction, points, image, timings)
+            retry = self._plausible(retry, prediction, span_ns)
             if retry.reference_from_current is not None:
                 retry.message = (
                     f"keyframe {self._reference.index} not tracked ({estimate.message}); "
@@ -331,6 +344,25 @@ class Odometry:
                 )
                 return retry
         return estimate
+
+    def _plausible(self, estimate: _Estimate, prediction: np.ndarray, span_ns: int) -> _Estimate:
+        """The estimate, or a failed one when its rotation is further from the predicted
+        reference_from_current than ``frontend.max_rotation_surprise_deg_s`` over the
+        ``span_ns`` the prediction extrapolates (a camera cannot turn that much faster at
+        once; a wrong fit with a flipped rotation can)."""
+        rate = self.config.frontend.max_rotation_surprise_deg_s
+        measured = estimate.reference_from_current
+        if rate is None or measured is None:
+            return estimate
+        surprise = rotation_angle_deg(prediction[:3, :3].T @ measured[:3, :3])
+        allowed = rate * max(span_ns, 1) * 1e-9
+        if surprise <= allowed:
+            return estimate
+        return _failed(
+            estimate,
+            f"implausible rotation: {surprise:.1f} deg from the constant-velocity prediction "
+            f"(> {allowed:.1f})",
+        )
 
     def _estimate_against(
         self,
@@ -454,7 +486,7 @@ class Odometry:
             )
             return self._pose, FrameStatus.OK, message
         if estimate.reference_from_current is None or estimate.reference is None:
-            if self._failures < self.config.frontend.max_coast_frames:
+            if not self._held():
                 # Constant velocity: a moving camera keeps moving; a still one stays still.
                 step = self._motion_over(self._frame_interval_ns)
                 motion = self._camera_from_rect @ step @ self._rect_from_camera
@@ -584,9 +616,10 @@ class Odometry:
         reference_from_current = estimate.reference_from_current
         first = self._reference is None
         failed = reference_from_current is None and not first
-        self._failures = self._failures + 1 if failed else 0
+        if not failed:
+            self._last_fix_ns = int(timestamp_ns)
         if failed:
-            held = self._failures > frontend.max_coast_frames
+            held = self._held()
             if held:
                 self._motion = np.eye(4)  # the pose is held from now on
             usable = len(points) >= frontend.keyframe_min_inliers
@@ -612,6 +645,13 @@ class Odometry:
             self._reference_from_previous = reference_from_current
         self._previous = current
 
+    def _held(self) -> bool:
+        """Whether a frame without an estimate now holds the pose: the last vision fix is more
+        than ``frontend.max_coast_s`` old (1 ms more for timestamp jitter)."""
+        assert self._last_timestamp_ns is not None
+        elapsed_ns = self._last_timestamp_ns - self._last_fix_ns
+        return elapsed_ns > self.config.frontend.max_coast_s * 1e9 + _JITTER_NS
+
     def _motion_over(self, interval_ns: int) -> np.ndarray:
         """The last measured motion at the same velocity over ``interval_ns`` (rectified)."""
         return scale_motion(self._motion, interval_ns / self._motion_interval_ns)
@@ -627,6 +667,12 @@ class Odometry:
             or np.linalg.norm(motion[:3, 3]) > frontend.keyframe_max_translation_m
             or rotation_angle_deg(motion[:3, :3]) > frontend.keyframe_max_rotation_deg
         )
+
+
+def _failed(estimate: _Estimate, reason: str) -> _Estimate:
+    """The estimate turned into a failed one (no pose), keeping its matches for the report."""
+    message = f"{estimate.message}; {reason}" if estimate.message else reason
+    return _Estimate(None, estimate.result, message, estimate.pairs, estimate.reference)
 
 
 def _checked_pose(pose: np.ndarray) -> np.ndarray:

@@ -131,6 +131,9 @@ class FusedEstimate:
     # the body frame) of ``body_pose`` and of ``body_motion``, from the smoother's Bayes tree.
     body_covariance: np.ndarray | None = None
     body_motion_covariance: np.ndarray | None = None
+    # The frame's relative pose failed the outlier gate: the front end must not learn from it
+    # (noise level, reference frame) either.
+    vision_rejected: bool = False
 
 
 @dataclass
@@ -163,6 +166,7 @@ class _Step:
     rest_samples: ImuBatch | None = None  # the interval's IMU if it continues the rest
     still: bool = False
     accepted: bool = False  # the relative pose passed the gate
+    rejected: bool = False  # the relative pose failed the gate
 
 
 _EYE3 = np.eye(3)
@@ -641,9 +645,10 @@ class FusionBackend:
         status = self._status(step)
         self._previous_motion = invert_pose(previous_pose) @ self._pose_estimate(step.current)
         self._previous_dt = dt
-        return self._estimate(
+        estimate = self._estimate(
             status, "; ".join(step.notes), self._previous_motion.copy(), step.delta
         )
+        return replace(estimate, vision_rejected=step.rejected)
 
     def _add_imu_factors(self, step: _Step, timestamp_ns: int) -> None:
         """Gyro rotation factor over the interval and the bias random walk into this frame."""
@@ -739,6 +744,7 @@ class FusionBackend:
                 f"relative pose rejected (squared Mahalanobis distance {distance:.0f} "
                 f"> {gate:g} from the prediction)"
             )
+            step.rejected = True
             return prediction
         step.accepted = True
         base = gtsam.noiseModel.Gaussian.Covariance(covariance)
@@ -855,9 +861,7 @@ class FusionBackend:
             bias = self._bias.copy()
         if self._use_accel:
             self._gravity = np.asarray(self._smoother.calculateEstimateVector(_GRAVITY_KEY))
-            self._accel_bias = np.asarray(
-                self._smoother.calculateEstimateVector(_ACCEL_BIAS_KEY)
-            )
+            self._accel_bias = np.asarray(self._smoother.calculateEstimateVector(_ACCEL_BIAS_KEY))
         final_poses, self._final_poses = tuple(self._final_poses), []
         covariance, motion_covariance = self._marginals(motion)
         return FusedEstimate(
@@ -874,9 +878,7 @@ class FusionBackend:
             body_motion_covariance=motion_covariance,
         )
 
-    def _marginals(
-        self, motion: np.ndarray | None
-    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    def _marginals(self, motion: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Covariance of the newest pose and of the motion from the previous one.
 
         The motion M = X_prev^-1 X_cur has the right-perturbation error
