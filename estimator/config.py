@@ -98,8 +98,12 @@ class FrontendConfig(_Section):
     min_matches: int = Field(12, ge=3)  # fewer 3D-3D pairs: the frame is not estimated
     min_inlier_ratio: float = Field(0.25, ge=0, le=1)  # fewer inliers per match: failed
     # Without an estimate the pose coasts at the last velocity (status degraded) for at most
-    # this many consecutive frames, then it is held (status lost). 0 = always hold.
-    max_coast_frames: int = Field(5, ge=0)
+    # this long since the last vision fix (s), then it is held (status lost). 0 = always hold.
+    max_coast_s: float = Field(0.25, ge=0)
+    # A relative pose whose rotation is further from the constant-velocity prediction than
+    # this rate times the predicted time span is rejected: vision alone has no gyro to catch a
+    # wrong fit (a 100 deg flip) that a widened support gate let through. None: no check.
+    max_rotation_surprise_deg_s: float | None = Field(300.0, gt=0)
     # Tracking against a keyframe (no creeping drift while the view overlaps) or frame-to-frame.
     tracking: Literal["keyframe", "frame"] = "keyframe"
     keyframe_min_inliers: int = Field(80, ge=3)

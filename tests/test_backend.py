@@ -663,3 +663,39 @@ def test_a_front_end_covariance_must_be_a_finite_6x6():
         backend.add_frame(200, np.eye(4), None, 10, None, covariance=np.eye(3))
     with pytest.raises(ValueError, match="6x6"):
         backend.add_frame(200, np.eye(4), None, 10, None, covariance=np.full((6, 6), np.nan))
+
+
+def _between_keys(backend: FusionBackend) -> set[tuple[int, int]]:
+    """(from, to) frame indices of the relative-pose factors the smoother holds."""
+    graph = backend._smoother.getFactors()
+    pairs = set()
+    for i in range(graph.size()):
+        factor = graph.at(i)
+        if factor is not None and isinstance(factor, gtsam.BetweenFactorPose3):
+            first, second = (gtsam.Symbol(key) for key in factor.keys())
+            pairs.add((first.index(), second.index()))
+    return pairs
+
+
+def test_after_a_gap_an_old_reference_is_reached_through_the_last_frame_with_vision():
+    """Frame 20 has no vision; frame 21 is measured against frame 10, long out of the window.
+    Its factor starts at frame 19 (measured), not at the coasted frame 20, whose estimate is
+    only the motion prior's (or the IMU's) and would carry its error into frame 21."""
+    scenario = smooth_trajectory(24, seed=26)
+    stamps = scenario.timestamps_ns
+    camera = scenario.body_poses @ BODY_FROM_CAMERA
+    backend = FusionBackend(BackendConfig(), BODY_FROM_CAMERA, None)
+    backend.add_frame(int(stamps[0]), None, None, 0, None)
+    for k in range(1, 22):
+        reference = 10 if k > 10 else k - 1
+        measured = None if k == 20 else invert_pose(camera[reference]) @ camera[k]
+        out = backend.add_frame(
+            int(stamps[k]), measured, np.full(150, 0.02), 150, None,
+            reference_ns=int(stamps[reference]),
+        )  # fmt: skip
+    assert out.status is FrameStatus.OK
+    pairs = _between_keys(backend)
+    assert (19, 21) in pairs and (20, 21) not in pairs
+    estimated = invert_pose(backend._pose_estimate(19)) @ backend._pose_estimate(21)
+    true = invert_pose(scenario.body_poses[19]) @ scenario.body_poses[21]
+    assert np.linalg.norm(estimated[:3, 3] - true[:3, 3]) < 1e-6

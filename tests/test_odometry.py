@@ -342,7 +342,7 @@ def test_grey_conversion() -> None:
 
 def test_featureless_frames_are_lost_and_hold_the_pose() -> None:
     odometry = Odometry(
-        _flat_rig(), _config(backend={"enabled": False}, frontend={"max_coast_frames": 0})
+        _flat_rig(), _config(backend={"enabled": False}, frontend={"max_coast_s": 0})
     )
     first = odometry.process(_blank(0))
     assert first.status == FrameStatus.OK
@@ -354,8 +354,9 @@ def test_featureless_frames_are_lost_and_hold_the_pose() -> None:
 
 
 def test_failed_frames_coast_then_hold() -> None:
+    two_frames_s = 2 * FRAME_NS * 1e-9
     odometry = Odometry(
-        _flat_rig(), _config(backend={"enabled": False}, frontend={"max_coast_frames": 2})
+        _flat_rig(), _config(backend={"enabled": False}, frontend={"max_coast_s": two_frames_s})
     )
     statuses = [odometry.process(_blank(k * FRAME_NS)).status for k in range(5)]
     assert statuses == [

@@ -131,6 +131,9 @@ class FusedEstimate:
     # the body frame) of ``body_pose`` and of ``body_motion``, from the smoother's Bayes tree.
     body_covariance: np.ndarray | None = None
     body_motion_covariance: np.ndarray | None = None
+    # The frame's relative pose failed the outlier gate: the front end must not learn from it
+    # (noise level, reference frame) either.
+    vision_rejected: bool = False
 
 
 @dataclass
@@ -163,6 +166,7 @@ class _Step:
     rest_samples: ImuBatch | None = None  # the interval's IMU if it continues the rest
     still: bool = False
     accepted: bool = False  # the relative pose passed the gate
+    rejected: bool = False  # the relative pose failed the gate
 
 
 _EYE3 = np.eye(3)
@@ -237,7 +241,10 @@ class FusionBackend:
         self._previous_motion: np.ndarray | None = None  # body T_k-2,k-1 (estimated)
         self._previous_dt = 0.0
         self._bias = np.zeros(3)
-        self._misses = 0  # consecutive frames without an accepted relative pose
+        # The newest frame with accepted vision (or the first): its time widens the gate after
+        # a gap, and a measurement whose reference has left the window is chained through it.
+        self._last_fix_index = 0
+        self._last_fix_ns = 0
         # Frames that may still be referenced by a keyframe measurement: stamp -> (index, latest
         # body pose estimate), the pose for references that have left the smoother's window.
         self._frames: OrderedDict[int, tuple[int, np.ndarray]] = OrderedDict()
@@ -388,7 +395,7 @@ class FusionBackend:
 
     def _start(self, timestamp_ns: int) -> FusedEstimate:
         self._index = 0
-        self._start_ns = self._last_ns = timestamp_ns
+        self._start_ns = self._last_ns = self._last_fix_ns = timestamp_ns
         message = "world = first body pose"
         rotation = np.eye(3)
         levelled = False
@@ -559,14 +566,14 @@ class FusionBackend:
         The error is Log(predicted^-1 measured) with the measurement's 6x6 covariance plus the
         prediction's spread: the gyro covariance plus a floor for the bias uncertainty (else
         the constant-velocity sigma) for rotation, the constant-velocity sigma for
-        translation; the motion-prior parts widen with every frame without accepted vision
-        and with the length of the interval against the previous one (a long gap between
-        frames extrapolates just as far), so the gate reopens after a gap.
+        translation; the motion-prior parts widen with the time since the last accepted vision
+        against the previous frame interval (a long gap extrapolates just as far, whether
+        frames were missed or never came), so the gate reopens after a gap.
         """
         if self._previous_motion is None and preintegration is None:
             return 0.0  # nothing to compare with yet
-        stretch = max(1.0, dt / self._previous_dt) if self._previous_dt > 0 else 1.0
-        widen = ((1.0 + self._misses) * stretch) ** 2
+        elapsed = (self._last_ns - self._last_fix_ns) * 1e-9 + dt
+        widen = max(1.0, elapsed / self._previous_dt) ** 2 if self._previous_dt > 0 else 1.0
         error = gtsam.Pose3.Logmap(gtsam.Pose3(invert_pose(predicted) @ measured))
         spread = covariance.copy()
         if preintegration is not None:
@@ -641,9 +648,10 @@ class FusionBackend:
         status = self._status(step)
         self._previous_motion = invert_pose(previous_pose) @ self._pose_estimate(step.current)
         self._previous_dt = dt
-        return self._estimate(
+        estimate = self._estimate(
             status, "; ".join(step.notes), self._previous_motion.copy(), step.delta
         )
+        return replace(estimate, vision_rejected=step.rejected)
 
     def _add_imu_factors(self, step: _Step, timestamp_ns: int) -> None:
         """Gyro rotation factor over the interval and the bias random walk into this frame."""
@@ -739,10 +747,13 @@ class FusionBackend:
                 f"relative pose rejected (squared Mahalanobis distance {distance:.0f} "
                 f"> {gate:g} from the prediction)"
             )
+            step.rejected = True
             return prediction
         step.accepted = True
         base = gtsam.noiseModel.Gaussian.Covariance(covariance)
         source, measured = (reference, body_measured) if live else (previous, body_motion)
+        if not live and self._last_fix_index != previous:
+            source, measured = self._chained(step, measured, body_motion)
         step.factors.add(
             gtsam.BetweenFactorPose3(
                 _pose_key(source),
@@ -753,6 +764,20 @@ class FusionBackend:
         )
         self._oldest_reference = max(self._oldest_reference, reference)
         return body_motion
+
+    def _chained(
+        self, step: _Step, measured: np.ndarray, body_motion: np.ndarray
+    ) -> tuple[int, np.ndarray]:
+        """Source frame and relative pose for a measurement whose reference has left the
+        window, after frames without vision: chained through the last frame with accepted
+        vision while it is in the window, not through the previous (coasted) frame, whose
+        IMU-only estimate would otherwise carry its error into every frame after the gap."""
+        anchor = self._last_fix_index
+        if not self._in_window(anchor, step.cutoff):
+            return step.previous, measured
+        # body_motion is T_prev_cur through the current estimates: T_anchor_cur follows.
+        anchor_from_previous = invert_pose(self._pose_estimate(anchor)) @ self._body_pose
+        return anchor, nearest_rigid(anchor_from_previous @ body_motion)
 
     def _add_motion_prior(self, step: _Step, motion: np.ndarray) -> None:
         """Constant-velocity prior from the previous frame (loose)."""
@@ -822,11 +847,10 @@ class FusionBackend:
             return self._body_pose
 
     def _status(self, step: _Step) -> FrameStatus:
-        """OK with accepted vision, else DEGRADED (gyro) or LOST; counts the misses."""
+        """OK with accepted vision, else DEGRADED (gyro) or LOST; notes the last fix."""
         if step.accepted:
-            self._misses = 0
+            self._last_fix_index, self._last_fix_ns = step.current, self._last_ns
             return FrameStatus.OK
-        self._misses += 1
         if step.preintegration is not None:
             step.notes.insert(0, "no vision: rotation from gyro, translation from motion prior")
             return FrameStatus.DEGRADED
@@ -855,9 +879,7 @@ class FusionBackend:
             bias = self._bias.copy()
         if self._use_accel:
             self._gravity = np.asarray(self._smoother.calculateEstimateVector(_GRAVITY_KEY))
-            self._accel_bias = np.asarray(
-                self._smoother.calculateEstimateVector(_ACCEL_BIAS_KEY)
-            )
+            self._accel_bias = np.asarray(self._smoother.calculateEstimateVector(_ACCEL_BIAS_KEY))
         final_poses, self._final_poses = tuple(self._final_poses), []
         covariance, motion_covariance = self._marginals(motion)
         return FusedEstimate(
@@ -874,9 +896,7 @@ class FusionBackend:
             body_motion_covariance=motion_covariance,
         )
 
-    def _marginals(
-        self, motion: np.ndarray | None
-    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    def _marginals(self, motion: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Covariance of the newest pose and of the motion from the previous one.
 
         The motion M = X_prev^-1 X_cur has the right-perturbation error

@@ -1,0 +1,161 @@
+"""The estimate step: temporal matches -> rigid registration -> Mahalanobis refinement, the
+plausibility check against the predicted motion, and the session's noise level it learns."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from estimator.config import SwarmvoConfig
+from estimator.formats.calibration import Rectification
+from estimator.frontend.stereo import StereoPoints
+from estimator.frontend.stereo_noise import StereoNoiseModel
+from estimator.frontend.temporal import Correspondences, match_temporal
+from estimator.geometry import invert_pose, make_pose, rotation_angle_deg
+from estimator.odometry.frames import Estimate, Reference, failed, frame_seed, stage
+from estimator.registration.refine import refine_pose_mahalanobis
+from estimator.registration.registry import estimator_spec, register
+
+__all__ = ["PoseEstimation"]
+
+
+class PoseEstimation:
+    """Relative poses of frames against references, weighed by the measured stereo noise."""
+
+    def __init__(
+        self, config: SwarmvoConfig, rectification: Rectification, noise: StereoNoiseModel
+    ) -> None:
+        self.config = config
+        self.rectification = rectification
+        self.noise = noise
+
+    def against(
+        self,
+        reference: Reference,
+        predicted_reference_from_current: np.ndarray,
+        points: StereoPoints,
+        image: np.ndarray,
+        timings: dict[str, float],
+        index: int,
+    ) -> Estimate:
+        """T_ref_cur of frame ``index`` (its ``points`` and rectified left ``image``)."""
+        with stage(timings, "temporal"):
+            pairs = match_temporal(
+                reference.points,
+                points,
+                self.config.frontend,
+                self.rectification,
+                predicted_current_from_reference=invert_pose(predicted_reference_from_current),
+                images=(reference.image, image),
+            )
+        with stage(timings, "estimate"):
+            covariances = (
+                self.noise.covariances(pairs.current_points),
+                self.noise.covariances(pairs.reference_points),
+            )
+            estimate = self._estimate(pairs, covariances, index)
+            estimate.point_covariances = covariances
+            if self.config.registration.mahalanobis_refine:
+                estimate = self._refine(estimate, pairs)
+        estimate.pairs, estimate.reference = pairs, reference
+        return estimate
+
+    def plausible(self, estimate: Estimate, prediction: np.ndarray, span_ns: int) -> Estimate:
+        """The estimate, or a failed one when its rotation is further from the predicted
+        reference_from_current than ``frontend.max_rotation_surprise_deg_s`` over the
+        ``span_ns`` the prediction extrapolates (a camera cannot turn that much faster at
+        once; a wrong fit with a flipped rotation can)."""
+        rate = self.config.frontend.max_rotation_surprise_deg_s
+        measured = estimate.reference_from_current
+        if rate is None or measured is None:
+            return estimate
+        surprise = rotation_angle_deg(prediction[:3, :3].T @ measured[:3, :3])
+        allowed = rate * max(span_ns, 1) * 1e-9
+        if surprise <= allowed:
+            return estimate
+        return failed(
+            estimate,
+            f"implausible rotation: {surprise:.1f} deg from the constant-velocity prediction "
+            f"(> {allowed:.1f})",
+        )
+
+    def measure_noise(self, estimate: Estimate) -> None:
+        """Fold this frame's inlier residuals into the session's noise level."""
+        pairs, result, pose = estimate.pairs, estimate.result, estimate.reference_from_current
+        if pairs is None or result is None or pose is None:
+            return
+        if self.config.registration.noise_model == "fixed":
+            return
+        inliers = result.inliers
+        self.noise.update(
+            pairs.reference_points[inliers], pairs.current_points[inliers], pose[:3, :3],
+            pose[:3, 3],
+        )  # fmt: skip
+
+    def _estimate(
+        self,
+        correspondences: Correspondences,
+        covariances: tuple[np.ndarray, np.ndarray],
+        index: int,
+    ) -> Estimate:
+        """Rigid registration: reference points ~ R current points + t (T_ref_cur)."""
+        frontend = self.config.frontend
+        needed = frontend.min_matches
+        if len(correspondences) < needed:
+            return Estimate(None, None, f"{len(correspondences)} temporal matches (< {needed})")
+        registration = self.config.registration
+        options: dict[str, object] = dict(registration.options)
+        if registration.use_point_sigmas and estimator_spec(registration.method).takes_covariances:
+            options["source_cov"], options["target_cov"] = covariances
+            gate = self.noise.gate_for(
+                correspondences.current_points, correspondences.reference_points
+            )
+            options.setdefault("gate_chi2", gate)
+        result = register(
+            correspondences.current_points,
+            correspondences.reference_points,
+            method=registration.method,
+            seed=frame_seed(self.config.seed, index),
+            **options,
+        )
+        inliers = int(result.inliers.sum())
+        if not result.success:
+            return Estimate(None, result, f"registration failed: {result.message}")
+        if inliers < needed:
+            return Estimate(None, result, f"{inliers} registration inliers (< {needed})")
+        if inliers < frontend.min_inlier_ratio * len(correspondences):
+            # Matches that passed the ratio and mutual checks are mostly right in a static
+            # scene; a pose that explains only a sliver of them is a failed search.
+            return Estimate(
+                None,
+                result,
+                f"only {inliers} of {len(correspondences)} matches are inliers "
+                f"(< {frontend.min_inlier_ratio:.0%})",
+            )
+        pose = make_pose(result.rotation, result.translation)
+        return Estimate(pose, result, "")
+
+    def _refine(self, estimate: Estimate, correspondences: Correspondences) -> Estimate:
+        """Maximum-likelihood pose on the registration inliers, each point weighed by its full
+        stereo covariance (uncertain along the ray); the inlier set stays the estimator's.
+        When the refinement cannot improve on the registration its pose is kept."""
+        if estimate.reference_from_current is None or estimate.result is None:
+            return estimate
+        assert estimate.point_covariances is not None
+        registration = self.config.registration
+        inliers = estimate.result.inliers
+        current_cov, reference_cov = estimate.point_covariances
+        refined = refine_pose_mahalanobis(
+            correspondences.current_points[inliers],
+            correspondences.reference_points[inliers],
+            current_cov[inliers],
+            reference_cov[inliers],
+            estimate.reference_from_current[:3, :3],
+            estimate.reference_from_current[:3, 3],
+            iterations=registration.refine_iterations,
+            robust=registration.refine_robust,
+            robust_scale=registration.refine_robust_scale,
+        )
+        if refined.success:
+            estimate.reference_from_current = make_pose(refined.rotation, refined.translation)
+            estimate.covariance = refined.covariance
+        return estimate

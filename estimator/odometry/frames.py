@@ -1,0 +1,103 @@
+"""Input images and seeds, and the records one frame leaves: a reference and an estimate."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from estimator.frontend.stereo import StereoPoints
+from estimator.frontend.temporal import Correspondences
+from estimator.registration.registry import RegistrationResult
+
+__all__ = [
+    "Estimate",
+    "Reference",
+    "checked_pose",
+    "failed",
+    "frame_seed",
+    "stage",
+    "to_grey8",
+]
+
+
+def frame_seed(seed: int, index: int) -> int:
+    """Estimator seed of frame ``index``: reproducible in any process, distinct per frame."""
+    return int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
+
+
+def to_grey8(image: np.ndarray, name: str = "image") -> np.ndarray:
+    """8-bit grey from grey / BGR / BGRA images of 8 or 16 bits (16-bit scaled by 1/257)."""
+    image = np.asarray(image)
+    if image.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"{name} must be uint8 or uint16, got {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim == 3 and image.shape[2] in (3, 4):
+        code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        image = cv2.cvtColor(image, code)
+    if image.ndim != 2:
+        raise ValueError(f"{name} must be (H, W) grey or (H, W, 3|4) colour, got {image.shape}")
+    if image.dtype == np.uint16:
+        image = (image.astype(np.uint32) * 255 + 32767) // 65535  # full range onto 0..255
+    return np.ascontiguousarray(image, dtype=np.uint8)
+
+
+def checked_pose(pose: np.ndarray) -> np.ndarray:
+    matrix = np.asarray(pose, dtype=float)
+    if matrix.shape != (4, 4) or not np.isfinite(matrix).all():
+        raise ValueError(f"initial_pose must be a finite 4x4 matrix, got shape {matrix.shape}")
+    rotation = matrix[:3, :3]
+    if (
+        np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-6
+        or np.linalg.det(rotation) < 0
+        or not np.allclose(matrix[3], [0, 0, 0, 1])
+    ):
+        raise ValueError("initial_pose must be a rigid transform (rotation block orthonormal)")
+    return matrix
+
+
+@dataclass
+class Reference:
+    """The frame the current one is matched against, with its front-end pose."""
+
+    index: int
+    timestamp_ns: int
+    points: StereoPoints
+    image: np.ndarray  # rectified left image
+    pose: np.ndarray  # left camera in world (original camera frame)
+
+
+@dataclass
+class Estimate:
+    """A relative pose of the current frame w.r.t. the reference, or why there is none."""
+
+    reference_from_current: np.ndarray | None  # rectified frames; None when the estimate failed
+    result: RegistrationResult | None
+    message: str
+    pairs: Correspondences | None = None
+    reference: Reference | None = None  # the frame it was measured against
+    # 6x6 of (rotation, translation), right perturbation, when the pose was refined.
+    covariance: np.ndarray | None = None
+    # (N, 3, 3) covariances of the current and reference points of ``pairs``.
+    point_covariances: tuple[np.ndarray, np.ndarray] | None = None
+
+
+def failed(estimate: Estimate, reason: str) -> Estimate:
+    """The estimate turned into a failed one (no pose), keeping its matches for the report."""
+    message = f"{estimate.message}; {reason}" if estimate.message else reason
+    return Estimate(None, estimate.result, message, estimate.pairs, estimate.reference)
+
+
+@contextmanager
+def stage(timings: dict[str, float], name: str) -> Iterator[None]:
+    """Adds the wall time of the block to ``timings[name]`` (the frame report's timings)."""
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        timings[name] = timings.get(name, 0.0) + time.perf_counter() - start

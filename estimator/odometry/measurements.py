@@ -1,0 +1,97 @@
+"""A rectified estimate as the back end and the frame reports take it: in the original left
+camera frame, with its inlier points, residuals and covariance."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimator.config import BackendConfig
+from estimator.geometry import invert_pose, make_pose, transform_points
+from estimator.odometry.frames import Estimate
+
+__all__ = ["CameraFrames", "Measurement"]
+
+
+@dataclass
+class Measurement:
+    """What the back end's ``add_frame`` takes of one frame's vision (nothing: no estimate)."""
+
+    relative_pose: np.ndarray | None = None
+    inlier_residuals: np.ndarray | None = None
+    inlier_count: int = 0
+    reference_ns: int | None = None
+    inlier_points: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+
+
+class CameraFrames:
+    """Between the rectified left camera (where geometry runs) and the original one (poses)."""
+
+    def __init__(self, rectifying_rotation: np.ndarray) -> None:
+        self.rect_from_camera = make_pose(rectifying_rotation, np.zeros(3))
+        self.camera_from_rect = invert_pose(self.rect_from_camera)
+
+    def in_camera(self, rectified_motion: np.ndarray) -> np.ndarray:
+        """A relative pose of rectified frames as one of the original left camera."""
+        return self.camera_from_rect @ rectified_motion @ self.rect_from_camera
+
+    def measurement(self, estimate: Estimate) -> Measurement:
+        """The estimate for the back end: T_ref_cur against the frame it was made from (the back
+        end ties the two frames directly instead of through the poses in between)."""
+        assert estimate.result is not None and estimate.reference is not None
+        return Measurement(
+            relative_pose=self.reference_from_current(estimate),
+            inlier_residuals=self.inlier_residuals(estimate),
+            inlier_count=int(estimate.result.inliers.sum()),
+            reference_ns=estimate.reference.timestamp_ns,
+            inlier_points=self.inlier_points(estimate),
+            covariance=self.measurement_covariance(estimate),
+        )
+
+    def measurement_covariance(self, estimate: Estimate) -> np.ndarray | None:
+        """The refinement's 6x6 covariance, rotated from the rectified into the camera frame.
+
+        The rectifying transform is a pure rotation, whose adjoint rotates both the rotation and
+        the translation block of the (right-perturbation) tangent.
+        """
+        if estimate.covariance is None:
+            return None
+        rotation = self.camera_from_rect[:3, :3]
+        adjoint = np.zeros((6, 6))
+        adjoint[:3, :3] = adjoint[3:, 3:] = rotation
+        return adjoint @ estimate.covariance @ adjoint.T
+
+    def report_covariance(self, estimate: Estimate, backend: BackendConfig) -> np.ndarray:
+        """Covariance of the measured T_ref_cur as the back end weighs it: the refinement's,
+        else the rigid fit's from the inlier points, scaled and floored by ``backend``."""
+        from estimator.backend.noise import fit_covariance, measured_covariance
+
+        covariance = self.measurement_covariance(estimate)
+        if covariance is not None:
+            return measured_covariance(covariance, backend)
+        points, residuals = self.inlier_points(estimate), self.inlier_residuals(estimate)
+        return fit_covariance(points, residuals, backend)
+
+    def reference_from_current(self, estimate: Estimate) -> np.ndarray:
+        """T_ref_cur of the original left camera (the estimate is in rectified frames)."""
+        assert estimate.reference_from_current is not None
+        return self.in_camera(estimate.reference_from_current)
+
+    def inlier_points(self, estimate: Estimate) -> np.ndarray:
+        """The registration inliers of the current frame in its (original) left camera frame:
+        their spread and lever arm give the back end the full covariance of the fit."""
+        pairs, result = estimate.pairs, estimate.result
+        assert pairs is not None and result is not None
+        return transform_points(self.camera_from_rect, pairs.current_points[result.inliers])
+
+    @staticmethod
+    def inlier_residuals(estimate: Estimate) -> np.ndarray:
+        """||p - (R q + t)|| of the registration inliers (metres), for the back-end covariance."""
+        pairs, result = estimate.pairs, estimate.result
+        assert pairs is not None and result is not None
+        assert estimate.reference_from_current is not None
+        mask = result.inliers
+        moved = transform_points(estimate.reference_from_current, pairs.current_points[mask])
+        return np.linalg.norm(pairs.reference_points[mask] - moved, axis=1)

@@ -1,0 +1,106 @@
+"""The reference policy: which frames the next one is matched against, and the measured motion
+(constant velocity) that predicts where it is."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from estimator.config import FrontendConfig
+from estimator.frontend.stereo import StereoPoints
+from estimator.geometry import invert_pose, rotation_angle_deg, scale_motion
+from estimator.odometry.frames import Estimate, Reference
+
+__all__ = ["References"]
+
+_JITTER_NS = 1_000_000  # timestamp jitter tolerated by time limits
+
+
+class References:
+    """The keyframe, the previous good frame and a last resort; the motion since them.
+
+    All relative poses here are in the rectified left camera frame.
+    """
+
+    def __init__(self, frontend: FrontendConfig) -> None:
+        self.frontend = frontend
+        self.reference: Reference | None = None  # keyframe (or previous frame)
+        self.previous: Reference | None = None  # the last frame with an estimate
+        self.fallback: Reference | None = None  # a later failed frame with enough points
+        self.reference_from_previous = np.eye(4)  # rectified; for predicting the search
+        self.motion = np.eye(4)  # last measured motion (rectified), constant velocity ...
+        self.motion_interval_ns = 1  # ... over this time: predictions scale it to theirs
+        self.last_fix_ns = 0  # timestamp of the last frame with a vision estimate
+
+    def motion_over(self, interval_ns: int) -> np.ndarray:
+        """The last measured motion at the same velocity over ``interval_ns`` (rectified)."""
+        return scale_motion(self.motion, interval_ns / self.motion_interval_ns)
+
+    def held(self, now_ns: int) -> bool:
+        """Whether a frame without an estimate at ``now_ns`` holds the pose: the last vision fix
+        is more than ``frontend.max_coast_s`` old (1 ms more for timestamp jitter)."""
+        elapsed_ns = now_ns - self.last_fix_ns
+        return elapsed_ns > self.frontend.max_coast_s * 1e9 + _JITTER_NS
+
+    def update(
+        self,
+        index: int,
+        points: StereoPoints,
+        image: np.ndarray,
+        pose: np.ndarray,
+        estimate: Estimate,
+        timestamp_ns: int,
+    ) -> None:
+        """Keep the keyframe while it still tracks well; otherwise this frame becomes it.
+
+        A failed frame (black, blurred, or just not registered) replaces neither the keyframe
+        nor the previous frame while the pose coasts: the next frame is matched against the
+        last good ones at once, with the prediction scaled to the time since them, so the
+        failure does not reach later frames. A failed frame with enough points is kept as a
+        last resort (when the view has moved on, the next frame may only match it); once the
+        pose is held such a frame becomes the new reference, so that tracking restarts.
+        """
+        frontend = self.frontend
+        current = Reference(index, int(timestamp_ns), points, image, pose)
+        reference_from_current = estimate.reference_from_current
+        first = self.reference is None
+        failed = reference_from_current is None and not first
+        if not failed:
+            self.last_fix_ns = int(timestamp_ns)
+        if failed:
+            held = self.held(int(timestamp_ns))
+            if held:
+                self.motion = np.eye(4)  # the pose is held from now on
+            usable = len(points) >= frontend.keyframe_min_inliers
+            if usable:
+                self.fallback = current  # the last resort if the good references fail
+            if not held or not usable:
+                return  # keep the last good references
+        elif reference_from_current is not None:
+            assert self.previous is not None and estimate.reference is not None
+            if estimate.reference is self.reference:
+                self.motion = invert_pose(self.reference_from_previous) @ reference_from_current
+                since_ns = self.previous.timestamp_ns
+            else:
+                self.motion = reference_from_current  # measured against a later frame
+                since_ns = estimate.reference.timestamp_ns
+            self.motion_interval_ns = max(int(timestamp_ns) - since_ns, 1)
+        self.fallback = None
+        if first or failed or self._needs_new_reference(estimate):
+            self.reference = current
+            self.reference_from_previous = np.eye(4)
+        else:
+            assert reference_from_current is not None
+            self.reference_from_previous = reference_from_current
+        self.previous = current
+
+    def _needs_new_reference(self, estimate: Estimate) -> bool:
+        frontend = self.frontend
+        if frontend.tracking == "frame" or estimate.reference is not self.reference:
+            return True
+        motion = estimate.reference_from_current
+        assert estimate.result is not None and motion is not None
+        return bool(
+            estimate.result.inliers.sum() < frontend.keyframe_min_inliers
+            or np.linalg.norm(motion[:3, 3]) > frontend.keyframe_max_translation_m
+            or rotation_angle_deg(motion[:3, :3]) > frontend.keyframe_max_rotation_deg
+        )
