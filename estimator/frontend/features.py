@@ -15,9 +15,11 @@ from dataclasses import dataclass
 from operator import attrgetter
 
 import cv2
+import numba
 import numpy as np
 
 from estimator.config import FrontendConfig
+from estimator.frontend.orb_corners import orb_corners, orientations, patch_row_extents
 
 __all__ = [
     "FeatureDetector",
@@ -79,18 +81,34 @@ def grid_select(
     rows, cols = grid
     col = np.clip((points[:, 0] * cols / width).astype(np.intp), 0, cols - 1)
     row = np.clip((points[:, 1] * rows / height).astype(np.intp), 0, rows - 1)
-    cell = row * cols + col
-    # Stable sorts of small integers after one sort by strength: the order of a lexsort by
-    # (cell, strength) and (rank, strength), at a fraction of its cost.
     strongest = np.argsort(-response, kind="stable")
-    by_cell = strongest[np.argsort(cell[strongest], kind="stable")]  # strongest first per cell
-    sorted_cell = cell[by_cell]
-    starts = np.flatnonzero(np.r_[True, sorted_cell[1:] != sorted_cell[:-1]])
-    counts = np.diff(np.r_[starts, len(sorted_cell)])
-    rank = np.empty(len(points), dtype=np.intp)
-    rank[by_cell] = np.arange(len(points)) - np.repeat(starts, counts)
-    order = strongest[np.argsort(rank[strongest], kind="stable")]
+    order = _round_robin(row * cols + col, strongest, rows * cols)
     return np.sort(order[:budget])
+
+
+@numba.njit(cache=True, nogil=True)
+def _round_robin(cell: np.ndarray, strongest: np.ndarray, cells: int) -> np.ndarray:
+    """Points ordered by their strength rank within their cell, then by strength.
+
+    ``strongest`` lists the points strongest first (ties by index); two counting passes over
+    it give the order of a lexsort by (rank in cell, strength) in linear time.
+    """
+    count = np.zeros(cells, dtype=np.int64)
+    rank = np.empty(len(cell), dtype=np.int64)
+    for point in strongest:
+        rank[point] = count[cell[point]]
+        count[cell[point]] += 1
+    start = np.zeros(count.max() + 1, dtype=np.int64)
+    for point in strongest:
+        if rank[point] + 1 < len(start):
+            start[rank[point] + 1] += 1
+    for level in range(1, len(start)):
+        start[level] += start[level - 1]
+    order = np.empty(len(cell), dtype=np.int64)
+    for point in strongest:
+        order[start[rank[point]]] = point
+        start[rank[point]] += 1
+    return order
 
 
 class FeatureDetector:
@@ -99,6 +117,8 @@ class FeatureDetector:
     def __init__(self, config: FrontendConfig) -> None:
         self.config = config
         candidates = int(np.ceil(config.max_features * config.detection_oversampling))
+        self._candidates = candidates
+        self._fast: cv2.FastFeatureDetector | None = None
         if config.detector == "orb":
             self._detector = cv2.ORB_create(
                 nfeatures=candidates,
@@ -106,6 +126,10 @@ class FeatureDetector:
                 nlevels=config.orb_levels,
                 fastThreshold=config.fast_threshold,
             )
+            if config.orb_levels == 1:  # ORB's corners, oriented only where kept
+                self._fast = cv2.FastFeatureDetector_create(config.fast_threshold, True)
+                self._border = self._detector.getEdgeThreshold()
+                self._extents = patch_row_extents(self._detector.getPatchSize() // 2)
         else:
             self._detector = cv2.SIFT_create(nfeatures=candidates)
         self.binary = config.detector == "orb"
@@ -120,6 +144,8 @@ class FeatureDetector:
         """
         if not self.binary:  # SIFT's compute rebuilds its scale space: one call is cheaper
             return self._detect_and_compute(image)
+        if self._fast is not None:
+            return self._detect_one_level(image)
         keypoints = self._detector.detect(image, None)
         if not keypoints:
             return self._empty()
@@ -129,6 +155,31 @@ class FeatureDetector:
         if len(keep) < len(keypoints):
             keypoints = [keypoints[i] for i in keep]
             points, response = points[keep], response[keep]
+        return self._describe(image, keypoints, points, response)
+
+    def _detect_one_level(self, image: np.ndarray) -> Features:
+        """ORB on one level (the default) with the orientation computed only for the corners
+        the grid keeps (estimator/frontend/orb_corners.py): the same corners and descriptors
+        as ``cv2.ORB``, in raster order."""
+        image = np.ascontiguousarray(image)
+        keypoints, index, points, response = orb_corners(
+            image, self._fast, self._candidates, self._border
+        )
+        if len(index) == 0:
+            return self._empty()
+        keep = self._select(points, response, image.shape)
+        index, points, response = index[keep], points[keep], response[keep]
+        pixels = np.rint(points).astype(np.int64)
+        angles = orientations(image, pixels[:, 0], pixels[:, 1], self._extents)
+        chosen = [keypoints[i] for i in index]
+        for keypoint, angle in zip(chosen, angles.tolist(), strict=True):
+            keypoint.angle = angle
+        return self._describe(image, chosen, points, response)
+
+    def _describe(
+        self, image: np.ndarray, keypoints: list, points: np.ndarray, response: np.ndarray
+    ) -> Features:
+        """ORB descriptors of the chosen keypoints (``points`` and ``response`` match them)."""
         described, descriptors = self._detector.compute(image, keypoints)
         if descriptors is None or len(described) == 0:
             return self._empty()
