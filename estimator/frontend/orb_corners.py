@@ -19,7 +19,7 @@ import cv2
 import numba
 import numpy as np
 
-__all__ = ["harris_responses", "orientations", "orb_corners", "patch_row_extents"]
+__all__ = ["harris_responses", "orb_corners", "orientations", "patch_row_extents"]
 
 _HARRIS_BLOCK = 7  # OpenCV's ORB: HARRIS_BLOCK_SIZE
 _HARRIS_K = np.float32(0.04)  # OpenCV's ORB: HARRIS_K
