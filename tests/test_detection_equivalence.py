@@ -7,8 +7,15 @@ import numpy as np
 import pytest
 
 from estimator.config import FrontendConfig
-from estimator.frontend.features import FeatureDetector, grid_select
+from estimator.frontend.features import (
+    FeatureDetector,
+    descriptor_distances,
+    grid_select,
+    match_candidates,
+)
+from estimator.frontend.match_kernels import as_words, band_matches, zero_mean_sad
 from estimator.frontend.orb_corners import harris_responses, orientations, patch_row_extents
+from estimator.frontend.stereo import row_band_pairs
 
 
 def _lexsort_grid_select(points, response, image_size, grid, budget):
@@ -95,3 +102,48 @@ def test_patch_rows_describe_a_symmetric_disc() -> None:
     # Symmetric about the diagonal: row v reaches column u exactly when row u reaches v.
     inside = np.abs(np.arange(16))[None, :] <= extents[:16, None]
     np.testing.assert_array_equal(inside, inside.T)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_band_matches_equal_pairs_distances_and_ratio_test(seed: int) -> None:
+    """The compiled stereo matching gives the matches of the three NumPy steps, ties included
+    (few distinct descriptors: many equal distances)."""
+    rng = np.random.default_rng(seed)
+    count = 400
+    left = rng.uniform(0, 1, (count, 2)) * [752, 60]
+    right = left + np.column_stack([-rng.uniform(-5, 80, count), rng.normal(0, 1.0, count)])
+    right = np.round(right[rng.permutation(count)], 1)
+    palette = rng.integers(0, 256, (12, 32), dtype=np.uint8)
+    left_descriptors = palette[rng.integers(0, 12, count)]
+    right_descriptors = palette[rng.integers(0, 12, count)]
+    ia, ib = row_band_pairs(left, right, 1.5, (1.0, 60.0))
+    distance = descriptor_distances(left_descriptors, right_descriptors, ia, ib, True)
+    expected = match_candidates(ia, ib, distance, ratio=0.9, max_distance=110)
+
+    order = np.argsort(right[:, 1], kind="stable")
+    low = np.searchsorted(right[order, 1], left[:, 1] - 1.5, side="left")
+    high = np.searchsorted(right[order, 1], left[:, 1] + 1.5, side="right")
+    a, b, found = band_matches(
+        left[:, 0].copy(), right[:, 0].copy(), as_words(left_descriptors),
+        as_words(right_descriptors), order, low, high, (1.0, 60.0), 0.9, 110.0,
+    )  # fmt: skip
+    assert len(expected) > 20
+    np.testing.assert_array_equal(a, expected.a)
+    np.testing.assert_array_equal(b, expected.b)
+    np.testing.assert_array_equal(found, expected.distance)
+
+
+def test_zero_mean_sad_equals_patch_arithmetic() -> None:
+    rng = np.random.default_rng(4)
+    left = rng.integers(0, 256, (60, 80), dtype=np.uint8)
+    right = rng.integers(0, 256, (60, 80), dtype=np.uint8)
+    u, v, right_u = (rng.integers(10, 50, 30) for _ in range(3))
+    shifts = np.arange(-2, 3)
+    costs = zero_mean_sad(left, right, u, v, right_u, 5, shifts)
+    for index in range(30):
+        patch = left[v[index] - 5 : v[index] + 6, u[index] - 5 : u[index] + 6].astype(int)
+        for k, shift in enumerate(shifts):
+            x = right_u[index] + shift
+            other = right[v[index] - 5 : v[index] + 6, x - 5 : x + 6].astype(int)
+            expected = np.abs((other - other.sum() // 121) - (patch - patch.sum() // 121)).sum()
+            assert costs[index, k] == expected

@@ -19,6 +19,7 @@ import numba
 import numpy as np
 
 from estimator.config import FrontendConfig
+from estimator.frontend.match_kernels import as_words
 from estimator.frontend.orb_corners import orb_corners, orientations, patch_row_extents
 
 __all__ = [
@@ -232,7 +233,7 @@ def descriptor_distances(
     # np.take gathers whole rows much faster than fancy indexing of a 2-D array.
     if binary:
         # 64-bit words: 4 popcounts per 256-bit ORB descriptor instead of 32.
-        xor = np.bitwise_xor(np.take(_as_words(a), ia, axis=0), np.take(_as_words(b), ib, axis=0))
+        xor = np.bitwise_xor(np.take(as_words(a), ia, axis=0), np.take(as_words(b), ib, axis=0))
         counts = np.bitwise_count(xor)
         total = counts[:, 0].astype(float)
         for word in range(1, counts.shape[1]):  # a few words; a sum over axis 1 is slower
@@ -240,15 +241,6 @@ def descriptor_distances(
         return total
     difference = np.take(a, ia, axis=0).astype(np.float32) - np.take(b, ib, axis=0)
     return np.sqrt(np.einsum("ij,ij->i", difference, difference)).astype(float)
-
-
-def _as_words(descriptors: np.ndarray) -> np.ndarray:
-    """Binary descriptors viewed as 64-bit words (padded with zero bytes when needed)."""
-    descriptors = np.ascontiguousarray(descriptors, dtype=np.uint8)
-    width = descriptors.shape[1]
-    if width % 8:
-        descriptors = np.pad(descriptors, ((0, 0), (0, 8 - width % 8)))
-    return descriptors.view(np.uint64)
 
 
 def _best_per_group(group: np.ndarray, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
