@@ -13,7 +13,12 @@ from estimator.frontend.features import (
     grid_select,
     match_candidates,
 )
-from estimator.frontend.match_kernels import as_words, band_matches, zero_mean_sad
+from estimator.frontend.match_kernels import (
+    as_words,
+    band_matches,
+    window_matches,
+    zero_mean_sad,
+)
 from estimator.frontend.orb_corners import harris_responses, orientations, patch_row_extents
 from estimator.frontend.stereo import row_band_pairs
 
@@ -147,3 +152,38 @@ def test_zero_mean_sad_equals_patch_arithmetic() -> None:
             other = right[v[index] - 5 : v[index] + 6, x - 5 : x + 6].astype(int)
             expected = np.abs((other - other.sum() // 121) - (patch - patch.sum() // 121)).sum()
             assert costs[index, k] == expected
+
+
+def _brute_force_window_matches(expected, observed, da, db, radius, ratio, max_distance):
+    """Reference: every pair within the radius, nearest + ratio test, mutual with ties of a
+    current point going to the smallest reference index."""
+    distance = np.unpackbits(da[:, None, :] ^ db[None, :, :], axis=2).sum(axis=2).astype(float)
+    near = np.linalg.norm(expected[:, None, :] - observed[None, :, :], axis=2) <= radius
+    distance[~near] = np.inf
+    matches = []
+    for i in range(len(expected)):
+        row = np.sort(distance[i])
+        if not np.isfinite(row[0]) or row[0] > max_distance or not row[0] < ratio * row[1]:
+            continue
+        j = int(np.argmin(distance[i]))
+        if int(np.argmin(distance[:, j])) == i:  # argmin: the smallest index on ties
+            matches.append((i, j, row[0]))
+    return matches
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_window_matches_equal_brute_force(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    expected = rng.uniform(0, 200, (150, 2))
+    observed = np.round(expected[rng.permutation(150)] + rng.normal(0, 3, (150, 2)), 1)
+    palette = rng.integers(0, 256, (20, 32), dtype=np.uint8)
+    da, db = palette[rng.integers(0, 20, 150)], palette[rng.integers(0, 20, 150)]
+    order = np.argsort(observed[:, 1], kind="stable")
+    low = np.searchsorted(observed[order, 1], expected[:, 1] - 15.0, side="left")
+    high = np.searchsorted(observed[order, 1], expected[:, 1] + 15.0, side="right")
+    a, b, distance = window_matches(
+        expected, observed, as_words(da), as_words(db), order, low, high, 15.0, 0.85, 100.0
+    )
+    reference = _brute_force_window_matches(expected, observed, da, db, 15.0, 0.85, 100.0)
+    assert len(reference) > 10
+    assert list(zip(a.tolist(), b.tolist(), distance.tolist(), strict=True)) == reference

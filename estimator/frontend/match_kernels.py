@@ -13,7 +13,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["as_words", "band_matches", "hamming", "zero_mean_sad"]
+__all__ = ["as_words", "band_matches", "hamming", "window_matches", "zero_mean_sad"]
 
 
 def as_words(descriptors: np.ndarray) -> np.ndarray:
@@ -64,52 +64,95 @@ def band_matches(
     is a candidate when its disparity lies in ``disparity_range``. A left point takes its
     nearest candidate (the first in band order on ties) if it is within ``max_distance`` and
     below ``ratio`` times the second nearest, and if no left point with a smaller index is
-    as near to that right point and none is nearer. Returns (left, right, distance) ordered by left.
+    as near to that right point and none is nearer. Returns (left, right, distance) ordered
+    by left.
     """
-    count = len(left_x)
-    best_right = np.full(count, -1, dtype=np.int64)
-    best = np.empty(count, dtype=np.float64)
-    second = np.empty(count, dtype=np.float64)
-    owner_distance = np.full(len(right_x), np.inf)
-    owner = np.full(len(right_x), -1, dtype=np.int64)
-    for i in range(count):
-        best[i] = np.inf
-        second[i] = np.inf
+    tables = _nearest_tables(len(left_x), len(right_x))
+    for i in range(len(left_x)):
         for k in range(low[i], high[i]):
             j = order[k]
             disparity = left_x[i] - right_x[j]
             if disparity < disparity_range[0] or disparity > disparity_range[1]:
                 continue
-            distance = float(hamming(left_words[i], right_words[j]))
-            if distance < best[i]:
-                second[i] = best[i]
-                best[i] = distance
-                best_right[i] = j
-            elif distance < second[i]:
-                second[i] = distance
-            if distance < owner_distance[j]:
-                owner_distance[j] = distance
-                owner[j] = i
-    accepted = 0
-    keep = np.zeros(count, dtype=np.bool_)
-    for i in range(count):
-        j = best_right[i]
+            _add_pair(tables, i, j, float(hamming(left_words[i], right_words[j])))
+    return _mutual_matches(tables, ratio, max_distance)
+
+
+@numba.njit(cache=True, nogil=True)
+def window_matches(
+    expected: np.ndarray,
+    observed: np.ndarray,
+    expected_words: np.ndarray,
+    observed_words: np.ndarray,
+    order: np.ndarray,
+    low: np.ndarray,
+    high: np.ndarray,
+    radius: float,
+    ratio: float,
+    max_distance: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`band_matches` with a round window: observed points within ``radius`` pixels of
+    an expected position are its candidates (``order[low[i]:high[i]]``: those whose row is
+    within ``radius``, sorted by row)."""
+    tables = _nearest_tables(len(expected), len(observed))
+    squared_radius = radius * radius
+    for i in range(len(expected)):
+        for k in range(low[i], high[i]):
+            j = order[k]
+            dx = observed[j, 0] - expected[i, 0]
+            dy = observed[j, 1] - expected[i, 1]
+            if dx * dx + dy * dy > squared_radius:
+                continue
+            _add_pair(tables, i, j, float(hamming(expected_words[i], observed_words[j])))
+    return _mutual_matches(tables, ratio, max_distance)
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_tables(
+    count_a: int, count_b: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Running nearest partner, nearest and second-nearest distance of each ``a``; nearest
+    distance and nearest ``a`` of each ``b``."""
+    return (
+        np.full(count_a, -1, dtype=np.int64),
+        np.full(count_a, np.inf),
+        np.full(count_a, np.inf),
+        np.full(count_b, np.inf),
+        np.full(count_b, -1, dtype=np.int64),
+    )
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _add_pair(tables: tuple, i: int, j: int, distance: float) -> None:
+    """Fold candidate pair (i, j) in; ties keep the pair seen first."""
+    partner, best, second, owner_distance, owner = tables
+    if distance < best[i]:
+        second[i] = best[i]
+        best[i] = distance
+        partner[i] = j
+    elif distance < second[i]:
+        second[i] = distance
+    if distance < owner_distance[j]:
+        owner_distance[j] = distance
+        owner[j] = i
+
+
+@numba.njit(cache=True, nogil=True)
+def _mutual_matches(
+    tables: tuple,
+    ratio: float,
+    max_distance: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs (a, its nearest b) that pass the distance and ratio tests and that b agrees on."""
+    partner, best, second, _, owner = tables
+    keep = np.zeros(len(best), dtype=np.bool_)
+    for i in range(len(best)):
+        j = partner[i]
         if j < 0 or best[i] > max_distance or not best[i] < ratio * second[i]:
             continue
-        if owner[j] == i:
-            keep[i] = True
-            accepted += 1
-    left = np.empty(accepted, dtype=np.intp)
-    right = np.empty(accepted, dtype=np.intp)
-    distance = np.empty(accepted, dtype=np.float64)
-    position = 0
-    for i in range(count):
-        if keep[i]:
-            left[position] = i
-            right[position] = best_right[i]
-            distance[position] = best[i]
-            position += 1
-    return left, right, distance
+        keep[i] = owner[j] == i
+    a = np.flatnonzero(keep)
+    return a, partner[a], best[a]
 
 
 @numba.njit(cache=True, nogil=True)
