@@ -19,7 +19,6 @@ from estimator.frontend.match_kernels import (
     window_matches,
     zero_mean_sad,
 )
-from estimator.frontend.orb_corners import harris_responses, orientations, patch_row_extents
 from estimator.frontend.stereo import row_band_pairs
 
 
@@ -58,14 +57,8 @@ def _textured(seed: int) -> np.ndarray:
     return cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX)
 
 
-def _raster_order(points: np.ndarray) -> np.ndarray:
-    return np.lexsort((points[:, 0], points[:, 1]))
-
-
 @pytest.mark.parametrize("levels", [1, 3])
 def test_orb_detection_equals_joint_detect_and_compute(levels: int) -> None:
-    """Same corners, responses and descriptors as ``cv2.ORB``; on one level (computed without
-    ORB's detector) the corners come in raster order instead of ORB's unspecified one."""
     image = _textured(0)
     config = FrontendConfig(max_features=300, orb_levels=levels)
     detector = FeatureDetector(config)
@@ -75,38 +68,10 @@ def test_orb_detection_equals_joint_detect_and_compute(levels: int) -> None:
     points = cv2.KeyPoint_convert(keypoints).astype(float)
     response = np.array([k.response for k in keypoints])
     assert len(keypoints) > config.max_features  # the grid has to drop candidates
-    if levels == 1:
-        raster = _raster_order(points)
-        points, descriptors, response = points[raster], descriptors[raster], response[raster]
     keep = grid_select(points, response, (752, 480), (config.grid_rows, config.grid_cols), 300)
     np.testing.assert_array_equal(features.points, points[keep])
     np.testing.assert_array_equal(features.descriptors, descriptors[keep])
     np.testing.assert_array_equal(features.response, response[keep])
-
-
-@pytest.mark.parametrize("seed", [1, 2])
-def test_harris_score_and_orientation_equal_opencv_orb(seed: int) -> None:
-    image = _textured(seed)
-    orb = cv2.ORB_create(nfeatures=2000, nlevels=1, fastThreshold=12)
-    keypoints = orb.detect(image, None)
-    assert len(keypoints) > 500
-    pixels = np.rint(cv2.KeyPoint_convert(keypoints)).astype(np.int64)
-    response = harris_responses(image, pixels[:, 0], pixels[:, 1])
-    expected = np.array([k.response for k in keypoints], dtype=np.float32)
-    np.testing.assert_array_equal(response, expected)  # bit for bit: the ranking depends on it
-    angles = orientations(image, pixels[:, 0], pixels[:, 1], patch_row_extents(15))
-    expected_angles = np.array([k.angle for k in keypoints])
-    difference = (angles - expected_angles + 180.0) % 360.0 - 180.0
-    assert np.abs(difference).max() < 1e-3  # the same moments; atan2 to float32 rounding
-
-
-def test_patch_rows_describe_a_symmetric_disc() -> None:
-    extents = patch_row_extents(15)
-    assert extents[0] == 15
-    assert np.all(np.diff(extents[:16]) <= 0)
-    # Symmetric about the diagonal: row v reaches column u exactly when row u reaches v.
-    inside = np.abs(np.arange(16))[None, :] <= extents[:16, None]
-    np.testing.assert_array_equal(inside, inside.T)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

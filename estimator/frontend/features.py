@@ -20,7 +20,6 @@ import numpy as np
 
 from estimator.config import FrontendConfig
 from estimator.frontend.match_kernels import as_words
-from estimator.frontend.orb_corners import orb_corners, orientations, patch_row_extents
 
 __all__ = [
     "FeatureDetector",
@@ -118,8 +117,6 @@ class FeatureDetector:
     def __init__(self, config: FrontendConfig) -> None:
         self.config = config
         candidates = int(np.ceil(config.max_features * config.detection_oversampling))
-        self._candidates = candidates
-        self._fast: cv2.FastFeatureDetector | None = None
         if config.detector == "orb":
             self._detector = cv2.ORB_create(
                 nfeatures=candidates,
@@ -127,10 +124,6 @@ class FeatureDetector:
                 nlevels=config.orb_levels,
                 fastThreshold=config.fast_threshold,
             )
-            if config.orb_levels == 1:  # ORB's corners, oriented only where kept
-                self._fast = cv2.FastFeatureDetector_create(config.fast_threshold, True)
-                self._border = self._detector.getEdgeThreshold()
-                self._extents = patch_row_extents(self._detector.getPatchSize() // 2)
         else:
             self._detector = cv2.SIFT_create(nfeatures=candidates)
         self.binary = config.detector == "orb"
@@ -145,8 +138,6 @@ class FeatureDetector:
         """
         if not self.binary:  # SIFT's compute rebuilds its scale space: one call is cheaper
             return self._detect_and_compute(image)
-        if self._fast is not None:
-            return self._detect_one_level(image)
         keypoints = self._detector.detect(image, None)
         if not keypoints:
             return self._empty()
@@ -157,25 +148,6 @@ class FeatureDetector:
             keypoints = [keypoints[i] for i in keep]
             points, response = points[keep], response[keep]
         return self._describe(image, keypoints, points, response)
-
-    def _detect_one_level(self, image: np.ndarray) -> Features:
-        """ORB on one level (the default) with the orientation computed only for the corners
-        the grid keeps (estimator/frontend/orb_corners.py): the same corners and descriptors
-        as ``cv2.ORB``, in raster order."""
-        image = np.ascontiguousarray(image)
-        keypoints, index, points, response = orb_corners(
-            image, self._fast, self._candidates, self._border
-        )
-        if len(index) == 0:
-            return self._empty()
-        keep = self._select(points, response, image.shape)
-        index, points, response = index[keep], points[keep], response[keep]
-        pixels = np.rint(points).astype(np.int64)
-        angles = orientations(image, pixels[:, 0], pixels[:, 1], self._extents)
-        chosen = [keypoints[i] for i in index]
-        for keypoint, angle in zip(chosen, angles.tolist(), strict=True):
-            keypoint.angle = angle
-        return self._describe(image, chosen, points, response)
 
     def _describe(
         self, image: np.ndarray, keypoints: list, points: np.ndarray, response: np.ndarray
