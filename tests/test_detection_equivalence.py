@@ -7,7 +7,19 @@ import numpy as np
 import pytest
 
 from estimator.config import FrontendConfig
-from estimator.frontend.features import FeatureDetector, grid_select
+from estimator.frontend.features import (
+    FeatureDetector,
+    descriptor_distances,
+    grid_select,
+    match_candidates,
+)
+from estimator.frontend.match_kernels import (
+    as_words,
+    band_matches,
+    window_matches,
+    zero_mean_sad,
+)
+from estimator.frontend.stereo import row_band_pairs
 
 
 def _lexsort_grid_select(points, response, image_size, grid, budget):
@@ -38,12 +50,16 @@ def test_grid_select_matches_the_lexsort_order_with_ties() -> None:
         np.testing.assert_array_equal(chosen, expected)
 
 
-@pytest.mark.parametrize("levels", [1, 3])
-def test_orb_detection_equals_joint_detect_and_compute(levels: int) -> None:
-    rng = np.random.default_rng(0)
+def _textured(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
     noise = (rng.random((480, 752)) * 255).astype(np.uint8)
     image = cv2.GaussianBlur(noise, (0, 0), 1.5)
-    image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX)
+    return cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX)
+
+
+@pytest.mark.parametrize("levels", [1, 3])
+def test_orb_detection_equals_joint_detect_and_compute(levels: int) -> None:
+    image = _textured(0)
     config = FrontendConfig(max_features=300, orb_levels=levels)
     detector = FeatureDetector(config)
     features = detector.detect(image)
@@ -56,3 +72,83 @@ def test_orb_detection_equals_joint_detect_and_compute(levels: int) -> None:
     np.testing.assert_array_equal(features.points, points[keep])
     np.testing.assert_array_equal(features.descriptors, descriptors[keep])
     np.testing.assert_array_equal(features.response, response[keep])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_band_matches_equal_pairs_distances_and_ratio_test(seed: int) -> None:
+    """The compiled stereo matching gives the matches of the three NumPy steps, ties included
+    (few distinct descriptors: many equal distances)."""
+    rng = np.random.default_rng(seed)
+    count = 400
+    left = rng.uniform(0, 1, (count, 2)) * [752, 60]
+    right = left + np.column_stack([-rng.uniform(-5, 80, count), rng.normal(0, 1.0, count)])
+    right = np.round(right[rng.permutation(count)], 1)
+    palette = rng.integers(0, 256, (12, 32), dtype=np.uint8)
+    left_descriptors = palette[rng.integers(0, 12, count)]
+    right_descriptors = palette[rng.integers(0, 12, count)]
+    ia, ib = row_band_pairs(left, right, 1.5, (1.0, 60.0))
+    distance = descriptor_distances(left_descriptors, right_descriptors, ia, ib, True)
+    expected = match_candidates(ia, ib, distance, ratio=0.9, max_distance=110)
+
+    order = np.argsort(right[:, 1], kind="stable")
+    low = np.searchsorted(right[order, 1], left[:, 1] - 1.5, side="left")
+    high = np.searchsorted(right[order, 1], left[:, 1] + 1.5, side="right")
+    a, b, found = band_matches(
+        left[:, 0].copy(), right[:, 0].copy(), as_words(left_descriptors),
+        as_words(right_descriptors), order, low, high, (1.0, 60.0), 0.9, 110.0,
+    )  # fmt: skip
+    assert len(expected) > 20
+    np.testing.assert_array_equal(a, expected.a)
+    np.testing.assert_array_equal(b, expected.b)
+    np.testing.assert_array_equal(found, expected.distance)
+
+
+def test_zero_mean_sad_equals_patch_arithmetic() -> None:
+    rng = np.random.default_rng(4)
+    left = rng.integers(0, 256, (60, 80), dtype=np.uint8)
+    right = rng.integers(0, 256, (60, 80), dtype=np.uint8)
+    u, v, right_u = (rng.integers(10, 50, 30) for _ in range(3))
+    shifts = np.arange(-2, 3)
+    costs = zero_mean_sad(left, right, u, v, right_u, 5, shifts)
+    for index in range(30):
+        patch = left[v[index] - 5 : v[index] + 6, u[index] - 5 : u[index] + 6].astype(int)
+        for k, shift in enumerate(shifts):
+            x = right_u[index] + shift
+            other = right[v[index] - 5 : v[index] + 6, x - 5 : x + 6].astype(int)
+            expected = np.abs((other - other.sum() // 121) - (patch - patch.sum() // 121)).sum()
+            assert costs[index, k] == expected
+
+
+def _brute_force_window_matches(expected, observed, da, db, radius, ratio, max_distance):
+    """Reference: every pair within the radius, nearest + ratio test, mutual with ties of a
+    current point going to the smallest reference index."""
+    distance = np.unpackbits(da[:, None, :] ^ db[None, :, :], axis=2).sum(axis=2).astype(float)
+    near = np.linalg.norm(expected[:, None, :] - observed[None, :, :], axis=2) <= radius
+    distance[~near] = np.inf
+    matches = []
+    for i in range(len(expected)):
+        row = np.sort(distance[i])
+        if not np.isfinite(row[0]) or row[0] > max_distance or not row[0] < ratio * row[1]:
+            continue
+        j = int(np.argmin(distance[i]))
+        if int(np.argmin(distance[:, j])) == i:  # argmin: the smallest index on ties
+            matches.append((i, j, row[0]))
+    return matches
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_window_matches_equal_brute_force(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    expected = rng.uniform(0, 200, (150, 2))
+    observed = np.round(expected[rng.permutation(150)] + rng.normal(0, 3, (150, 2)), 1)
+    palette = rng.integers(0, 256, (20, 32), dtype=np.uint8)
+    da, db = palette[rng.integers(0, 20, 150)], palette[rng.integers(0, 20, 150)]
+    order = np.argsort(observed[:, 1], kind="stable")
+    low = np.searchsorted(observed[order, 1], expected[:, 1] - 15.0, side="left")
+    high = np.searchsorted(observed[order, 1], expected[:, 1] + 15.0, side="right")
+    a, b, distance = window_matches(
+        expected, observed, as_words(da), as_words(db), order, low, high, 15.0, 0.85, 100.0
+    )
+    reference = _brute_force_window_matches(expected, observed, da, db, 15.0, 0.85, 100.0)
+    assert len(reference) > 10
+    assert list(zip(a.tolist(), b.tolist(), distance.tolist(), strict=True)) == reference

@@ -15,9 +15,11 @@ from dataclasses import dataclass
 from operator import attrgetter
 
 import cv2
+import numba
 import numpy as np
 
 from estimator.config import FrontendConfig
+from estimator.frontend.match_kernels import as_words
 
 __all__ = [
     "FeatureDetector",
@@ -79,18 +81,34 @@ def grid_select(
     rows, cols = grid
     col = np.clip((points[:, 0] * cols / width).astype(np.intp), 0, cols - 1)
     row = np.clip((points[:, 1] * rows / height).astype(np.intp), 0, rows - 1)
-    cell = row * cols + col
-    # Stable sorts of small integers after one sort by strength: the order of a lexsort by
-    # (cell, strength) and (rank, strength), at a fraction of its cost.
     strongest = np.argsort(-response, kind="stable")
-    by_cell = strongest[np.argsort(cell[strongest], kind="stable")]  # strongest first per cell
-    sorted_cell = cell[by_cell]
-    starts = np.flatnonzero(np.r_[True, sorted_cell[1:] != sorted_cell[:-1]])
-    counts = np.diff(np.r_[starts, len(sorted_cell)])
-    rank = np.empty(len(points), dtype=np.intp)
-    rank[by_cell] = np.arange(len(points)) - np.repeat(starts, counts)
-    order = strongest[np.argsort(rank[strongest], kind="stable")]
+    order = _round_robin(row * cols + col, strongest, rows * cols)
     return np.sort(order[:budget])
+
+
+@numba.njit(cache=True, nogil=True)
+def _round_robin(cell: np.ndarray, strongest: np.ndarray, cells: int) -> np.ndarray:
+    """Points ordered by their strength rank within their cell, then by strength.
+
+    ``strongest`` lists the points strongest first (ties by index); two counting passes over
+    it give the order of a lexsort by (rank in cell, strength) in linear time.
+    """
+    count = np.zeros(cells, dtype=np.int64)
+    rank = np.empty(len(cell), dtype=np.int64)
+    for point in strongest:
+        rank[point] = count[cell[point]]
+        count[cell[point]] += 1
+    start = np.zeros(count.max() + 1, dtype=np.int64)
+    for point in strongest:
+        if rank[point] + 1 < len(start):
+            start[rank[point] + 1] += 1
+    for level in range(1, len(start)):
+        start[level] += start[level - 1]
+    order = np.empty(len(cell), dtype=np.int64)
+    for point in strongest:
+        order[start[rank[point]]] = point
+        start[rank[point]] += 1
+    return order
 
 
 class FeatureDetector:
@@ -129,6 +147,12 @@ class FeatureDetector:
         if len(keep) < len(keypoints):
             keypoints = [keypoints[i] for i in keep]
             points, response = points[keep], response[keep]
+        return self._describe(image, keypoints, points, response)
+
+    def _describe(
+        self, image: np.ndarray, keypoints: list, points: np.ndarray, response: np.ndarray
+    ) -> Features:
+        """ORB descriptors of the chosen keypoints (``points`` and ``response`` match them)."""
         described, descriptors = self._detector.compute(image, keypoints)
         if descriptors is None or len(described) == 0:
             return self._empty()
@@ -181,7 +205,7 @@ def descriptor_distances(
     # np.take gathers whole rows much faster than fancy indexing of a 2-D array.
     if binary:
         # 64-bit words: 4 popcounts per 256-bit ORB descriptor instead of 32.
-        xor = np.bitwise_xor(np.take(_as_words(a), ia, axis=0), np.take(_as_words(b), ib, axis=0))
+        xor = np.bitwise_xor(np.take(as_words(a), ia, axis=0), np.take(as_words(b), ib, axis=0))
         counts = np.bitwise_count(xor)
         total = counts[:, 0].astype(float)
         for word in range(1, counts.shape[1]):  # a few words; a sum over axis 1 is slower
@@ -189,15 +213,6 @@ def descriptor_distances(
         return total
     difference = np.take(a, ia, axis=0).astype(np.float32) - np.take(b, ib, axis=0)
     return np.sqrt(np.einsum("ij,ij->i", difference, difference)).astype(float)
-
-
-def _as_words(descriptors: np.ndarray) -> np.ndarray:
-    """Binary descriptors viewed as 64-bit words (padded with zero bytes when needed)."""
-    descriptors = np.ascontiguousarray(descriptors, dtype=np.uint8)
-    width = descriptors.shape[1]
-    if width % 8:
-        descriptors = np.pad(descriptors, ((0, 0), (0, 8 - width % 8)))
-    return descriptors.view(np.uint64)
 
 
 def _best_per_group(group: np.ndarray, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -25,7 +25,13 @@ import numpy as np
 
 from estimator.config import FrontendConfig
 from estimator.formats.calibration import Rectification
-from estimator.frontend.features import Features, descriptor_distances, match_candidates
+from estimator.frontend.features import (
+    Features,
+    MatchSet,
+    descriptor_distances,
+    match_candidates,
+)
+from estimator.frontend.match_kernels import as_words, band_matches, zero_mean_sad
 
 __all__ = [
     "StereoMatcher",
@@ -88,6 +94,30 @@ def row_band_pairs(
     disparity = left[ia, 0] - right[ib, 0]
     inside = (disparity >= disparity_range[0]) & (disparity <= disparity_range[1])
     return ia[inside], ib[inside]
+
+
+def _binary_band_matches(
+    left: Features,
+    right: Features,
+    row_tolerance: float,
+    disparity_range: tuple[float, float],
+    ratio: float,
+    max_distance: float,
+) -> MatchSet:
+    """:func:`row_band_pairs` + Hamming distances + mutual ratio test in one compiled pass."""
+    if len(left) == 0 or len(right) == 0:
+        empty = np.zeros(0, dtype=np.intp)
+        return MatchSet(empty, empty, np.zeros(0))
+    order = np.argsort(right.points[:, 1], kind="stable")
+    rows = right.points[order, 1]
+    low = np.searchsorted(rows, left.points[:, 1] - row_tolerance, side="left")
+    high = np.searchsorted(rows, left.points[:, 1] + row_tolerance, side="right")
+    a, b, distance = band_matches(
+        np.ascontiguousarray(left.points[:, 0]), np.ascontiguousarray(right.points[:, 0]),
+        as_words(left.descriptors), as_words(right.descriptors), order, low, high,
+        (float(disparity_range[0]), float(disparity_range[1])), float(ratio), float(max_distance),
+    )  # fmt: skip
+    return MatchSet(a, b, distance)
 
 
 def triangulate(
@@ -171,17 +201,23 @@ class StereoMatcher:
     ) -> StereoPoints:
         """Stereo points of one rectified frame (descriptors are the left keypoints')."""
         config = self.config
-        ia, ib = row_band_pairs(
-            left.points,
-            right.points,
-            config.stereo_row_tolerance_px,
-            (config.min_disparity_px, config.max_disparity_px),
-        )
-        distance = descriptor_distances(left.descriptors, right.descriptors, ia, ib, left.binary)
         max_distance = config.max_hamming if left.binary else config.max_sift_distance
-        matches = match_candidates(
-            ia, ib, distance, ratio=config.stereo_ratio, max_distance=max_distance, mutual=True
-        )
+        disparity_range = (config.min_disparity_px, config.max_disparity_px)
+        if left.binary:
+            matches = _binary_band_matches(
+                left, right, config.stereo_row_tolerance_px, disparity_range,
+                config.stereo_ratio, max_distance,
+            )  # fmt: skip
+        else:
+            ia, ib = row_band_pairs(
+                left.points, right.points, config.stereo_row_tolerance_px, disparity_range
+            )
+            distance = descriptor_distances(
+                left.descriptors, right.descriptors, ia, ib, left.binary
+            )
+            matches = match_candidates(
+                ia, ib, distance, ratio=config.stereo_ratio, max_distance=max_distance
+            )
         pixels = left.points[matches.a]
         disparity = pixels[:, 0] - right.points[matches.b, 0]
         keep = np.ones(len(matches), dtype=bool)
@@ -266,32 +302,11 @@ class StereoMatcher:
             & (ur >= margin) & (ur < width - margin)
         )  # fmt: skip
         u_in, v_in, ur_in = u[inside], v[inside], ur[inside]
-        size = 2 * w + 1
         shifts = np.arange(-radius - 1, radius + 2)  # one extra either side for the fit
-        # Patches are gathered through window views: one index per point, not per pixel.
-        left_windows = np.lib.stride_tricks.sliding_window_view(left_image, (size, size))
-        right_strips = np.lib.stride_tricks.sliding_window_view(
-            right_image, (size, size + len(shifts) - 1)
-        )
-        # Patches are laid out (column, row, point): every operation below then runs over
-        # contiguous rows of all points at once, not over 11-pixel patch rows.
-        left_patch = np.ascontiguousarray(
-            left_windows[v_in - w, u_in - w].transpose(2, 1, 0), dtype=np.int16
-        )
-        strip = np.ascontiguousarray(
-            right_strips[v_in - w, ur_in + shifts[0] - w].transpose(2, 1, 0), dtype=np.int16
-        )
-        left_patch -= (left_patch.sum(axis=(0, 1), dtype=np.int32) // size**2).astype(np.int16)
-        column_sums = np.cumsum(strip.sum(axis=1, dtype=np.int32), axis=0)
-        window_sums = column_sums[size - 1 :].copy()
-        window_sums[1:] -= column_sums[: len(shifts) - 1]
-        mean = (window_sums // size**2).astype(np.int16)  # (shifts, points)
-        cost = np.empty((len(u_in), len(shifts)))
-        for k in range(len(shifts)):  # a handful of shifts, each vectorised over all points
-            difference = strip[k : k + size] - left_patch
-            difference -= mean[k]
-            np.abs(difference, out=difference)
-            cost[:, k] = difference.sum(axis=(0, 1), dtype=np.int32)
+        cost = zero_mean_sad(
+            np.ascontiguousarray(left_image), np.ascontiguousarray(right_image),
+            u_in, v_in, ur_in, w, shifts,
+        )  # fmt: skip
         best = np.argmin(cost[:, 1:-1], axis=1) + 1  # the minimum must have two neighbours
         rows_index = np.arange(len(best))
         c_minus, c_zero, c_plus = (cost[rows_index, best + k] for k in (-1, 0, 1))

@@ -16,7 +16,8 @@ from scipy.spatial import cKDTree
 
 from estimator.config import FrontendConfig
 from estimator.formats.calibration import Rectification
-from estimator.frontend.features import descriptor_distances, match_candidates
+from estimator.frontend.features import MatchSet, descriptor_distances, match_candidates
+from estimator.frontend.match_kernels import as_words, window_matches
 from estimator.frontend.stereo import StereoPoints, triangulate
 from estimator.geometry import transform_points
 
@@ -64,6 +65,37 @@ def _candidate_pairs(
     return finite[pairs["i"]], pairs["j"].astype(np.intp)
 
 
+def _window_matches(
+    expected: np.ndarray,
+    reference: StereoPoints,
+    current: StereoPoints,
+    radius: float,
+    ratio: float,
+    max_distance: float,
+) -> MatchSet:
+    """:func:`_candidate_pairs` + Hamming distances + mutual ratio test in one compiled pass.
+
+    Candidates of a reference point are the current points within ``radius`` of its expected
+    pixel; where two reference points are equally near one current point, the one with the
+    smaller index keeps it.
+    """
+    finite = np.flatnonzero(np.isfinite(expected).all(axis=1))
+    if len(finite) == 0 or len(current) == 0:
+        empty = np.zeros(0, dtype=np.intp)
+        return MatchSet(empty, empty, np.zeros(0))
+    order = np.argsort(current.pixels[:, 1], kind="stable")
+    rows = current.pixels[order, 1]
+    centres = np.ascontiguousarray(expected[finite])
+    low = np.searchsorted(rows, centres[:, 1] - radius, side="left")
+    high = np.searchsorted(rows, centres[:, 1] + radius, side="right")
+    a, b, distance = window_matches(
+        centres, np.ascontiguousarray(current.pixels), as_words(reference.descriptors[finite]),
+        as_words(current.descriptors), order, low, high, float(radius), float(ratio),
+        float(max_distance),
+    )  # fmt: skip
+    return MatchSet(finite[a], b, distance)
+
+
 def match_temporal(
     reference: StereoPoints,
     current: StereoPoints,
@@ -92,14 +124,20 @@ def match_temporal(
         if images is None:
             raise ValueError("the KLT temporal matcher needs the reference and current images")
         return track_klt(reference, current, expected, images, config, rect)
-    ia, ib = _candidate_pairs(expected, current.pixels, config.search_radius_px)
-    distance = descriptor_distances(
-        reference.descriptors, current.descriptors, ia, ib, reference.binary
-    )
     max_distance = config.max_hamming if reference.binary else config.max_sift_distance
-    matches = match_candidates(
-        ia, ib, distance, ratio=config.temporal_ratio, max_distance=max_distance, mutual=True
-    )
+    if reference.binary and config.search_radius_px > 0:
+        matches = _window_matches(
+            expected, reference, current, config.search_radius_px, config.temporal_ratio,
+            max_distance,
+        )  # fmt: skip
+    else:
+        ia, ib = _candidate_pairs(expected, current.pixels, config.search_radius_px)
+        distance = descriptor_distances(
+            reference.descriptors, current.descriptors, ia, ib, reference.binary
+        )
+        matches = match_candidates(
+            ia, ib, distance, ratio=config.temporal_ratio, max_distance=max_distance
+        )
     reference_index, current_index = matches.a, matches.b
     current_points = current.points[current_index]
     if images is not None and config.temporal_refine and len(matches):
