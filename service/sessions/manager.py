@@ -130,9 +130,26 @@ class SessionManager:
                 del self.streams[session_id]
         worker = self.live.get(session_id)
         if finished and worker is not None and session_id not in self.streams:
-            task = asyncio.get_running_loop().create_task(self._release_when_idle(worker))
-            self._background.add(task)  # referenced until done (the loop keeps weak ones)
-            task.add_done_callback(self._background.discard)
+            self._release_later(worker)
+
+    async def finish(self, session_id: str) -> list[SmoothedPose]:
+        """The robot's end of stream over REST, as a WebSocket's close message: once the frames
+        sent so far are done the back end's window is flushed (stored and returned) and, with no
+        stream open, the lease is given up. A later frame resumes from the last stored pose."""
+        if session_id in self.deleted:
+            raise SessionGone()
+        worker = self.live.get(session_id)
+        if worker is None:  # nothing live here: nothing held back
+            return []
+        flushed = await worker.flush_after_queued()
+        if session_id not in self.streams:
+            self._release_later(worker)
+        return flushed
+
+    def _release_later(self, worker: LiveSession) -> None:
+        task = asyncio.get_running_loop().create_task(self._release_when_idle(worker))
+        self._background.add(task)  # referenced until done (the loop keeps weak ones)
+        task.add_done_callback(self._background.discard)
 
     async def _release_when_idle(self, worker: LiveSession, wait_s: float = 30.0) -> None:
         deadline = time.monotonic() + wait_s
