@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import itertools
 import json
 import os
 import platform
@@ -40,7 +41,7 @@ from typing import Any
 import numpy as np
 from local_cluster import PROJECT_ROOT, Balancer, Postgres, Replica, missing_tools
 from swarmvo_client import Backoff, Client, LocalSequence, Pose, open_local_sequence
-from swarmvo_client.reliable import ReliableStream
+from swarmvo_client.reliable import Outage, ReliableStream
 from swarmvo_client.replay import create_session_for, frame_imu
 
 RESULTS = PROJECT_ROOT / "benchmarks" / "results" / "cluster"
@@ -74,6 +75,7 @@ class RobotRun:
     reconnects: int = 0
     resent: int = 0
     duplicates: int = 0
+    outages: list[Outage] = field(default_factory=list)  # the client's view of each break
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -110,13 +112,29 @@ class Fleet:
         self.direct: Replica | None = None
         self.balancer: Balancer | None = None
 
-    def start(self) -> None:
+    def start(self, warm: Path | None = None) -> None:
+        """Start everything; ``warm``: a flight the estimator runs a few frames of first.
+
+        The replicas compile nothing before their first session, and three processes filling
+        an empty JIT cache at once can fail a frame ("no compiled object yet"): one run fills
+        it while the replicas start, and they all load it.
+        """
+        warming = None
+        if warm is not None:
+            warming = subprocess.Popen(
+                [sys.executable, "-m", "estimator.cli", "run", str(warm), "--limit", "3",
+                 "--quiet", "--out", str(self.folder / "warm-up")],
+                cwd=PROJECT_ROOT, env={**os.environ, "OMP_NUM_THREADS": "1"},
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            )
         for replica in self.replicas:
             replica.start(wait=False)
         for replica in self.replicas:
             replica.wait_healthy()
         self.balancer = Balancer(self.upstreams(3), self.folder)
         self.balancer.start()
+        if warming is not None and warming.wait(timeout=600) != 0:
+            raise RuntimeError(f"the warm-up run on {warm} failed")
 
     def upstreams(self, count: int) -> list[str]:
         return [f"127.0.0.1:{r.port}" for r in self.replicas[:count]]
@@ -141,11 +159,12 @@ def new_session(url: str, key: str, sequence: LocalSequence, name: str) -> str:
 
 
 async def stream_robot(robot: RobotRun, url: str, key: str, window: int,
-                       deadline: float | None = None, loop_frames: bool = False) -> None:
+                       deadline: float | None = None, loop_frames: bool = False,
+                       answer_timeout_s: float = 20.0) -> None:
     """Send the robot's frames with at most ``window`` unanswered; every frame answered once."""
     sequence = robot.sequence
     stream = ReliableStream(url, robot.session_id, key, backoff=Backoff(0.05, 0.5),
-                            answer_timeout_s=20.0, seed=hash(robot.name) % 1000)
+                            answer_timeout_s=answer_timeout_s, seed=hash(robot.name) % 1000)
     await stream.start()
     credit = asyncio.Semaphore(window)
     count = len(sequence.frames)
@@ -190,6 +209,7 @@ async def stream_robot(robot: RobotRun, url: str, key: str, window: int,
     finally:
         producer.cancel()
         robot.reconnects += stream.stats.reconnects
+        robot.outages += stream.stats.outages
         robot.resent += stream.stats.resent
         robot.duplicates += stream.stats.duplicates
         await stream.close()
@@ -219,11 +239,16 @@ async def failover(fleet: Fleet, robots: list[RobotRun], options: Options) -> di
         victim = max(fleet.replicas,
                      key=lambda r: len(by_replica.get(r.replica_id, [])))
         affected = by_replica.get(victim.replica_id, [])
+        dead_id = victim.replica_id
         killed_at = time.perf_counter()
         await asyncio.to_thread(victim.kill)
         print(f"  killed {victim.name} (SIGKILL) holding {len(affected)} session(s)", flush=True)
-        kills.append({"replica": victim.name, "at": killed_at, "sessions": affected})
+        taken: dict[str, float] = {}
+        kills.append({"replica": victim.name, "at": killed_at, "sessions": affected,
+                      "lease_taken_at": taken})
+        watcher = asyncio.create_task(_watch_takeover(fleet, affected, dead_id, taken))
         await asyncio.sleep(options.down_s)
+        watcher.cancel()
         await asyncio.to_thread(victim.start)
         print(f"  restarted {victim.name}", flush=True)
     await asyncio.gather(*tasks)
@@ -255,6 +280,42 @@ def _step_error(poses: dict[int, np.ndarray], truth: dict[int, np.ndarray], prev
     estimated = np.linalg.inv(poses[previous]) @ poses[current]
     true = np.linalg.inv(truth[previous]) @ truth[current]
     return float(np.linalg.norm(estimated[:3, 3] - true[:3, 3]))
+
+
+async def _watch_takeover(fleet: Fleet, sessions: list[str], dead_id: str,
+                          taken: dict[str, float], period_s: float = 0.02) -> None:
+    """When each session's lease passes from the killed replica to another (polled)."""
+    while len(taken) < len(sessions):
+        rows = await asyncio.to_thread(
+            fleet.sql, "SELECT id, lease_holder FROM sessions WHERE id = ANY(%s)", sessions)
+        now = time.perf_counter()
+        for session_id, holder in rows:
+            if holder is not None and holder != dead_id:
+                taken.setdefault(session_id, now)
+        await asyncio.sleep(period_s)
+
+
+def _phases(robot: RobotRun, kill: dict[str, Any]) -> dict[str, float] | None:
+    """Where one affected robot's failover gap went, in seconds from the kill:
+
+    - ``noticed``: the client saw its stream break (nginx closed it when the replica died);
+    - ``reconnected``: a replica greeted it again through nginx;
+    - ``lease_taken``: the new owner holds the session's lease (the old one expired first);
+    - ``answered``: the first frame answered again (state restored, pipeline built, frame
+      computed and stored).
+    """
+    at = kill["at"]
+    outage = next((o for o in robot.outages if o.lost_at >= at - 0.05), None)
+    taken = kill["lease_taken_at"].get(robot.session_id)
+    if outage is None or outage.answered_at is None:
+        return None
+    return {
+        "noticed": outage.lost_at - at,
+        "reconnected": (outage.reconnected_at or outage.answered_at) - at,
+        "lease_taken": (taken if taken is not None else outage.answered_at) - at,
+        "answered": outage.answered_at - at,
+        "connections": outage.connections,
+    }
 
 
 def check(fleet: Fleet, robots: list[RobotRun], run: dict[str, Any]) -> dict[str, Any]:
@@ -301,6 +362,7 @@ def check(fleet: Fleet, robots: list[RobotRun], run: dict[str, Any]) -> dict[str
             error = _step_error(estimated, truth, previous, current)
             if error is not None:
                 (takeover_jumps if row[5] else ordinary).append(error)
+    phases: list[dict[str, float]] = []
     for kill in run["kills"]:
         for robot in robots:
             if robot.session_id not in kill["sessions"]:
@@ -308,6 +370,9 @@ def check(fleet: Fleet, robots: list[RobotRun], run: dict[str, Any]) -> dict[str
             after = [when for _pose, when in robot.answers.values() if when > kill["at"]]
             if after:
                 gaps.append(min(after) - kill["at"])
+            phase = _phases(robot, kill)
+            if phase is not None:
+                phases.append({k: round(v, 3) for k, v in phase.items()})
     return {
         "acknowledged_poses_lost": lost + mismatched,
         "duplicate_poses": duplicates,
@@ -321,6 +386,8 @@ def check(fleet: Fleet, robots: list[RobotRun], run: dict[str, Any]) -> dict[str
         "frames_resent": sum(r.resent for r in robots),
         "failover_gaps_s": [round(g, 3) for g in gaps],
         "failover_gap_p95_s": _p95(gaps),
+        "failover_phases_s": phases,
+        "failover_phase_median_s": _phase_medians(phases),
         "takeover_jumps_m": [round(j, 5) for j in takeover_jumps],
         "takeover_jump_max_m": max(takeover_jumps) if takeover_jumps else None,
         "ordinary_step_error_median_m": float(np.median(ordinary)) if ordinary else None,
@@ -330,6 +397,19 @@ def check(fleet: Fleet, robots: list[RobotRun], run: dict[str, Any]) -> dict[str
 
 def _p95(values: list[float]) -> float | None:
     return float(np.percentile(values, 95)) if values else None
+
+
+PHASES = ("noticed", "reconnected", "lease_taken", "answered")
+
+
+def _phase_medians(phases: list[dict[str, float]]) -> dict[str, float]:
+    """Median time of each phase boundary after the kill, and of each phase itself."""
+    if not phases:
+        return {}
+    medians = {name: float(np.median([p[name] for p in phases])) for name in PHASES}
+    steps = {f"{b} - {a}": float(np.median([p[b] - p[a] for p in phases]))
+             for a, b in itertools.pairwise(PHASES)}
+    return {**medians, **steps}
 
 
 # ----------------------------------------------------------------------------- speed
@@ -402,7 +482,7 @@ def run(options: Options, folder: Path, speed: bool = True) -> dict[str, Any]:
     fleet = Fleet(folder, options)
     try:
         started = time.perf_counter()
-        fleet.start()
+        fleet.start(warm=render_flights(1, options.frames)[0])
         print(f"PostgreSQL, 3 replicas and nginx up in {time.perf_counter() - started:.1f} s",
               flush=True)
         robots = [RobotRun(f"robot{i}", flights[i % len(flights)]) for i in range(options.robots)]
@@ -438,6 +518,7 @@ def table(result: dict[str, Any]) -> str:
         ("poses written without the lease", failover["poses_without_lease"], "0"),
         ("frames never answered", failover["frames_unanswered"], "0"),
         ("failover gap p95 [s]", _fmt(failover["failover_gap_p95_s"]), "<= 2"),
+        *_phase_rows(failover.get("failover_phase_median_s", {})),
         ("pose jump at takeover, max [mm]", _fmt(failover["takeover_jump_max_m"], 1000),
          "<= 10"),
         ("ordinary step error median / p95 [mm]",
@@ -456,6 +537,15 @@ def table(result: dict[str, Any]) -> str:
     lines = [f"{'measure':<{width}}  {'value':<44}  target", "-" * (width + 56)]
     lines += [f"{name:<{width}}  {value!s:<44}  {target}" for name, value, target in rows]
     return "\n".join(lines)
+
+
+def _phase_rows(medians: dict[str, float]) -> list[tuple[str, str, str]]:
+    """The gap's phases: median time after the kill at which each one ended."""
+    labels = {"noticed": "stream broken seen by the client", "reconnected":
+              "greeted again through nginx", "lease_taken": "lease taken by the new owner",
+              "answered": "first frame answered"}
+    return [(f"  median: {labels[name]} [s after kill]", _fmt(medians[name]), "-")
+            for name in PHASES if name in medians]
 
 
 def _fmt(value: float | None, scale: float = 1.0) -> str:
