@@ -34,7 +34,7 @@ from service.sessions.frames import (
 )
 from service.sessions.imu_buffer import ImuBuffer, ImuSamples
 from service.settings import ServiceSettings
-from service.storage import LeaseLost, PendingPose, SessionRecord, SmoothedPose, Store
+from service.storage import Fence, LeaseLost, PendingPose, SessionRecord, SmoothedPose, Store
 from service.workers import (
     FrameFailure,
     FrameProcessed,
@@ -200,7 +200,7 @@ class LiveSession:
             return
         loop = asyncio.get_running_loop()
         try:
-            fence = await loop.run_in_executor(self.io_pool, self.leases.acquire, self.session_id)
+            fence = await self._acquire_lease(self.leases)
         except LeaseHeld as error:
             self.lease = None
             raise FrameRejected(503, str(error), "lease_held", error.retry_after_s) from error
@@ -215,6 +215,22 @@ class LiveSession:
                 self.next_index, self.last_processed_ns = stored
                 self.pipeline_ready = False
         self.lease = self.leases.held(fence)
+
+    async def _acquire_lease(self, leases: LeaseBook) -> Fence | None:
+        """Take the lease; one that expires within a lease's time is waited for here, once.
+
+        Its holder may be dead (a failover): refusing would cost the robot a reconnect and a
+        resend before the frame is computed. A holder that keeps streaming renews it meanwhile,
+        and the frame is refused after all (LeaseHeld).
+        """
+        loop = asyncio.get_running_loop()
+        try:
+            return await loop.run_in_executor(self.io_pool, leases.acquire, self.session_id)
+        except LeaseHeld as error:
+            if error.retry_after_s > leases.ttl_s:
+                raise
+            await asyncio.sleep(error.retry_after_s)
+        return await loop.run_in_executor(self.io_pool, leases.acquire, self.session_id)
 
     def release_lease(self) -> None:
         """Give the lease up (blocking I/O): the session's streams have all ended."""
