@@ -7,7 +7,7 @@ from pydantic import ValidationError
 
 from service.errors import Refusal
 from service.schemas import ImuBatchIn, ImuSample
-from service.sessions import ImuSamples
+from service.sessions.imu_buffer import ImuSamples
 from service.settings import ServiceSettings
 
 

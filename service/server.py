@@ -71,6 +71,8 @@ class HeaderTimeoutProtocol(HttpToolsProtocol):
         super().connection_lost(exc)
 
 
+# Seconds between the server's pings on an open stream (under the balancer's read timeout).
+WS_PING_INTERVAL_S = 5.0
 # The websockets library's own lines ("connection open", "connection rejected", frames at
 # debug) repeat uvicorn's one line per handshake: only its warnings and errors are kept.
 HANDSHAKE_LOGGER = logging.getLogger("swarmvo.websockets")
@@ -115,6 +117,9 @@ def serve(settings: ServiceSettings, log_level: str = "info") -> int:
         # Frames are PNG/JPEG already: deflating them again costs CPU on the event loop for
         # nothing (about 0.2 s per EuRoC pair on a busy core).
         ws_per_message_deflate=False,
+        # A ping keeps a quiet stream alive behind a balancer whose read timeout finds stalled
+        # replicas (docker/nginx.conf: 15 s).
+        ws_ping_interval=WS_PING_INTERVAL_S,
         timeout_keep_alive=settings.timeout_keep_alive_s,
         # Queued frames get this long to be processed and stored on SIGTERM/SIGINT.
         timeout_graceful_shutdown=15,

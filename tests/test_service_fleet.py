@@ -31,7 +31,7 @@ import cluster
 from local_cluster import missing_tools
 
 pytestmark = pytest.mark.slow
-FRAMES = 30
+FRAMES = 20
 
 
 @pytest.fixture(scope="module")
@@ -39,10 +39,11 @@ def fleet() -> Iterator[cluster.Fleet]:
     reason = missing_tools()
     if reason is not None:
         pytest.skip(f"the fleet needs nginx and PostgreSQL: {reason}")
+    (flight_folder,) = cluster.render_flights(1, FRAMES)
     with tempfile.TemporaryDirectory(prefix="swarmvo-fleet-test-") as folder:
         running = cluster.Fleet(Path(folder), cluster.Options(lease_ttl_s=1.0))
         try:
-            running.start()
+            running.start(warm=flight_folder)
             yield running
         finally:
             running.stop()
@@ -82,6 +83,10 @@ def test_replica_killed_mid_stream_loses_nothing(
     assert kill["sessions"], "the killed replica held no session: nothing was tested"
     # Every robot of the killed replica was answered again after the kill (a new owner).
     assert len(report["failover_gaps_s"]) == len(kill["sessions"])
+    # Where the gap went: the client saw the break, was greeted again, then answered.
+    phases = report["failover_phases_s"]
+    assert len(phases) == len(kill["sessions"]), report
+    assert all(0 <= p["noticed"] <= p["reconnected"] <= p["answered"] for p in phases), phases
     assert report["reconnects"] >= len(kill["sessions"])
     # The new owner continued from the stored state: the step into its first frame is close
     # to the true one (a restart at rest would be off by the whole 5 cm step).
@@ -177,6 +182,44 @@ def test_replica_paused_past_its_lease_cannot_write(
     assert rows[0][1] <= 6 and sum(n for _w, n, _i in rows) == FRAMES
     log = paused.log.read_text()
     assert "no longer holds the lease" in log, log[-2000:]
+
+
+def test_replica_paused_past_its_lease_through_nginx_hands_the_session_over(
+    fleet: cluster.Fleet, flight: cluster.LocalSequence
+) -> None:
+    """Through the balancer: the stream stalls on the paused replica (it still accepts
+    connections); nginx gives up on it after its read timeout and hashes the reconnecting
+    robot to the next replica, which takes the lease over. Resumed, the paused replica
+    writes nothing more for the session."""
+    assert fleet.balancer is not None
+    url = fleet.balancer.url
+    robot = _robot(fleet, flight, "stalled", url)
+
+    async def scenario() -> cluster.Replica:
+        streaming = asyncio.create_task(
+            cluster.stream_robot(robot, url, fleet.key, window=2, answer_timeout_s=3.0))
+        while len(robot.answers) < 4:
+            await asyncio.sleep(0.02)
+        (holder,) = await asyncio.to_thread(
+            fleet.sql, "SELECT lease_holder FROM sessions WHERE id = %s", robot.session_id)
+        paused = next(r for r in fleet.replicas if r.replica_id == holder[0])
+        paused.pause()
+        try:
+            await asyncio.wait_for(streaming, 120)
+        finally:
+            paused.resume()
+        await asyncio.sleep(2.0)  # whatever the resumed replica had in hand is refused
+        return paused
+
+    paused = asyncio.run(scenario())
+    report = cluster.check(fleet, [robot], {"kills": []})
+    _assert_consistent(report, 1)
+    rows = fleet.sql("SELECT writer, count(*), min(frame_index), max(frame_index) FROM poses "
+                     "WHERE session_id = %s GROUP BY writer ORDER BY 3", robot.session_id)
+    assert rows[0][0] == paused.replica_id and len(rows) >= 2, rows
+    # Not one pose of the paused replica after the takeover.
+    assert rows[0][3] < rows[1][2] and sum(r[1] for r in rows) == FRAMES, rows
+    assert report["reconnects"] >= 1
 
 
 def test_two_replicas_racing_for_one_session_store_each_frame_once(

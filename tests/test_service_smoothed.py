@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from test_service_units import (
+    KEY_A,
     A,
     FakeFactory,
     RecordingPipeline,
@@ -188,3 +189,38 @@ def test_unloaded_and_shut_down_sessions_store_their_window(tmp_path: Path) -> N
     # The server's shutdown flushes the live one.
     with TestClient(create_app(settings, factory)) as client:
         assert [t for t, _ in _stored(client, second)] == [10, 20]
+
+
+def test_rest_finish_makes_the_window_final_like_a_stream_close(tmp_path: Path) -> None:
+    """``POST /finish`` (and ``Client.finish``) flushes the back end after the frames sent
+    over REST, as a WebSocket's close does; frames after it resume from the stored pose."""
+    from swarmvo_client import Client
+
+    factory = WindowFactory()
+    with TestClient(create_app(settings_for(tmp_path), factory)) as client:
+        sid = _session(client)
+        answers = {t: send(client, sid, t).json() for t in (10, 20, 30, 40, 50)}
+        poses = {t: np.array(a["pose"], dtype=float) for t, a in answers.items()}
+        assert [t for t, _ in _stored(client, sid)] == [10, 20]  # the window holds 3 back
+        finished = client.post(f"/v1/sessions/{sid}/finish", headers=A)
+        assert finished.status_code == 200, finished.text
+        last = [(p["timestamp_ns"], _flat(p["pose"])) for p in finished.json()["poses"]]
+        assert [t for t, _ in last] == [30, 40, 50]
+        assert all(pose == smoothed_of(poses[t]) for t, pose in last)
+        assert factory.created[0].finished
+        stored = _stored(client, sid)
+        assert [t for t, _ in stored] == [10, 20, 30, 40, 50]
+        assert all(pose == smoothed_of(poses[t]) for t, pose in stored)
+        # Nothing is held back any more: a second finish has nothing to flush.
+        assert client.post(f"/v1/sessions/{sid}/finish", headers=A).json()["poses"] == []
+        # The stream may go on: a new pipeline from the last stored pose, flushed by the client.
+        assert send(client, sid, 60).status_code == 200
+        assert len(factory.created) == 2
+        with Client("http://testserver", KEY_A, transport=client._transport) as library:
+            flushed = library.finish(sid)
+        assert [t for t, _ in flushed] == [60]
+        assert [t for t, _ in _stored(client, sid)] == [10, 20, 30, 40, 50, 60]
+        # Unknown and deleted sessions are refused.
+        assert client.post("/v1/sessions/nope/finish", headers=A).status_code == 404
+        assert client.delete(f"/v1/sessions/{sid}", headers=A).status_code == 204
+        assert client.post(f"/v1/sessions/{sid}/finish", headers=A).status_code == 404

@@ -1,4 +1,5 @@
-"""Frames and IMU samples sent over REST: one stereo pair per request, answered with its pose."""
+"""Frames and IMU samples sent over REST: one stereo pair per request, answered with its pose;
+and the end of a robot's stream (``finish``), which makes the smoothed poses final."""
 
 from __future__ import annotations
 
@@ -12,8 +13,8 @@ from service.dependencies import ActiveSession, State, live_session
 from service.errors import ERROR_RESPONSES, Refusal
 from service.imu_input import imu_arrays, parse_imu
 from service.multipart import BINARY, file_field, int_field, multipart_body, read_form, text_field
-from service.schemas import ErrorOut, ImuBatchIn, ImuBatchOut
-from service.sessions import FrameRejected
+from service.schemas import ErrorOut, ImuBatchIn, ImuBatchOut, SmoothedOut
+from service.sessions import FrameRejected, SessionGone
 
 router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["frames"])
 
@@ -75,3 +76,16 @@ async def post_imu(record: ActiveSession, body: ImuBatchIn, state: State) -> Imu
     except FrameRejected as error:
         raise Refusal(error.status_code, error.detail, error.kind) from error
     return ImuBatchOut(accepted=len(samples), buffered=buffered)
+
+
+@router.post("/finish", response_model=SmoothedOut, responses=ERROR_RESPONSES)
+async def finish_stream(record: ActiveSession, state: State) -> SmoothedOut:
+    """End of stream: once the frames sent so far are answered, the back end's window is
+    flushed; its final poses are stored (``GET /smoothed`` then holds every frame) and
+    returned, as a WebSocket's ``close`` message does. A frame sent later is processed too,
+    by a pipeline resumed from the last stored pose."""
+    try:
+        flushed = await state.manager.finish(record.id)
+    except SessionGone as error:
+        raise Refusal(error.status_code, error.detail, error.kind) from error
+    return SmoothedOut.of(record.id, flushed)

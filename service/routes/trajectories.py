@@ -58,7 +58,8 @@ def get_smoothed(
 ) -> Response:
     """The smoother's final poses (left camera in world, each frame once, oldest first):
     the smoothed twin of ``/trajectory``, stored as the frames are finalised; the last
-    frames follow when the session's stream ends (``close``) or the session is unloaded."""
+    frames follow when the session's stream ends (``close``, ``POST /finish``) or the
+    session is unloaded."""
     smoothed = state.store.smoothed(record.id)
     if format == "json":
         return JSONResponse(SmoothedOut.of(record.id, smoothed).model_dump(mode="json"))

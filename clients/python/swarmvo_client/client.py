@@ -65,6 +65,13 @@ def _kitti_form(
     return data, {"calib": ("calib.txt", _bytes(calib))}
 
 
+def _smoothed(response: httpx.Response) -> list[tuple[int, np.ndarray]]:
+    return [
+        (int(item["timestamp_ns"]), np.array(item["pose"], dtype=float))
+        for item in response.json()["poses"]
+    ]
+
+
 def _trajectory(response: httpx.Response, format: TrajectoryFormat) -> list[Pose] | str:
     if format == "json":
         return [Pose.from_json(p) for p in response.json()["poses"]]
@@ -179,11 +186,13 @@ class Client:
 
     def smoothed(self, session_id: str) -> list[tuple[int, np.ndarray]]:
         """The back end's stored final poses, oldest first: (timestamp_ns, 4x4 left camera)."""
-        response = self._request("GET", f"/v1/sessions/{session_id}/smoothed")
-        return [
-            (int(item["timestamp_ns"]), np.array(item["pose"], dtype=float))
-            for item in response.json()["poses"]
-        ]
+        return _smoothed(self._request("GET", f"/v1/sessions/{session_id}/smoothed"))
+
+    def finish(self, session_id: str) -> list[tuple[int, np.ndarray]]:
+        """End of stream: the back end's last poses are made final (and stored); returns them.
+
+        Frames sent afterwards are still processed, from the last stored pose on."""
+        return _smoothed(self._request("POST", f"/v1/sessions/{session_id}/finish"))
 
 
 class AsyncClient:
@@ -281,6 +290,10 @@ class AsyncClient:
         body = {"samples": imu.to_samples()}
         response = await self._request("POST", f"/v1/sessions/{session_id}/imu", json=body)
         return int(response.json()["buffered"])
+
+    async def finish(self, session_id: str) -> list[tuple[int, np.ndarray]]:
+        """End of stream (see :meth:`Client.finish`)."""
+        return _smoothed(await self._request("POST", f"/v1/sessions/{session_id}/finish"))
 
     async def trajectory(
         self, session_id: str, format: TrajectoryFormat = "json"

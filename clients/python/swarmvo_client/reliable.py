@@ -35,6 +35,10 @@ from swarmvo_client.stream import StreamEvent, ws_url
 RETRY_STATUSES = frozenset({502, 503, 504})
 
 
+# Seconds a connection attempt may take (the handshake through a balancer included).
+OPEN_TIMEOUT_S = 30.0
+
+
 @dataclass(frozen=True)
 class Backoff:
     """Exponential backoff with full jitter (robots of a fleet must not retry in lockstep)."""
@@ -60,6 +64,8 @@ class Outage:
     lost_at: float
     reason: str
     answered_at: float | None = None
+    reconnected_at: float | None = None  # the first server greeting after the loss
+    connections: int = 0  # connections opened until a frame was answered again
 
 
 @dataclass
@@ -154,7 +160,10 @@ class ReliableStream:
             try:
                 connection = await websockets.connect(
                     self.url, additional_headers=self.headers, max_size=self.max_size,
-                    compression=None, open_timeout=5,
+                    # Longer than a balancer's read timeout (docker/nginx.conf: 15 s): the
+                    # balancer, not this client, gives up on a stalled replica and tries the
+                    # next one (a client giving up first would be sent back to it every time).
+                    compression=None, open_timeout=OPEN_TIMEOUT_S,
                 )
             except (OSError, websockets.InvalidHandshake, TimeoutError) as error:
                 await self._pause(attempt, f"connect: {error}")
@@ -178,6 +187,10 @@ class ReliableStream:
             json.loads(await asyncio.wait_for(connection.recv(), 5.0))  # hello
             if self.stats.outages:
                 self.stats.reconnects += 1
+                outage = self.stats.outages[-1]
+                if outage.answered_at is None:
+                    outage.connections += 1
+                    outage.reconnected_at = outage.reconnected_at or time.perf_counter()
             # Owed frames first, oldest first; frames queued meanwhile follow them. Only then
             # may send_frame() use the connection, so timestamps reach the server in order.
             sent: set[int] = set()

@@ -1,4 +1,4 @@
-"""Per-session consumers: a bounded queue, strict timestamp order, CPU work off the event loop.
+"""One live session: a bounded queue, strict timestamp order, CPU work off the event loop.
 
 Each live session has one consumer task that takes frames from its queue one at a time and hands
 them to its worker (see :mod:`service.workers`: a pinned process, or a thread), so frames of one
@@ -11,122 +11,39 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import threading
 import time
-from collections import OrderedDict, deque
-from collections.abc import Callable
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
-from typing import Any, Protocol
 
 import numpy as np
 from sqlalchemy.exc import DBAPIError
 
-from estimator.types import ImuBatch, TimestampOrderError, check_timestamp_order
-from service.answer import FrameAnswer, flat_of
-from service.estimator_adapter import PipelineFactory, PreparedSession
+from estimator.types import TimestampOrderError, check_timestamp_order
+from service.answer import flat_of
+from service.estimator_adapter import PreparedSession
 from service.images import ImageLimits
-from service.lease import Held, LeaseBook, LeaseHeld, replica_id
+from service.lease import Held, LeaseBook, LeaseHeld
 from service.metrics import Metrics
 from service.pose_writer import PoseWriter
-from service.settings import ServiceSettings
-from service.storage import (
-    LeaseLost,
-    PendingPose,
-    SessionRecord,
-    SmoothedPose,
-    Store,
+from service.sessions.frames import (
+    Answered,
+    FrameDropped,
+    FrameJob,
+    FrameRejected,
+    SessionGone,
 )
+from service.sessions.imu_buffer import ImuBuffer, ImuSamples
+from service.settings import ServiceSettings
+from service.storage import Fence, LeaseLost, PendingPose, SessionRecord, SmoothedPose, Store
 from service.workers import (
     FrameFailure,
     FrameProcessed,
     FrameRequest,
     PipelineSpec,
-    ProcessRunner,
     Runner,
-    ThreadRunner,
 )
 
 logger = logging.getLogger("swarmvo.service")
-
-# WebSocket close code (application range 4000-4999) sent to streams of a deleted session.
-STREAM_CLOSE_DELETED = 4404
-MAX_REMEMBERED_DELETIONS = 10_000
-
-
-class FrameRejected(Exception):
-    """A frame the service will not process; carries the HTTP status that explains why."""
-
-    def __init__(
-        self, status_code: int, detail: str, kind: str, retry_after_s: float | None = None
-    ) -> None:
-        super().__init__(detail)
-        self.status_code = status_code
-        self.detail = detail
-        self.kind = kind
-        self.retry_after_s = retry_after_s  # a 503 that will pass: when to try again
-
-
-class SessionGone(FrameRejected):
-    """The session was deleted: everything sent for it afterwards is answered 404."""
-
-    def __init__(self) -> None:
-        super().__init__(404, "session was deleted", "unknown_session")
-
-
-class StreamHandle(Protocol):
-    """An open stream of a session (a WebSocket), ended when the session is deleted."""
-
-    def terminate(self, code: int, reason: str, last: list[SmoothedPose] | None = None) -> None:
-        """Close with ``code`` after sending ``last`` (the flushed smoothed poses), if any."""
-
-
-class FrameDropped(FrameRejected):
-    """A queued frame discarded for a newer one (queue policy ``drop_oldest``)."""
-
-    def __init__(self, detail: str) -> None:
-        super().__init__(503, detail, "dropped")
-
-
-@dataclass
-class ImuSamples:
-    """IMU samples in arrival order (sorted and de-duplicated when consumed)."""
-
-    timestamps_ns: np.ndarray
-    gyro: np.ndarray
-    accel: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.timestamps_ns)
-
-
-@dataclass
-class FrameJob:
-    timestamp_ns: int
-    left: bytes
-    right: bytes
-    future: asyncio.Future[Any]  # Answered; the flushed poses for a flush job
-    raw: bool = False
-    received: float = field(default_factory=time.perf_counter)
-    flush: bool = False  # not a frame: flush the back end once the frames before it are done
-
-
-@dataclass(frozen=True)
-class Answered:
-    """A frame's answer as a session hands it out: ``duplicate`` when the frame was sent again
-    and this is its stored answer (it was not processed twice)."""
-
-    answer: FrameAnswer
-    duplicate: bool = False
-
-
-@dataclass
-class _ImuTake:
-    """IMU samples chosen for a frame; the buffer only gives them up once the frame is used."""
-
-    batch: ImuBatch | None
-    remainder: list[ImuSamples]
-    parts: int
 
 
 class LiveSession:
@@ -177,9 +94,7 @@ class LiveSession:
         self.closed = False
         # Wall-clock times of the latest stored poses: the live view's frames/s and last update.
         self.stored_at: deque[float] = deque(maxlen=64)
-        self._imu_lock = threading.Lock()
-        self._imu: list[ImuSamples] = []
-        self._imu_count = 0
+        self.imu = ImuBuffer(settings.max_imu_buffer)
         # A back end holds the newest frames back for smoothing: a stream's end flushes them.
         self.smoothing = bool(record.config.get("backend", {}).get("enabled", True))
         # Held while the worker runs this session's pipeline: a flush never overlaps a frame.
@@ -190,23 +105,21 @@ class LiveSession:
 
     @property
     def idle(self) -> bool:
-        return not self.busy and self.queue.empty() and self._imu_count == 0
+        return not self.busy and self.queue.empty() and self.imu.count == 0
 
     def add_imu(self, samples: ImuSamples) -> int:
         """Buffer IMU samples for the next frames; returns the buffered count."""
         if self.closed:
             raise SessionGone()
-        with self._imu_lock:
-            if self._imu_count + len(samples) > self.settings.max_imu_buffer:
-                raise FrameRejected(
-                    429,
-                    f"IMU buffer full ({self._imu_count} samples waiting, limit "
-                    f"{self.settings.max_imu_buffer}); send frames to consume them",
-                    "imu_buffer_full",
-                )
-            self._imu.append(samples)
-            self._imu_count += len(samples)
-            return self._imu_count
+        buffered = self.imu.add(samples)
+        if buffered is None:
+            raise FrameRejected(
+                429,
+                f"IMU buffer full ({self.imu.count} samples waiting, limit "
+                f"{self.settings.max_imu_buffer}); send frames to consume them",
+                "imu_buffer_full",
+            )
+        return buffered
 
     def submit(
         self,
@@ -287,7 +200,7 @@ class LiveSession:
             return
         loop = asyncio.get_running_loop()
         try:
-            fence = await loop.run_in_executor(self.io_pool, self.leases.acquire, self.session_id)
+            fence = await self._acquire_lease(self.leases)
         except LeaseHeld as error:
             self.lease = None
             raise FrameRejected(503, str(error), "lease_held", error.retry_after_s) from error
@@ -302,6 +215,22 @@ class LiveSession:
                 self.next_index, self.last_processed_ns = stored
                 self.pipeline_ready = False
         self.lease = self.leases.held(fence)
+
+    async def _acquire_lease(self, leases: LeaseBook) -> Fence | None:
+        """Take the lease; one that expires within a lease's time is waited for here, once.
+
+        Its holder may be dead (a failover): refusing would cost the robot a reconnect and a
+        resend before the frame is computed. A holder that keeps streaming renews it meanwhile,
+        and the frame is refused after all (LeaseHeld).
+        """
+        loop = asyncio.get_running_loop()
+        try:
+            return await loop.run_in_executor(self.io_pool, leases.acquire, self.session_id)
+        except LeaseHeld as error:
+            if error.retry_after_s > leases.ttl_s:
+                raise
+            await asyncio.sleep(error.retry_after_s)
+        return await loop.run_in_executor(self.io_pool, leases.acquire, self.session_id)
 
     def release_lease(self) -> None:
         """Give the lease up (blocking I/O): the session's streams have all ended."""
@@ -388,34 +317,6 @@ class LiveSession:
         )
         return PipelineSpec(self.prepared, initial, last.index + 1, state), message
 
-    def _peek_imu(self, timestamp_ns: int) -> _ImuTake:
-        """IMU samples with previous frame < t <= this frame; later ones stay buffered."""
-        with self._imu_lock:
-            parts = list(self._imu)
-            if not parts:
-                return _ImuTake(None, [], 0)
-            times = np.concatenate([p.timestamps_ns for p in parts])
-            gyro = np.concatenate([p.gyro for p in parts])
-            accel = np.concatenate([p.accel for p in parts])
-        order = np.argsort(times, kind="stable")
-        times, gyro, accel = times[order], gyro[order], accel[order]
-        keep = np.ones(len(times), dtype=bool)
-        keep[1:] = times[1:] != times[:-1]  # a repeated sample counts once
-        times, gyro, accel = times[keep], gyro[keep], accel[keep]
-        later = times > timestamp_ns
-        remainder = [ImuSamples(times[later], gyro[later], accel[later])] if later.any() else []
-        now = ~later
-        if self.last_processed_ns is not None:
-            now &= times > self.last_processed_ns
-        batch = ImuBatch(times[now], gyro[now], accel[now]) if now.any() else None
-        return _ImuTake(batch, remainder, len(parts))
-
-    def _consume_imu(self, take: _ImuTake) -> None:
-        """Remove what a frame used; samples that arrived meanwhile stay behind it."""
-        with self._imu_lock:
-            self._imu = [*take.remainder, *self._imu[take.parts :]]
-            self._imu_count = sum(len(p) for p in self._imu)
-
     async def _process(self, job: FrameJob) -> Answered:
         """Decode + odometry in the session's worker, then persist in an I/O thread."""
         loop = asyncio.get_running_loop()
@@ -424,7 +325,7 @@ class LiveSession:
         await self._hold_lease()
         if self.last_processed_ns is not None and job.timestamp_ns <= self.last_processed_ns:
             return await self._stored_answer(job.timestamp_ns)  # stored by another replica
-        take = self._peek_imu(job.timestamp_ns)
+        take = self.imu.peek(job.timestamp_ns, self.last_processed_ns)
         resume_message = ""
         outcome: FrameProcessed | FrameFailure | None = None
         for _attempt in range(2):
@@ -456,13 +357,13 @@ class LiveSession:
         if isinstance(outcome, FrameFailure):
             if outcome.kind not in ("bad_image", "worker_died", "worker_timeout",
                                     "pipeline_missing", "cpu_budget"):
-                self._consume_imu(take)  # the estimator saw these samples
+                self.imu.consume(take)  # the estimator saw these samples
             if outcome.trace:
                 logger.error("frame %s of session %s failed in its worker:\n%s",
                              job.timestamp_ns, self.session_id, outcome.trace.rstrip())
             kind = "internal" if outcome.kind == "pipeline_missing" else outcome.kind
             raise FrameRejected(outcome.status_code, outcome.detail, kind)
-        self._consume_imu(take)
+        self.imu.consume(take)
         worked = outcome.answer.timings_s
         timings.update(worked)
         timings["transfer"] = max(0.0, answered - sent - worked["decode"] - worked["odometry"])
@@ -587,151 +488,3 @@ class LiveSession:
         with contextlib.suppress(asyncio.CancelledError):
             await self._task
         return await self.flush(store=not deleted)
-
-
-class SessionManager:
-    """Live sessions by id, with a soft cap on pipelines held in memory."""
-
-    def __init__(
-        self,
-        settings: ServiceSettings,
-        store: Store,
-        factory: PipelineFactory,
-        metrics: Metrics,
-    ) -> None:
-        self.settings = settings
-        self.store = store
-        self.factory = factory
-        self.metrics = metrics
-        self.runner: Runner = (
-            ProcessRunner(
-                settings.workers, factory, metrics.worker_restarts.inc, settings.frame_timeout_s
-            )
-            if settings.executor == "process"
-            else ThreadRunner(settings.workers, factory)
-        )
-        # Database reads/writes of the consumers (SQLite serialises writers anyway).
-        self.io_pool = ThreadPoolExecutor(
-            max(2, min(settings.workers, 8)), thread_name_prefix="swarmvo-io"
-        )
-        self.pose_writer = PoseWriter(store, self.io_pool)  # one group commit for all sessions
-        self.live: OrderedDict[str, LiveSession] = OrderedDict()
-        self.leases = LeaseBook(store, settings.replica_id or replica_id(), settings.lease_ttl_s,
-                                settings.leases)
-        # Recently deleted ids (uuid4: never reused), so that a request that looked the session
-        # up just before its deletion cannot bring it back to life.
-        self.deleted: OrderedDict[str, None] = OrderedDict()
-        self.streams: dict[str, set[StreamHandle]] = {}
-        self._background: set[asyncio.Task[None]] = set()
-        self._on_change: Callable[[], None] = lambda: metrics.sessions_active.set(
-            len(self.live)
-        )
-
-    async def start(self) -> None:
-        """Start the worker processes (they import the estimator) before serving."""
-        try:
-            await self.runner.start()
-        except BaseException:
-            self.io_pool.shutdown(wait=False)
-            raise
-
-    def live_session(self, record: SessionRecord) -> LiveSession:
-        """The session's live state, created on first use; SessionGone once it was deleted."""
-        if record.id in self.deleted:
-            raise SessionGone()
-        worker = self.live.get(record.id)
-        if worker is not None:
-            self.live.move_to_end(record.id)
-            return worker
-        self._evict_idle()
-        slot = self.runner.assign(record.id)
-        worker = LiveSession(
-            record, self.settings, self.store, self.runner, slot, self.io_pool, self.metrics,
-            self.leases, self.pose_writer,
-        )
-        self.live[record.id] = worker
-        self._on_change()
-        return worker
-
-    def _evict_idle(self) -> None:
-        while len(self.live) >= self.settings.max_active_sessions:
-            victim = next((sid for sid, w in self.live.items() if w.idle), None)
-            if victim is None:
-                return  # all busy: exceed the soft cap rather than refuse work
-            worker = self.live.pop(victim)
-            # Flushed and freed now, not when the close task runs: the session may come back
-            # before that, and its new pipeline must not be dropped by this late release.
-            flushed = worker.start_flush()
-            self.runner.release(worker.slot, victim)
-            asyncio.get_running_loop().create_task(self._unload(worker, flushed))
-
-    @staticmethod
-    async def _unload(
-        worker: LiveSession, flushed: asyncio.Future[list[SmoothedPose]]
-    ) -> None:
-        """An evicted session: its back end's last poses are stored, its consumer stopped."""
-        await worker.close("session unloaded")
-        await worker.finish_flush(flushed)
-
-    def attach(self, session_id: str, stream: StreamHandle) -> None:
-        """Register an open stream; SessionGone when the session was deleted meanwhile."""
-        if session_id in self.deleted:
-            raise SessionGone()
-        self.streams.setdefault(session_id, set()).add(stream)
-
-    def detach(self, session_id: str, stream: StreamHandle, finished: bool = False) -> None:
-        """Forget a stream; ``finished`` (the robot said close): give the lease up once idle."""
-        streams = self.streams.get(session_id)
-        if streams is not None:
-            streams.discard(stream)
-            if not streams:
-                del self.streams[session_id]
-        worker = self.live.get(session_id)
-        if finished and worker is not None and session_id not in self.streams:
-            task = asyncio.get_running_loop().create_task(self._release_when_idle(worker))
-            self._background.add(task)  # referenced until done (the loop keeps weak ones)
-            task.add_done_callback(self._background.discard)
-
-    async def _release_when_idle(self, worker: LiveSession, wait_s: float = 30.0) -> None:
-        deadline = time.monotonic() + wait_s
-
-        def drained() -> bool:
-            return not worker.busy and worker.queue.empty()
-
-        while not drained() and time.monotonic() < deadline:
-            await asyncio.sleep(0.05)
-        if drained() and worker.session_id not in self.streams:
-            with contextlib.suppress(Exception):  # best effort: the lease expires anyway
-                await asyncio.get_running_loop().run_in_executor(
-                    self.io_pool, worker.release_lease)
-
-    async def remove(self, session_id: str) -> None:
-        """Delete the live state: queued frames are refused with 404, the back end's window is
-        flushed to the open streams, which are then closed."""
-        self.deleted[session_id] = None
-        while len(self.deleted) > MAX_REMEMBERED_DELETIONS:
-            self.deleted.popitem(last=False)
-        worker = self.live.pop(session_id, None)
-        last: list[SmoothedPose] = []
-        if worker is not None:
-            self._on_change()
-            last = await worker.close("session was deleted", deleted=True)
-            self.runner.release(worker.slot, session_id)
-        for stream in self.streams.pop(session_id, set()):
-            stream.terminate(STREAM_CLOSE_DELETED, "session deleted", last)
-
-    async def shutdown(self, drain_seconds: float = 10.0) -> None:
-        workers = list(self.live.values())
-        self.live.clear()
-        self._on_change()
-        await asyncio.gather(
-            *(w.close("server shutting down", drain_seconds) for w in workers),
-            return_exceptions=True,
-        )
-        # Leases given back: other replicas take these sessions over at once, not on expiry.
-        for worker in workers:
-            with contextlib.suppress(Exception):
-                await asyncio.get_running_loop().run_in_executor(self.io_pool,
-                                                                 worker.release_lease)
-        await self.runner.shutdown()
-        self.io_pool.shutdown(wait=True, cancel_futures=False)

@@ -1,0 +1,75 @@
+"""Connecting to the database: the driver, SQLite's pragmas, strict JSON, and the migrations
+that run at every start."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import create_engine, event, func, select
+from sqlalchemy.engine import Engine
+
+MIGRATIONS_DIR = Path(__file__).resolve().parents[1] / "migrations"
+# PostgreSQL advisory lock id held while migrating (any constant other applications do not use).
+MIGRATION_LOCK_KEY = 0x5357_564F_4D49_4752  # "SWVOMIGR"
+
+
+def _strict_json(value: Any) -> str:
+    """JSON without NaN/Infinity: PostgreSQL's json type refuses them, so SQLite must too.
+
+    Otherwise a non-finite pose would be stored on one backend and refused on the other (and
+    once stored, no JSON answer could carry it).
+    """
+    return json.dumps(value, allow_nan=False)
+
+
+def with_driver(url: str) -> str:
+    """A plain ``postgresql://`` (or ``postgres://``) URL gets the psycopg 3 driver.
+
+    SQLAlchemy would otherwise pick psycopg2, which the ``postgres`` extra does not install.
+    """
+    for scheme in ("postgresql://", "postgres://"):
+        if url.startswith(scheme):
+            return "postgresql+psycopg://" + url.removeprefix(scheme)
+    return url
+
+
+def make_engine(url: str, sqlite_synchronous: str = "NORMAL") -> Engine:
+    """Engine for ``url``; SQLite gets WAL so readers never block the writer."""
+    if sqlite_synchronous not in ("NORMAL", "FULL"):
+        raise ValueError(f"sqlite_synchronous must be NORMAL or FULL, not {sqlite_synchronous!r}")
+    url = with_driver(url)
+    if url.startswith("sqlite"):
+        engine = create_engine(
+            url,
+            connect_args={"check_same_thread": False, "timeout": 30},
+            json_serializer=_strict_json,
+        )
+
+        @event.listens_for(engine, "connect")
+        def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
+            cursor = dbapi_connection.cursor()
+            cursor.execute("PRAGMA journal_mode=WAL")
+            cursor.execute(f"PRAGMA synchronous={sqlite_synchronous}")
+            cursor.execute("PRAGMA foreign_keys=ON")
+            cursor.close()
+
+        return engine
+    return create_engine(url, pool_pre_ping=True, json_serializer=_strict_json)
+
+
+def run_migrations(engine: Engine) -> None:
+    """Bring the schema to the newest Alembic revision (idempotent; runs at every start)."""
+    from alembic import command
+    from alembic.config import Config
+
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+    with engine.begin() as connection:
+        if connection.dialect.name == "postgresql":
+            # Replicas starting together on an empty database would otherwise all create the
+            # tables and all but one fail; the lock ends with this transaction.
+            connection.execute(select(func.pg_advisory_xact_lock(MIGRATION_LOCK_KEY)))
+        config.attributes["connection"] = connection
+        command.upgrade(config, "head")
