@@ -85,3 +85,18 @@ def test_the_back_end_measures_an_injected_noise_level_without_changing_the_traj
     fixed = _fused(factor, mode="off")
     assert all(e.covariance_scale == 1.0 for e in fixed)
     np.testing.assert_allclose([e.pose for e in calibrated], [e.pose for e in fixed], atol=1e-12)
+
+
+def test_the_frame_interval_is_the_median_of_the_first_intervals() -> None:
+    from estimator.rig_settings import FrameIntervalEstimate
+
+    estimate = FrameIntervalEstimate(count=5, tolerance=0.1)
+    assert estimate.add(0) is None  # one stamp: no interval yet
+    # The first interval is short (a late first frame): taken, then corrected by the median.
+    assert estimate.add(30_000_000) == pytest.approx(0.03)
+    answers = [estimate.add(t) for t in (130_000_000, 230_000_000, 430_000_000, 530_000_000)]
+    assert answers[0] == pytest.approx(0.065)  # median of 30 and 100 ms
+    assert answers[1] == pytest.approx(0.1)  # median of 30, 100, 100 ms
+    assert answers[2] is None and answers[3] is None  # a dropped frame does not move it
+    assert estimate.interval_s == pytest.approx(0.1)
+    assert estimate.add(2_000_000_000) is None  # only the first intervals count
