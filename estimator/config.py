@@ -154,6 +154,14 @@ class BackendConfig(_Section):
     fit_covariance_scale: float = Field(1.0, gt=0)
     fit_min_rotation_sigma_rad: float = Field(1e-4, ge=0)
     fit_min_translation_sigma_m: float = Field(5e-4, ge=0)
+    # Reported covariances (backend/covariance_scale.py): a per-session factor on them, measured
+    # online from the gyro ("gyro"; 1 without an IMU) or none ("off"); within
+    # [1 / max, max]; over the last ``window`` measurements; allowing for a gyro bias error
+    # of ``gyro_bias_sigma`` rad/s. The back end's factor noise does not change.
+    covariance_scale: Literal["gyro", "off"] = "gyro"
+    covariance_scale_max: float = Field(16.0, ge=1)
+    covariance_scale_window: int = Field(400, ge=5)
+    covariance_scale_gyro_bias_sigma: float = Field(2e-4, ge=0)
     # Constant-velocity prior between consecutive frames (per frame interval): on every frame
     # ("always": lets the robust kernel see a wrong relative pose) or only without vision.
     motion_prior: Literal["always", "gaps"] = "gaps"

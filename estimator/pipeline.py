@@ -248,14 +248,17 @@ def summarize(
     return _finite(summary), evaluations
 
 
-def odometry_messages(result: RunResult) -> list[OdometryMessage]:
+def odometry_messages(result: RunResult, calibrated: bool = True) -> list[OdometryMessage]:
     """The run's answers as odometry messages; odom is levelled with the IMU samples before
-    the first frame whenever the sequence has them (whatever the flags)."""
+    the first frame whenever the sequence has them (whatever the flags). ``calibrated``: with
+    the covariance scale measured online (``OdometryBuilder``)."""
     from estimator.formats.odometry_msg import OdometryBuilder
 
     first_ns = result.reports[0].timestamp_ns
     first_imu = result.sequence.imu_between(first_ns - FIRST_FRAME_IMU_WINDOW_NS, first_ns)
-    builder = OdometryBuilder(result.sequence.rig.left.T_BS, result.config.backend, first_imu.accel)
+    builder = OdometryBuilder(
+        result.sequence.rig.left.T_BS, result.config.backend, first_imu.accel, calibrated=calibrated
+    )
     return [builder.build(report) for report in result.reports]
 
 

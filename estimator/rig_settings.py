@@ -21,6 +21,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from estimator.config import FrontendConfig, SwarmvoConfig
 from estimator.formats.calibration import StereoRig
 
@@ -28,6 +30,7 @@ __all__ = [
     "MAX_RELATIVE_DEPTH_ERROR",
     "RIG_SETTINGS_KEY",
     "DerivedSetting",
+    "FrameIntervalEstimate",
     "apply_rig_settings",
     "derive_rig_settings",
     "format_settings",
@@ -144,3 +147,36 @@ def settings_record(
         ],
         "from_stamps": from_stamps,
     }
+
+
+class FrameIntervalEstimate:
+    """The frame interval of a stream whose rate nobody declared, from its first stamps.
+
+    The median of the first ``count`` intervals: one late, early or dropped frame at the start
+    does not set the search window for the whole session. ``add`` answers the estimate when it
+    is new or has moved by more than ``tolerance`` (relative) since it was last answered.
+    """
+
+    def __init__(self, count: int = 9, tolerance: float = 0.1) -> None:
+        self.count = count
+        self.tolerance = tolerance
+        self._last_ns: int | None = None
+        self._intervals: list[int] = []
+        self._answered: float | None = None
+
+    @property
+    def interval_s(self) -> float | None:
+        return self._answered
+
+    def add(self, timestamp_ns: int) -> float | None:
+        """Take the next frame's stamp; the interval (s) when it is new or has moved."""
+        previous, self._last_ns = self._last_ns, int(timestamp_ns)
+        if previous is None or len(self._intervals) >= self.count or timestamp_ns <= previous:
+            return None
+        self._intervals.append(int(timestamp_ns) - previous)
+        estimate = float(np.median(self._intervals)) * 1e-9
+        answered = self._answered
+        if answered is not None and abs(estimate - answered) <= self.tolerance * answered:
+            return None
+        self._answered = estimate
+        return estimate

@@ -105,3 +105,6 @@ class FrameReport:
     body_covariance: np.ndarray | None = None
     body_motion: np.ndarray | None = None
     body_motion_covariance: np.ndarray | None = None
+    # Per-session factor on the reported covariances, measured online against the gyro
+    # (``estimator.backend.covariance_scale``); 1 without an IMU or the back end.
+    covariance_scale: float = 1.0

@@ -258,26 +258,25 @@ def session_config(stored: dict[str, Any]) -> tuple[Any, bool]:
 
 class IntervalSettings:
     """A session without a declared frame rate: the settings that depend on the frame interval
-    (the search window) follow from its first two frames' stamps, before the second frame is
-    matched against the first (the first frame matches nothing)."""
+    (the search window) follow from the stamps, before each frame is matched: from the first
+    interval at the second frame, then from the median of the first intervals
+    (``FrameIntervalEstimate``) whenever it moves."""
 
     def __init__(self, answers: OdometryAnswers, rig: Any) -> None:
+        from estimator.rig_settings import FrameIntervalEstimate
+
         self.answers = answers
         self.rig = rig
-        self._first_ns: int | None = None
-        self._derived = False
+        self._intervals = FrameIntervalEstimate()
 
     @property
     def last_odometry(self) -> dict[str, Any] | None:
         return self.answers.last_odometry
 
     def process(self, frame: StereoFrame, imu: ImuBatch | None = None) -> FrameReport:
-        stamp = int(frame.timestamp_ns)
-        if self._first_ns is None:
-            self._first_ns = stamp
-        elif not self._derived and stamp > self._first_ns:
-            self._derive((stamp - self._first_ns) * 1e-9)
-            self._derived = True
+        interval_s = self._intervals.add(int(frame.timestamp_ns))
+        if interval_s is not None:
+            self._derive(interval_s)
         return self.answers.process(frame, imu)
 
     def finish(self) -> tuple[tuple[int, np.ndarray], ...]:

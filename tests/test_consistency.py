@@ -33,7 +33,7 @@ def _reports(errors: np.ndarray, covariance: np.ndarray, keyframe_every: int):
         reports.append(SimpleNamespace(
             timestamp_ns=int(stamps[k]), frontend_pose=frontend[k],
             reference_timestamp_ns=None if reference is None else int(stamps[reference]),
-            measurement_covariance=covariance if k else None))
+            measurement_covariance=covariance if k else None, covariance_scale=1.0))
     return reports, GroundTruth(stamps, np.array(truth)), body_from_camera
 
 

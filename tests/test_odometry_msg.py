@@ -106,6 +106,41 @@ def test_nees_on_a_short_rendered_flight_is_plausible(runs):
         assert 0.15 <= nees.summary()["mean_nees_per_dof"] <= 3.0, mode
 
 
+@pytest.mark.slow
+def test_calibrated_covariances_are_the_noise_models_times_the_online_scale(runs):
+    _, results = runs
+    result, messages = results["fused"]
+    fixed = odometry_messages(result, calibrated=False)
+    scales = np.array([report.covariance_scale for report in result.reports])
+    assert scales[0] == 1.0 and np.all((scales >= 1 / 16) & (scales <= 16))
+    assert not np.allclose(scales, 1.0)  # measured against the gyro once there are enough
+    for scale, message, model in zip(scales, messages, fixed, strict=True):
+        np.testing.assert_allclose(message.twist_covariance, scale * model.twist_covariance)
+        np.testing.assert_array_equal(message.pose, model.pose)
+    # The pose covariance is only ever inflated, by the scale of what each frame adds.
+    for message, model in zip(messages, fixed, strict=True):
+        assert np.linalg.eigvalsh(message.pose_covariance - model.pose_covariance).min() > -1e-12
+    # Without the IMU there is nothing to measure the scale against.
+    assert all(r.covariance_scale == 1.0 for r in results["frontend"][0].reports)
+
+
+@pytest.mark.slow
+def test_overlapping_windows_start_every_stride_frames(runs):
+    sequence, results = runs
+    messages = results["fused"][1]
+    consecutive = relative_nees(messages, sequence.ground_truth, 1.0, "twist")
+    every = relative_nees(messages, sequence.ground_truth, 1.0, "twist", stride=1)
+    every_fifth = relative_nees(messages, sequence.ground_truth, 1.0, "twist", stride=5)
+    assert consecutive.windows == 2
+    # Frames at 20 Hz: a 1 s window (20 intervals) starts at every frame but the last 20.
+    assert every.windows == len(messages) - 20
+    assert every_fifth.windows == -(-every.windows // 5)
+    assert every.values[0] == consecutive.values[0]
+    np.testing.assert_allclose(every.values[::5], every_fifth.values)
+    with pytest.raises(ValueError, match="stride"):
+        relative_nees(messages, sequence.ground_truth, 1.0, "twist", stride=0)
+
+
 def test_message_json_round_trip_is_exact():
     rng = np.random.default_rng(0)
     from scipy.spatial.transform import Rotation

@@ -213,6 +213,17 @@ def test_left_and_right_pair_by_the_nearest_stamp_within_the_tolerance(
     with pytest.warns(UserWarning, match="without a partner within 0.5 ms"):
         strict = open_bag(bag, calibration, "/left", "/right", stereo_sync_tolerance_ns=500_000)
     assert [f.timestamp_ns for f in strict.frames] == [k * period + 10**9 for k in (1, 3, 5)]
+    # The client's replay pairs the same way (``--stereo-sync-tolerance MS``).
+    from swarmvo_client.bags import open_local_bag
+    from swarmvo_client.cli import build_parser
+
+    args = build_parser().parse_args(["replay", str(bag), "--stereo-sync-tolerance", "0.5"])
+    with pytest.warns(UserWarning, match="without a partner within 0.5 ms"):
+        replayed = open_local_bag(bag, euroc_mh01_moving, "/left", "/right",
+                                  stereo_sync_tolerance_ms=args.stereo_sync_tolerance)
+    assert [f.timestamp_ns for f in replayed.frames] == [f.timestamp_ns for f in strict.frames]
+    with pytest.raises(ValueError, match="must be >= 0 ms"):
+        open_local_bag(bag, euroc_mh01_moving, "/left", "/right", stereo_sync_tolerance_ms=-1)
 
 
 def _one_error_line(capsys, code: int, *expected: str) -> None:

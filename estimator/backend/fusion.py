@@ -48,6 +48,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from estimator.backend.covariance_scale import GyroCalibration
 from estimator.backend.factors import gyro_rotation_factor
 from estimator.backend.imu import (
     GRAVITY,
@@ -134,6 +135,9 @@ class FusedEstimate:
     # The frame's relative pose failed the outlier gate: the front end must not learn from it
     # (noise level, reference frame) either.
     vision_rejected: bool = False
+    # Factor on the covariances reported for this frame, measured against the gyro
+    # (``covariance_scale.py``; 1 without an IMU). The graph's own noise does not use it.
+    covariance_scale: float = 1.0
 
 
 @dataclass
@@ -204,6 +208,7 @@ class FusionBackend:
         self.camera_from_body = invert_pose(self.body_from_camera)
         self._adjoint = np.asarray(gtsam.Pose3(self.body_from_camera).AdjointMap())
         self.use_imu = bool(config.use_imu and imu_noise is not None)
+        self._calibration = GyroCalibration(config, self.body_from_camera) if self.use_imu else None
         self._imu_params = None
         self._bias_sigma_density = 0.0
         self._imu_noise: ImuNoise | None = None
@@ -634,6 +639,11 @@ class FusionBackend:
         step.still = step.rest_samples is not None
         if self.use_imu:
             self._add_imu_factors(step, timestamp_ns)
+        if self._calibration is not None:
+            reference = reference_ns if reference_ns is not None else self._last_ns
+            self._calibration.add_frame(
+                timestamp_ns, step.preintegration, reference, relative_pose, covariance, self._bias
+            )
         motion = self._motion_prior(dt)
         inertial = self._inertial_factor(step.current, step.delta, step.cutoff)
         prediction = self._prediction(step, motion, inertial)
@@ -894,6 +904,7 @@ class FusionBackend:
             accel_bias=self._accel_bias.copy() if self._use_accel else None,
             body_covariance=covariance,
             body_motion_covariance=motion_covariance,
+            covariance_scale=self._calibration.value if self._calibration is not None else 1.0,
         )
 
     def _marginals(self, motion: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:

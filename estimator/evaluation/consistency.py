@@ -1,10 +1,16 @@
 """Can a filter trust the reported covariances? NEES of the relative motion over windows.
 
-For windows [t_i, t_j] of ``window_s`` seconds (consecutive, not overlapping), the estimated
+For windows [t_i, t_j] of ``window_s`` seconds, the estimated
 motion of base_link E = P_i^-1 P_j (odometry poses) is compared with the true one
 G = Q_i^-1 Q_j (ground-truth body poses): the error xi = Log(G^-1 E) (GTSAM tangent: rotation,
 translation, in base_link at t_j) and its covariance C give NEES = xi^T C^-1 xi, which is
 chi-square with 6 degrees of freedom when the covariances are right: mean 6.
+
+Windows follow each other (``stride`` None) or start every ``stride`` frames. Overlapping
+windows share most of their motion, so their NEES values are strongly correlated (two windows
+k frames apart share 1 - k/n of an n-frame window): more windows smooth the mean over where a
+window starts, but the mean rests on about as many independent windows as consecutive ones
+would give (duration / window_s); its spread shrinks little.
 
 Two readings of "the covariance of the relative motion" from what a message carries:
 
@@ -113,8 +119,12 @@ def relative_nees(
     ground_truth: GroundTruth,
     window_s: float = 1.0,
     source: CovarianceSource = "pose",
+    stride: int | None = None,
 ) -> NeesResult:
-    """NEES of the base_link motion over consecutive windows of ``window_s`` (module doc)."""
+    """NEES of the base_link motion over windows of ``window_s``, one after the other or
+    starting every ``stride`` frames (module doc)."""
+    if stride is not None and stride < 1:
+        raise ValueError(f"stride must be at least one frame, got {stride}")
     stamps = np.array([m.stamp_ns for m in messages], dtype=np.int64)
     inside = ground_truth.covers(stamps)
     values, rotation, translation = [], [], []
@@ -135,7 +145,7 @@ def relative_nees(
         values.append(float(error @ np.linalg.solve(covariance, error)))
         rotation.append(float(error[:3] @ np.linalg.solve(covariance[:3, :3], error[:3])))
         translation.append(float(error[3:] @ np.linalg.solve(covariance[3:, 3:], error[3:])))
-        start = end
+        start = end if stride is None else start + stride
     return NeesResult(np.array(values), np.array(rotation), np.array(translation))
 
 
@@ -158,10 +168,14 @@ class MeasurementCheck:
 
 
 def measurement_nees(
-    reports: list, ground_truth: GroundTruth, body_from_camera: np.ndarray
+    reports: list,
+    ground_truth: GroundTruth,
+    body_from_camera: np.ndarray,
+    calibrated: bool = True,
 ) -> MeasurementCheck:
     """NEES of each reported front-end measurement T_ref_cur (right perturbation of the left
-    camera, GTSAM order) against the ground-truth motion of the left camera."""
+    camera, GTSAM order) against the ground-truth motion of the left camera; ``calibrated``:
+    with the report's covariance scale applied, as the odometry messages apply it."""
     pose_of = {r.timestamp_ns: r.frontend_pose for r in reports}
     measured = [
         r for r in reports
@@ -175,7 +189,8 @@ def measurement_nees(
         actual = invert_pose(first) @ last
         motion = invert_pose(pose_of[report.reference_timestamp_ns]) @ report.frontend_pose
         errors.append(gtsam.Pose3.Logmap(gtsam.Pose3(invert_pose(actual) @ motion)))
-        covariances.append(report.measurement_covariance)
+        scale = report.covariance_scale if calibrated else 1.0
+        covariances.append(scale * report.measurement_covariance)
         references.append(report.reference_timestamp_ns)
     error, covariance = np.array(errors).reshape(-1, 6), np.array(covariances).reshape(-1, 6, 6)
     values = np.einsum("ni,ni->n", error, np.linalg.solve(covariance, error[:, :, None])[..., 0])

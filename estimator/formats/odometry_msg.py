@@ -14,6 +14,8 @@ Per frame: the pose of ``base_link`` in ``odom`` with its 6x6 covariance, the tw
   the keyframes (each keyframe-to-keyframe measurement is independent, so their transported sum
   is the drift). Frames without a measurement add the back end's constant-velocity noise. Every
   covariance is floored by the smallest fit sigmas (``backend.fit_min_*``): never zero, never NaN.
+  Both are then multiplied by the session's covariance scale, measured online against the gyro
+  (``estimator.backend.covariance_scale``; 1 without an IMU).
 
 ``OdometryBuilder`` turns the pipeline's ``FrameReport`` stream into these messages; it must
 see every frame in order.
@@ -153,9 +155,12 @@ class OdometryBuilder:
         config: BackendConfig | None = None,
         first_accel: np.ndarray | None = None,
         odom_from_world: np.ndarray | None = None,
+        calibrated: bool = True,
     ) -> None:
         """``odom_from_world`` fixes the odom frame instead of the first report (a pipeline
-        resumed from a stored pose continues in the odom frame it had)."""
+        resumed from a stored pose continues in the odom frame it had). ``calibrated`` applies
+        each report's ``covariance_scale`` (False: the fixed noise model's covariances)."""
+        self.calibrated = calibrated
         config = config if config is not None else BackendConfig()
         self.body_from_camera = np.asarray(body_from_camera, dtype=float)
         self.camera_from_body = invert_pose(self.body_from_camera)
@@ -170,6 +175,8 @@ class OdometryBuilder:
         self._odom_from_world = odom_from_world
         self._chain: dict[int, _Chained] = {}
         self._previous_ns: int | None = None
+        # (body pose, its covariance as given, as reported) of the previous frame
+        self._previous_pose: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._latest_reference_ns: int | None = None
 
     def build(self, report: FrameReport) -> OdometryMessage:
@@ -184,6 +191,8 @@ class OdometryBuilder:
         motion, motion_covariance, dt = self._motion(report, chained)
         odom_pose = self._odom_from_world @ body_pose
         self._previous_ns = report.timestamp_ns
+        scale = report.covariance_scale if self.calibrated else 1.0
+        pose_covariance = self._scaled_pose_covariance(pose_covariance, body_pose, max(scale, 1.0))
         return OdometryMessage(
             stamp_ns=report.timestamp_ns,
             frame_id=ODOM_FRAME,
@@ -192,12 +201,35 @@ class OdometryBuilder:
             pose_covariance=_pose_covariance_ros(pose_covariance + self._floor, odom_pose),
             linear_velocity=motion[3:] / dt,
             angular_velocity=motion[:3] / dt,
-            twist_covariance=_swap_blocks(motion_covariance + self._floor) / dt**2,
+            twist_covariance=scale * _swap_blocks(motion_covariance + self._floor) / dt**2,
             status=report.status,
             camera_pose=self._odom_from_world @ report.pose,
         )
 
     # ------------------------------------------------------------------ covariances
+
+    def _scaled_pose_covariance(
+        self, covariance: np.ndarray, body_pose: np.ndarray, scale: float
+    ) -> np.ndarray:
+        """The pose covariance with its change since the previous frame scaled by ``scale``.
+
+        The factor applies to what the measurements add, frame by frame, so a factor that
+        moves during the session rescales the drift from then on, not the drift so far (with a
+        constant factor this is ``scale`` times the covariance). Only inflated: on rendered
+        flights the noise model's pose covariance is consistent over 1 s windows although
+        the measurements are conservative (other errors than theirs make up the drift), and
+        shrinking it by the measurements' factor made it over-confident (docs).
+        """
+        previous, self._previous_pose = self._previous_pose, None
+        reported = scale * covariance
+        if previous is not None:
+            motion = invert_pose(previous[0]) @ body_pose
+            change = covariance - _transport(previous[1], motion)
+            reported = _transport(previous[2], motion) + scale * change
+            values, vectors = np.linalg.eigh(0.5 * (reported + reported.T))
+            reported = (vectors * np.clip(values, 0.0, None)) @ vectors.T
+        self._previous_pose = (body_pose, covariance, reported)
+        return reported
 
     def _to_body(self, camera_covariance: np.ndarray) -> np.ndarray:
         """Left-camera tangent -> body tangent: T_BS T Exp(xi) T_SB = (..) Exp(Ad(T_BS) xi)."""

@@ -29,8 +29,15 @@ def open_local_bag(
     left_topic: str | None = None,
     right_topic: str | None = None,
     imu_topic: str | None = None,
+    stereo_sync_tolerance_ms: float | None = None,
 ) -> LocalSequence:
-    """A bag as a replay sequence: PNG-encoded frames, IMU, and the session's calibration."""
+    """A bag as a replay sequence: PNG-encoded frames, IMU, and the session's calibration.
+    Left and right images pair as in ``swarmvo run`` (``--stereo-sync-tolerance``)."""
+    if stereo_sync_tolerance_ms is not None and not stereo_sync_tolerance_ms >= 0:
+        raise ValueError(
+            f"--stereo-sync-tolerance must be >= 0 ms, got {stereo_sync_tolerance_ms}"
+        )
+    tolerance = None if stereo_sync_tolerance_ms is None else round(stereo_sync_tolerance_ms * 1e6)
     try:
         import cv2
 
@@ -41,7 +48,7 @@ def open_local_bag(
             f"replaying a bag needs the swarmvo package beside the client ({error})"
         ) from error
     rig_calibration = load_bag_calibration(calibration)
-    bag = open_bag(path, rig_calibration, left_topic, right_topic, imu_topic)
+    bag = open_bag(path, rig_calibration, left_topic, right_topic, imu_topic, tolerance)
 
     def encode(index: int) -> tuple[bytes, bytes]:
         frame = bag.load(index)

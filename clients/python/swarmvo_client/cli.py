@@ -33,6 +33,7 @@ def _replay(args: argparse.Namespace) -> int:
             "left_topic": args.left_topic,
             "right_topic": args.right_topic,
             "imu_topic": args.imu_topic,
+            "stereo_sync_tolerance_ms": args.stereo_sync_tolerance,
         },
     )
     out = Path(args.out)
@@ -98,6 +99,14 @@ def build_parser() -> argparse.ArgumentParser:
     bag.add_argument("--left-topic", help="left images (default: guessed)")
     bag.add_argument("--right-topic", help="right images (default: guessed)")
     bag.add_argument("--imu-topic", help="sensor_msgs/Imu (default: the bag's only one)")
+    bag.add_argument(
+        "--stereo-sync-tolerance",
+        type=float,
+        metavar="MS",
+        help="pair left/right images whose stamps are nearest each other and at most MS "
+        "milliseconds apart (default: a tenth of the frame period; 0 = equal stamps only), "
+        "as swarmvo run does",
+    )
     sub.set_defaults(handler=_replay)
     return parser
 

@@ -187,6 +187,8 @@ def replay(
             raise ValueError("replaying a bag needs --calibration (EuRoC folder, Kalibr or rig)")
         sequence = open_local_bag(Path(dataset), **options)
     else:
+        if (bag or {}).get("stereo_sync_tolerance_ms") is not None:
+            raise ValueError("--stereo-sync-tolerance is for bags (folders pair equal stamps)")
         sequence = open_local_sequence(dataset)
     with Client(url, api_key) as client:
         if session_id is None:

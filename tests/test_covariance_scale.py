@@ -1,0 +1,102 @@
+"""The covariance scale measured online against the gyro (estimator.backend.covariance_scale)."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from estimator.backend import FusionBackend
+from estimator.backend.covariance_scale import CovarianceScale
+from estimator.config import BackendConfig
+from estimator.geometry import invert_pose
+from estimator.rendered.scenario import CAMERA_MOUNT, smooth_trajectory
+from estimator.types import ImuNoise
+
+VISION_SIGMAS = np.array([1e-3] * 3 + [4e-3] * 3)  # rotation rad, translation m
+
+
+def _observe_all(scale: CovarianceScale, factor: float, gyro_sigma: float, seed: int) -> float:
+    """Comparisons whose vision error has ``factor`` times the stated covariance."""
+    rng = np.random.default_rng(seed)
+    vision = np.diag([1e-3, 2e-3, 1.5e-3]) ** 2
+    gyro = np.eye(3) * gyro_sigma**2
+    for _ in range(300):
+        error = rng.multivariate_normal(np.zeros(3), factor * vision + gyro)
+        truth = gtsam.Rot3.Expmap(rng.normal(size=3) * 0.1).matrix()
+        scale.observe(truth @ gtsam.Rot3.Expmap(error).matrix(), vision, truth, gyro, 0.1)
+    return scale.value
+
+
+@pytest.mark.parametrize("factor", [0.2, 1.0, 5.0])
+def test_the_factor_of_a_known_noise_level_is_recovered(factor: float) -> None:
+    # The gyro's own noise (a quarter of the smallest vision sigma) is accounted for.
+    value = _observe_all(CovarianceScale(bias_sigma=0.0), factor, 2.5e-4, seed=3)
+    assert value == pytest.approx(factor, rel=0.3)
+
+
+def test_the_factor_is_one_until_enough_comparisons_and_stays_bounded() -> None:
+    scale = CovarianceScale(min_samples=20, bounds=(0.5, 4.0))
+    rng = np.random.default_rng(0)
+    for _ in range(19):
+        error = rng.normal(size=3) * 0.1  # hugely beyond the 1 mrad stated
+        scale.observe(gtsam.Rot3.Expmap(error).matrix(), np.eye(3) * 1e-6, np.eye(3),
+                      np.zeros((3, 3)), 0.05)
+    assert scale.value == 1.0
+    scale.observe(np.eye(3), np.eye(3) * 1e-6, gtsam.Rot3.Expmap([0.1, 0, 0]).matrix(),
+                  np.zeros((3, 3)), 0.05)
+    assert scale.value == 4.0
+    with pytest.raises(ValueError, match="enclose 1"):
+        CovarianceScale(bounds=(2.0, 4.0))
+
+
+def _fused(factor: float, mode: str = "gyro", frames: int = 160):
+    """The back end on a simulated flight with its IMU; each frame measured against the
+    previous one with errors ``factor`` times the covariance it is handed with."""
+    scenario = smooth_trajectory(frames, seed=4)
+    camera = scenario.body_poses @ CAMERA_MOUNT
+    rng = np.random.default_rng(11)
+    covariance = np.diag(VISION_SIGMAS**2)
+    backend = FusionBackend(BackendConfig(covariance_scale=mode), CAMERA_MOUNT, ImuNoise())
+    stamps = scenario.timestamps_ns
+    out = []
+    for k in range(frames):
+        start = stamps[k - 1] if k else stamps[0] - 10**8
+        relative = None
+        if k:
+            error = rng.multivariate_normal(np.zeros(6), factor * covariance)
+            truth = invert_pose(camera[k - 1]) @ camera[k]
+            relative = truth @ gtsam.Pose3.Expmap(error).matrix()
+        out.append(backend.add_frame(
+            int(stamps[k]), relative, None, 100, scenario.imu.between(int(start), int(stamps[k])),
+            covariance=covariance if k else None,
+        ))
+    return out
+
+
+@pytest.mark.parametrize("factor", [0.25, 4.0])
+def test_the_back_end_measures_an_injected_noise_level_without_changing_the_trajectory(
+    factor: float,
+) -> None:
+    calibrated = _fused(factor)
+    # The factor also covers the floors the back end adds (0.1 mrad on 1 mrad: 1 %).
+    assert calibrated[-1].covariance_scale == pytest.approx(factor, rel=0.4)
+    assert calibrated[0].covariance_scale == 1.0  # nothing measured yet
+    fixed = _fused(factor, mode="off")
+    assert all(e.covariance_scale == 1.0 for e in fixed)
+    np.testing.assert_allclose([e.pose for e in calibrated], [e.pose for e in fixed], atol=1e-12)
+
+
+def test_the_frame_interval_is_the_median_of_the_first_intervals() -> None:
+    from estimator.rig_settings import FrameIntervalEstimate
+
+    estimate = FrameIntervalEstimate(count=5, tolerance=0.1)
+    assert estimate.add(0) is None  # one stamp: no interval yet
+    # The first interval is short (a late first frame): taken, then corrected by the median.
+    assert estimate.add(30_000_000) == pytest.approx(0.03)
+    answers = [estimate.add(t) for t in (130_000_000, 230_000_000, 430_000_000, 530_000_000)]
+    assert answers[0] == pytest.approx(0.065)  # median of 30 and 100 ms
+    assert answers[1] == pytest.approx(0.1)  # median of 30, 100, 100 ms
+    assert answers[2] is None and answers[3] is None  # a dropped frame does not move it
+    assert estimate.interval_s == pytest.approx(0.1)
+    assert estimate.add(2_000_000_000) is None  # only the first intervals count
