@@ -136,19 +136,9 @@ def load_kitti_rig(calib_txt: Path, image_size: tuple[int, int]) -> StereoRig:
         # P = K [I | t] with t = (-fx * x_offset, 0, 0): the camera sits at +x_offset.
         body_from_camera = np.eye(4)
         body_from_camera[0, 3] = -projection[0, 3] / fx
-        cameras.append(
-            CameraModel(
-                width=width,
-                height=height,
-                fx=fx,
-                fy=fy,
-                cx=cx,
-                cy=cy,
-                distortion_model="none",
-                distortion=(),
-                T_BS=body_from_camera,
-            )
-        )
+        # Rectified and undistorted: a pinhole without distortion coefficients.
+        entry = {"resolution": [width, height], "intrinsics": [fx, fy, cx, cy]}
+        cameras.append(pinhole_camera(entry, "distortion_coefficients", body_from_camera))
     return StereoRig(left=cameras[0], right=cameras[1])
 
 
