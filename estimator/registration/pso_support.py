@@ -1,6 +1,6 @@
 """Rigid registration by a particle swarm over rotations with a support count.
 
-(About 590 lines: the estimator's steps read as one algorithm here; its compiled kernels live
+(About 620 lines: the estimator's steps read as one algorithm here; its compiled kernels live
 in ``rigidity.py`` (steps 1-2) and ``swarm_kernels.py`` (steps 3-4).)
 
 ``pso`` follows the paper ("Robot Pose Estimation Based on Visual Information and Particle
@@ -38,6 +38,9 @@ the all-pairs centroids are wrong, every residual is shifted, and the support co
    than one Gaussian scale allows (0.1 % between 4 and 8 sigma), refitting each time with
    weights 1 / max(u, delta_0)^2 from the previous residuals u (an IRLS step standing in
    for the unknown per-pair noise, so the noisy newcomers do not dilute the accuracy).
+   When the core's threshold passes too few pairs to fit a pose at all (a core on one
+   distant patch, whose noise along the rays its distances hardly see), the ladder
+   starts from the core's own fit.
 
 Per-pair noise. ``sigmas`` (N,) gives each pair's residual std; only their ratios matter:
 residuals are divided by sigma_j / median(sigma), so ``delta`` (given or adaptive) is the
