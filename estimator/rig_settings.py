@@ -11,7 +11,10 @@ interval, with constants chosen so that the real EuRoC rig (436 px after rectifi
   Farther points are then noisier in depth than that, but they still pin the rotation.
 - ``max_features``: the feature budget keeps EuRoC's density (1200 corners on 752 x 480
   pixels), so a larger image is not covered more sparsely: the grid cells keep their corners
-  and a wide KITTI frame (1241 x 376) gets the budget of its area.
+  and a wide KITTI frame (1241 x 376) gets the budget of its area (1551), up to
+  ``MAX_DERIVED_FEATURES``: the frame's cost grows with its corners, and a 1280 x 720 image
+  covered at EuRoC's density (3064) would cost twice a EuRoC frame (and exceed what a shared
+  service worker accepts per session, 1600).
 - ``search_radius_px``: the image motion a constant-velocity prediction misses grows with the
   focal length (pixels per radian) and the frame interval (the motion changes more between
   frames), so the window scales with f * dt: 40 px at 436 px and 50 ms.
@@ -29,6 +32,7 @@ from estimator.formats.calibration import StereoRig
 
 __all__ = [
     "FEATURES_PER_PIXEL",
+    "MAX_DERIVED_FEATURES",
     "MAX_RELATIVE_DEPTH_ERROR",
     "RIG_SETTINGS_KEY",
     "DerivedSetting",
@@ -49,6 +53,7 @@ _INTERVAL_SETTINGS = ("search_radius_px",)
 MAX_RELATIVE_DEPTH_ERROR = 0.3125  # d_min = 1.6 px at the default sigma_d of 0.5 px
 # Features per pixel of the image: 1200 on EuRoC's 752 x 480, for which they were tuned.
 FEATURES_PER_PIXEL = 1200.0 / (752 * 480)
+MAX_DERIVED_FEATURES = 1600  # a third more corners than EuRoC's, at the most
 # Search radius per (focal px x frame interval s): 40 px / (436 px x 0.05 s).
 SEARCH_RADIUS_PER_FOCAL_SECOND = 40.0 / (436.0 * 0.05)
 # Windows are kept within these bounds (a few px of noise; a third of a small image).
@@ -83,8 +88,9 @@ def derive_rig_settings(
         ),
         DerivedSetting(
             "max_features",
-            float(round(FEATURES_PER_PIXEL * width * height)),
-            f"{FEATURES_PER_PIXEL * 1e3:.3f} per 1000 px x {width} x {height} px",
+            float(min(round(FEATURES_PER_PIXEL * width * height), MAX_DERIVED_FEATURES)),
+            f"{FEATURES_PER_PIXEL * 1e3:.3f} per 1000 px x {width} x {height} px, "
+            f"<= {MAX_DERIVED_FEATURES}",
         ),
     ]
     if frame_interval_s is not None and frame_interval_s > 0:
