@@ -9,6 +9,12 @@ interval, with constants chosen so that the real EuRoC rig (436 px after rectifi
 - ``max_depth_m`` = f b / d_min: the depth whose disparity is the smallest one worth using,
   d_min = disparity_sigma_px / MAX_RELATIVE_DEPTH_ERROR (depth error / depth = sigma_d / d).
   Farther points are then noisier in depth than that, but they still pin the rotation.
+- ``max_features``: the feature budget keeps EuRoC's density (1200 corners on 752 x 480
+  pixels), so a larger image is not covered more sparsely: the grid cells keep their corners
+  and a wide KITTI frame (1241 x 376) gets the budget of its area (1551), up to
+  ``MAX_DERIVED_FEATURES``: the frame's cost grows with its corners, and a 1280 x 720 image
+  covered at EuRoC's density (3064) would cost twice a EuRoC frame (and exceed what a shared
+  service worker accepts per session, 1600).
 - ``search_radius_px``: the image motion a constant-velocity prediction misses grows with the
   focal length (pixels per radian) and the frame interval (the motion changes more between
   frames), so the window scales with f * dt: 40 px at 436 px and 50 ms.
@@ -27,6 +33,8 @@ from estimator.config import FrontendConfig, SwarmvoConfig
 from estimator.formats.calibration import StereoRig
 
 __all__ = [
+    "FEATURES_PER_PIXEL",
+    "MAX_DERIVED_FEATURES",
     "MAX_RELATIVE_DEPTH_ERROR",
     "RIG_SETTINGS_KEY",
     "DerivedSetting",
@@ -46,6 +54,9 @@ _INTERVAL_SETTINGS = ("search_radius_px",)
 
 # Depth error / depth at the farthest point kept (EuRoC: 30 m with sigma_d = 0.5 px).
 MAX_RELATIVE_DEPTH_ERROR = 0.3125  # d_min = 1.6 px at the default sigma_d of 0.5 px
+# Features per pixel of the image: 1200 on EuRoC's 752 x 480, for which they were tuned.
+FEATURES_PER_PIXEL = 1200.0 / (752 * 480)
+MAX_DERIVED_FEATURES = 1600  # a third more corners than EuRoC's, at the most
 # Search radius per (focal px x frame interval s): 40 px / (436 px x 0.05 s).
 SEARCH_RADIUS_PER_FOCAL_SECOND = 40.0 / (436.0 * 0.05)
 # Windows are kept within these bounds (a few px of noise; a third of a small image).
@@ -69,6 +80,7 @@ def derive_rig_settings(
     """Settings that follow from the rig (and the frame interval, when known)."""
     focal = float(rig.rectification.fx)
     baseline = rig.baseline
+    width, height = rig.size
     explicit = frontend.model_fields_set
     smallest_disparity = frontend.disparity_sigma_px / MAX_RELATIVE_DEPTH_ERROR
     settings = [
@@ -76,7 +88,13 @@ def derive_rig_settings(
             "max_depth_m",
             round(focal * baseline / smallest_disparity, 1),
             f"f b / d_min = {focal:.1f} px x {baseline:.3f} m / {smallest_disparity:.2f} px",
-        )
+        ),
+        DerivedSetting(
+            "max_features",
+            float(min(round(FEATURES_PER_PIXEL * width * height), MAX_DERIVED_FEATURES)),
+            f"{FEATURES_PER_PIXEL * 1e3:.3f} per 1000 px x {width} x {height} px, "
+            f"<= {MAX_DERIVED_FEATURES}",
+        ),
     ]
     if frame_interval_s is not None and frame_interval_s > 0:
         radius = SEARCH_RADIUS_PER_FOCAL_SECOND * focal * frame_interval_s

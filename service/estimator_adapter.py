@@ -366,7 +366,7 @@ def _with_files(files: dict[str, bytes], read: Any) -> Any:
 
 def euroc_calibration(cam0_yaml: bytes, cam1_yaml: bytes) -> dict[str, Any]:
     """Plain calibration from EuRoC ``cam0/sensor.yaml`` and ``cam1/sensor.yaml`` contents."""
-    from estimator.formats.calibration import load_euroc_rig
+    from estimator.formats.calibration_files import load_euroc_rig
 
     rig = _with_files(
         {"cam0.yaml": cam0_yaml, "cam1.yaml": cam1_yaml},
@@ -385,7 +385,7 @@ def euroc_imu_noise(imu_yaml: bytes) -> dict[str, Any]:
 
 def euroc_frame_rate(cam0_yaml: bytes) -> float | None:
     """The camera rate (``rate_hz``) of EuRoC ``cam0/sensor.yaml`` contents, when it has one."""
-    from estimator.formats.calibration import read_opencv_yaml
+    from estimator.formats.calibration_files import read_opencv_yaml
 
     data = _with_files({"cam0.yaml": cam0_yaml}, lambda p: read_opencv_yaml(p["cam0.yaml"]))
     rate = data.get("rate_hz")
@@ -398,7 +398,7 @@ def euroc_frame_rate(cam0_yaml: bytes) -> float | None:
 
 def kitti_calibration(calib_txt: bytes, image_size: tuple[int, int]) -> dict[str, Any]:
     """Plain calibration from a KITTI ``calib.txt`` and the image size (width, height)."""
-    from estimator.formats.calibration import load_kitti_rig
+    from estimator.formats.calibration_files import load_kitti_rig
 
     rig = _with_files(
         {"calib.txt": calib_txt}, lambda p: load_kitti_rig(p["calib.txt"], image_size)

@@ -10,13 +10,8 @@ import numpy as np
 import pytest
 import yaml
 
-from estimator.formats.calibration import (
-    CameraModel,
-    StereoRig,
-    load_euroc_rig,
-    load_kitti_rig,
-    load_rig,
-)
+from estimator.formats.calibration import CameraModel, StereoRig
+from estimator.formats.calibration_files import load_euroc_rig, load_kitti_rig, load_rig
 from estimator.geometry import make_pose, quat_to_matrix, rotation_vector_to_quat
 
 KITTI_P0 = "7.188560e+02 0 6.071928e+02 0 0 7.188560e+02 1.852157e+02 0 0 0 1 0"

@@ -22,6 +22,7 @@ from estimator.rendered.camera import KITTI_CAMERA
 from estimator.rendered.synthetic import SynthOptions
 from estimator.rendered.synthetic_driving import driving_for_length
 from estimator.rig_settings import (
+    MAX_DERIVED_FEATURES,
     MAX_RELATIVE_DEPTH_ERROR,
     SEARCH_RADIUS_PER_FOCAL_SECOND,
     apply_rig_settings,
@@ -73,6 +74,9 @@ def test_settings_follow_from_focal_baseline_and_frame_rate(name):
     assert settings["search_radius_px"] == pytest.approx(
         SEARCH_RADIUS_PER_FOCAL_SECOND * focal / rate, abs=0.06
     )
+    # EuRoC's density: 1200 features on 752 x 480 pixels.
+    density = 1200 * width * height / (752 * 480)
+    assert settings["max_features"] == pytest.approx(min(density, MAX_DERIVED_FEATURES), abs=0.5)
 
 
 def test_known_rigs_get_the_expected_ranges():
@@ -86,6 +90,10 @@ def test_known_rigs_get_the_expected_ranges():
     # The EuRoC rig keeps the defaults the project was tuned with.
     assert derived["euroc"]["max_depth_m"] == pytest.approx(30.0, rel=0.01)
     assert derived["euroc"]["search_radius_px"] == pytest.approx(40.0, rel=0.01)
+    assert derived["euroc"]["max_features"] == SwarmvoConfig().frontend.max_features == 1200
+    # A wide KITTI frame has 29 % more pixels than EuRoC's: as many more features.
+    assert derived["kitti"]["max_features"] == 1551
+    assert derived["zed"]["max_features"] == MAX_DERIVED_FEATURES  # 3064 at that density
     # KITTI's wide pair measures depth far beyond 80 m; 10 Hz frames need a wider search.
     assert derived["kitti"]["max_depth_m"] > 200.0
     assert derived["kitti"]["search_radius_px"] > 100.0

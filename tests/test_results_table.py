@@ -60,6 +60,17 @@ def test_table_without_ground_truth_or_back_end() -> None:
     assert "ATE RMSE" not in table
 
 
+def test_back_end_without_imu_is_not_called_fused() -> None:
+    summary = {**SUMMARY, "imu": False}
+    table = results_table(summary, estimated_path_m=2.46)
+    title = table.splitlines()[0]
+    assert title == "results: clip (pso-robust, vision + back end, no IMU)"
+    assert "fused" not in title and "IMU" not in _value(table, "coasted")
+    assert _value(table, "coasted") == "2 (motion prior only)"
+    with_imu = results_table(SUMMARY, estimated_path_m=2.46)
+    assert _value(with_imu, "coasted") == "2 (IMU / motion prior only)"
+
+
 def test_run_help_speaks_to_users(capsys) -> None:
     with pytest.raises(SystemExit):
         main(["run", "--help"])

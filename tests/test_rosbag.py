@@ -12,7 +12,7 @@ import yaml
 
 from estimator.cli.main import main
 from estimator.formats.bag_calibration import load_bag_calibration, load_kalibr_rig
-from estimator.formats.calibration import load_euroc_rig
+from estimator.formats.calibration_files import load_euroc_rig
 from estimator.formats.datasets import open_sequence
 from estimator.formats.rosbag_io import open_bag
 from estimator.formats.rosbag_write import (

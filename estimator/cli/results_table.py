@@ -6,17 +6,18 @@ from typing import Any
 
 from estimator.types import FrameStatus
 
-__all__ = ["results_table"]
+__all__ = ["results_table", "run_mode"]
 
 
 def _rows(summary: dict[str, Any], estimated_path_m: float) -> list[tuple[str, str]]:
     counts = summary.get("status_counts", {})
     frames = summary["frames"]
     skipped = summary.get("frames_skipped", 0)
+    coasting = "IMU / motion prior only" if summary.get("imu") else "motion prior only"
     rows = [
         ("frames", f"{frames}" + (f" ({skipped} skipped: unreadable images)" if skipped else "")),
         ("tracked", f"{counts.get(str(FrameStatus.OK), 0)} (vision accepted)"),
-        ("coasted", f"{counts.get(str(FrameStatus.DEGRADED), 0)} (IMU / motion prior only)"),
+        ("coasted", f"{counts.get(str(FrameStatus.DEGRADED), 0)} ({coasting})"),
         ("lost", f"{counts.get(str(FrameStatus.LOST), 0)}"),
     ]
     path = f"{estimated_path_m:.3g} m"
@@ -51,15 +52,24 @@ def _rows(summary: dict[str, Any], estimated_path_m: float) -> list[tuple[str, s
     return rows
 
 
+def run_mode(summary: dict[str, Any]) -> str:
+    """What produced the poses: only a run with the IMU in the back end fuses two sensors."""
+    if not summary.get("backend"):
+        return "front end only"
+    if summary.get("imu"):
+        return "fused, with IMU"
+    return "vision + back end, no IMU"
+
+
 def results_table(summary: dict[str, Any], estimated_path_m: float) -> str:
     """``metrics.json``'s summary as an aligned two-column table (the fused answer's errors
     when the back end ran, else the front end's)."""
     rows = _rows(summary, estimated_path_m)
     width = max(len(name) for name, _ in rows)
-    mode = "fused" if summary.get("backend") else "front end only"
-    if summary.get("imu"):
-        mode += ", with IMU"
-    title = f"results: {summary.get('sequence', '')} ({summary.get('estimator', '')}, {mode})"
+    title = (
+        f"results: {summary.get('sequence', '')} "
+        f"({summary.get('estimator', '')}, {run_mode(summary)})"
+    )
     lines = [title, "  " + "-" * (width + 2 + max(len(value) for _, value in rows))]
     lines += [f"  {name:<{width}}  {value}" for name, value in rows]
     return "\n".join(lines)

@@ -23,9 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.formats.calibration import (
-    CameraModel,
-    StereoRig,
+from estimator.formats.calibration import CameraModel, StereoRig
+from estimator.formats.calibration_files import (
     load_euroc_rig,
     load_rig,
     pinhole_camera,

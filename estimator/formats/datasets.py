@@ -19,12 +19,8 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from estimator.formats.calibration import (
-    StereoRig,
-    load_euroc_rig,
-    load_kitti_rig,
-    read_opencv_yaml,
-)
+from estimator.formats.calibration import StereoRig
+from estimator.formats.calibration_files import load_euroc_rig, load_kitti_rig, read_opencv_yaml
 from estimator.types import ImuBatch, ImuNoise, StereoFrame
 
 __all__ = [

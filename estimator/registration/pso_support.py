@@ -1,6 +1,6 @@
 """Rigid registration by a particle swarm over rotations with a support count.
 
-(About 590 lines: the estimator's steps read as one algorithm here; its compiled kernels live
+(About 620 lines: the estimator's steps read as one algorithm here; its compiled kernels live
 in ``rigidity.py`` (steps 1-2) and ``swarm_kernels.py`` (steps 3-4).)
 
 ``pso`` follows the paper ("Robot Pose Estimation Based on Visual Information and Particle
@@ -38,6 +38,9 @@ the all-pairs centroids are wrong, every residual is shifted, and the support co
    than one Gaussian scale allows (0.1 % between 4 and 8 sigma), refitting each time with
    weights 1 / max(u, delta_0)^2 from the previous residuals u (an IRLS step standing in
    for the unknown per-pair noise, so the noisy newcomers do not dilute the accuracy).
+   When the core's threshold passes too few pairs to fit a pose at all (a core on one
+   distant patch, whose noise along the rays its distances hardly see), the ladder
+   starts from the core's own fit.
 
 Per-pair noise. ``sigmas`` (N,) gives each pair's residual std; only their ratios matter:
 residuals are divided by sigma_j / median(sigma), so ``delta`` (given or adaptive) is the
@@ -274,7 +277,7 @@ class PsoSupportEstimator:
         supporters = objective.supporters(swarm.position)
         supporters, delta, pose = self._refine(pairs, supporters, delta)
         if self.delta is None:
-            supporters, delta, pose = self._ladder(pairs, supporters, delta, pose)
+            supporters, delta, pose = self._ladder(pairs, supporters, delta, pose, core)
         if self.source_cov is not None and self.target_cov is not None:
             # The isotropic search has found the rigid majority and its pose; the stereo
             # metric now decides, pair by pair, who supports it.
@@ -322,7 +325,12 @@ class PsoSupportEstimator:
         return supporters, delta, pose
 
     def _ladder(
-        self, pairs: _Pairs, supporters: np.ndarray, delta: float, pose: Pose | None
+        self,
+        pairs: _Pairs,
+        supporters: np.ndarray,
+        delta: float,
+        pose: Pose | None,
+        core: np.ndarray,
     ) -> tuple[np.ndarray, float, Pose | None]:
         """Double the adaptive threshold while that adds markedly more supporters.
 
@@ -334,12 +342,19 @@ class PsoSupportEstimator:
         ~96 % of the inliers; doubling gains ~4 %, below the bar, so it is left alone.)
         Each accepted step refits with the doubled threshold held fixed (re-estimating it
         from the RMS of mixed scales would shrink it again).
+
+        The threshold from the core can be so tight that fewer than ``MIN_SUPPORT`` pairs
+        pass it (a core of the quietest pairs, e.g. the nearest points of a scene that
+        reaches 200 m): there is then no supporters' pose to judge, and the ladder starts
+        from the fit of the ``core`` (row indices) itself.
         """
         base = delta
         while True:
             wider = min(2.0 * delta, self.delta_max)
             if pose is None:  # the loop did not settle: judge the pose of its last set
                 pose = pairs.pose_of(supporters)
+            if pose is None:  # too few to fit: the core's own pose
+                pose = pairs.pose_of(_mask(core, len(supporters)))
             if pose is None or wider <= delta:
                 return supporters, delta, pose
             residual = pose[3]
@@ -454,6 +469,12 @@ class _RotationObjective:
 
     def supporters(self, position: np.ndarray) -> np.ndarray:
         return self.squared_residuals(position[None, :])[0] < self.delta_squared
+
+
+def _mask(rows: np.ndarray, count: int) -> np.ndarray:
+    mask = np.zeros(count, dtype=bool)
+    mask[rows] = True
+    return mask
 
 
 def weighted_horn(
