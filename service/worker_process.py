@@ -43,6 +43,15 @@ def _exit_with_parent() -> None:
     os._exit(0)
 
 
+def single_threaded_opencv() -> None:
+    """One OpenCV thread per worker: the service runs one worker per core, so OpenCV's own
+    thread pool only adds hand-overs between threads competing for the same cores (about 5-10 %
+    more CPU per frame, docs/performance.md)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
 def worker_init(factory: PipelineFactory) -> None:
     global _factory
     _factory = factory
@@ -51,6 +60,7 @@ def worker_init(factory: PipelineFactory) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     threading.Thread(target=_exit_with_parent, name="swarmvo-parent-watch", daemon=True).start()
+    single_threaded_opencv()
     warm_up = getattr(factory, "warm_up", None)
     if callable(warm_up):
         warm_up()
