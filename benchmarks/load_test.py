@@ -4,7 +4,8 @@ Each robot owns a session and sends 752x480 PNG pairs (EuRoC V1_01 micro, looped
 kept increasing) plus the IMU samples between frames, at ``--rate`` Hz like a camera would: it
 never waits for answers. For each K the run reports sustained answered frames/s, latency
 percentiles (send -> pose received), frames dropped/rejected by the server's queue policy or
-never answered, and the resident memory of the server and its worker processes. Loopback only
+never answered, and the memory of the server and its worker processes (RSS, which counts the
+pages they share in each of them, and PSS, which shares them out). Loopback only
 (127.0.0.1), every level is bounded in duration and in the time allowed to drain.
 
     python benchmarks/load_test.py                      # K = 1, 2, 4, 8; 15 s each
@@ -73,6 +74,9 @@ class LevelResult:
     latency_p95_ms: float | None
     latency_p99_ms: float | None
     server_rss_mb_peak: float | None  # server and workers together
+    # Proportional set size, server and workers together: pages shared between processes
+    # (libraries, a fork's copy-on-write pages) are counted once in all instead of in each.
+    server_pss_mb_peak: float | None
     # Peaks of the server process alone and of its workers together (sampled every 0.25 s).
     rss_mb_peak_by_role: dict[str, float]
     # CPU time of the server process itself and of its worker processes, per answered frame.
@@ -218,6 +222,20 @@ def _rss_mb(pid: int) -> dict[int, float]:
     return found
 
 
+def _pss_mb(pid: int) -> float:
+    """Proportional set size (MB) of the server's whole process tree."""
+    total = 0
+    for current in _tree(pid):
+        try:
+            for line in Path(f"/proc/{current}/smaps_rollup").read_text().splitlines():
+                if line.startswith("Pss:"):
+                    total += int(line.split()[1])
+                    break
+        except (OSError, ValueError):
+            continue
+    return total / 1024
+
+
 def _cpu_s(pid: int | None) -> dict[int, float]:
     """User + system CPU seconds of each process of the server's tree, by pid."""
     if pid is None:
@@ -244,6 +262,7 @@ async def run_level(url: str, frames: Frames, robots: int, rate: float, duration
         ]
     stats = [RobotStats() for _ in range(robots)]
     peak_rss: list[float] = []
+    peak_pss: list[float] = []
     peak_role = {"server_process": 0.0, "worker_processes": 0.0}
     stop = asyncio.Event()
 
@@ -252,6 +271,7 @@ async def run_level(url: str, frames: Frames, robots: int, rate: float, duration
             by_pid = _rss_mb(server_pid)
             if by_pid:
                 peak_rss.append(sum(by_pid.values()))
+                peak_pss.append(_pss_mb(server_pid))
                 server = by_pid.pop(server_pid, 0.0)
                 peak_role["server_process"] = max(peak_role["server_process"], server)
                 peak_role["worker_processes"] = max(
@@ -303,6 +323,7 @@ async def run_level(url: str, frames: Frames, robots: int, rate: float, duration
         sustained_fps=answered / window if window > 0 else 0.0, offered_fps=robots * rate,
         latency_p50_ms=pct(50), latency_p95_ms=pct(95), latency_p99_ms=pct(99),
         server_rss_mb_peak=max(peak_rss) if peak_rss else None,
+        server_pss_mb_peak=max(peak_pss) if peak_pss else None,
         rss_mb_peak_by_role=peak_role if peak_rss else {},
         server_cpu_ms_per_frame=cpu,
         stage_median_ms={k: float(np.median(v) * 1000) for k, v in sorted(stages.items())},
@@ -367,7 +388,8 @@ def print_table(results: list[LevelResult]) -> None:
                 f"{k} {v:.1f}" for k, v in r.server_cpu_ms_per_frame.items()))
         if r.rss_mb_peak_by_role:
             print("        peak RSS (MB): " + ", ".join(
-                f"{k} {v:.0f}" for k, v in r.rss_mb_peak_by_role.items()))
+                f"{k} {v:.0f}" for k, v in r.rss_mb_peak_by_role.items())
+                + f"; peak PSS of all {_fmt(r.server_pss_mb_peak, 0)}")
         if r.reject_reasons:
             print(f"        rejected: {r.reject_reasons}")
 
@@ -375,7 +397,7 @@ def print_table(results: list[LevelResult]) -> None:
 RUNS_HEADER = (
     "| run | robots | offered/s | answered/s | sent | answered | dropped | rejected | lost "
     "| p50 ms | p95 ms | p99 ms | CPU ms/frame server | CPU ms/frame workers | CPU ms/frame total "
-    "| RSS MB | load avg start -> end |"
+    "| RSS MB | PSS MB | load avg start -> end |"
 )
 
 
@@ -392,7 +414,8 @@ def runs_table(results: list[LevelResult]) -> str:
             f"| {r.answered} | {r.dropped} | {r.rejected} | {r.unanswered} "
             f"| {_fmt(r.latency_p50_ms)} | {_fmt(r.latency_p95_ms)} | {_fmt(r.latency_p99_ms)} "
             f"| {_fmt(cpu.get('server_process'))} | {_fmt(cpu.get('worker_processes'))} "
-            f"| {_fmt(r.cpu_ms_per_frame)} | {_fmt(r.server_rss_mb_peak, 0)} | {load} |"
+            f"| {_fmt(r.cpu_ms_per_frame)} | {_fmt(r.server_rss_mb_peak, 0)} "
+            f"| {_fmt(r.server_pss_mb_peak, 0)} | {load} |"
         )
     return "\n".join(lines)
 

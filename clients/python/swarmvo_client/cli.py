@@ -11,6 +11,7 @@ from pathlib import Path
 import httpx
 import websockets
 
+from swarmvo_client.encoding import ENCODINGS
 from swarmvo_client.errors import SwarmvoError
 from swarmvo_client.replay import replay, write_tum
 
@@ -28,6 +29,7 @@ def _replay(args: argparse.Namespace) -> int:
         config=config,
         progress=not args.quiet,
         session_id=args.session,
+        encoding=args.encoding,
         bag={
             "calibration": args.calibration,
             "left_topic": args.left_topic,
@@ -88,6 +90,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="API key (default: $SWARMVO_API_KEY)",
     )
     sub.add_argument("--ws", action="store_true", help="stream over the WebSocket endpoint")
+    sub.add_argument(
+        "--encoding", choices=ENCODINGS, default="raw8",
+        help="WebSocket images: raw8 decodes 8-bit grey PNG files here and sends the pixels "
+        "(spares the server the decode; the default), file sends them as stored",
+    )
     sub.add_argument("--limit", type=int, help="send only the first N frames")
     sub.add_argument("--seed", type=int, help="estimator seed (config override)")
     sub.add_argument("--config", help="JSON estimator config overrides")

@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from swarmvo_client.client import Client
 from swarmvo_client.datasets import LocalSequence, open_local_sequence
+from swarmvo_client.encoding import Encoding, raw8_pair
 from swarmvo_client.evaluation import TrajectoryError, trajectory_error
 from swarmvo_client.models import DroppedFrame, ImuData, Pose, RejectedFrame, Session
 from swarmvo_client.stream import stream
@@ -119,8 +120,13 @@ async def replay_ws(
     progress: bool = True,
     rate_hz: float | None = None,
     window: int = 4,
+    encoding: Encoding = "raw8",
 ) -> ReplayResult:
-    """Stream frames over the WebSocket, at most ``window`` unanswered (or paced at rate_hz)."""
+    """Stream frames over the WebSocket, at most ``window`` unanswered (or paced at rate_hz).
+
+    ``raw8`` sends 8-bit grey PNG pairs as raw pixels, decoded here instead of on the server
+    (see :mod:`swarmvo_client.encoding`); ``file`` sends the image files as stored.
+    """
     result = ReplayResult(session, [])
     indices = list(_frame_indices(sequence, start, limit))
     began = time.perf_counter()
@@ -137,9 +143,12 @@ async def replay_ws(
                 else:
                     await in_flight.acquire()
                 left, right = sequence.frame_bytes(index)
-                await connection.send_frame(
-                    sequence.frames[index].timestamp_ns, left, right, frame_imu(sequence, index)
-                )
+                timestamp, imu = sequence.frames[index].timestamp_ns, frame_imu(sequence, index)
+                raw = raw8_pair(left, right) if encoding == "raw8" else None
+                if raw is None:
+                    await connection.send_frame(timestamp, left, right, imu)
+                else:
+                    await connection.send_raw_frame(timestamp, *raw, imu)
 
         producer = asyncio.create_task(produce())
         try:
@@ -173,8 +182,12 @@ def replay(
     progress: bool = True,
     session_id: str | None = None,
     bag: dict[str, Any] | None = None,
+    encoding: Encoding = "raw8",
 ) -> ReplayResult:
     """Create a session from the dataset (or continue ``session_id``) and replay its frames.
+
+    Over the WebSocket, ``encoding`` says how the images travel (:func:`replay_ws`); HTTP
+    uploads are always the files as stored.
 
     Continuing a session starts with the first frame newer than its last stored timestamp.
     A ROS bag needs ``bag={"calibration": path, "left_topic": ..., ...}`` (``bags.py``).
@@ -203,7 +216,8 @@ def replay(
             )
         if use_ws:
             result = asyncio.run(
-                replay_ws(url, api_key, session, sequence, start, limit, progress)
+                replay_ws(url, api_key, session, sequence, start, limit, progress,
+                          encoding=encoding)
             )
         else:
             result = replay_http(client, session, sequence, start, limit, progress)

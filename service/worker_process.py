@@ -1,0 +1,88 @@
+"""The inside of a worker process: its one pipeline factory, its pipelines, its entry points.
+
+A worker holds the pipelines of the sessions pinned to it in a module-level dict; the server
+calls the small functions below through a single-process executor (they must be importable by
+name, hence module level).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import multiprocessing.connection
+import os
+import signal
+import threading
+from multiprocessing.context import BaseContext
+
+from service.estimator_adapter import Pipeline, PipelineFactory, PreparedSession
+from service.frame_work import (
+    FrameFailure,
+    FrameProcessed,
+    FrameRequest,
+    compute_frame,
+    finish_pipeline,
+    session_problem,
+)
+from service.storage import SmoothedPose as StoredSmoothedPose
+
+_factory: PipelineFactory | None = None
+_pipelines: dict[str, Pipeline] = {}
+
+
+def worker_context() -> BaseContext:
+    """``spawn``: a fork of the server itself is unsafe, since it runs threads."""
+    return multiprocessing.get_context("spawn")
+
+
+def _exit_with_parent() -> None:
+    """Leave at once when the server process is gone (even SIGKILLed): no orphan workers."""
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+    multiprocessing.connection.wait([parent.sentinel])
+    os._exit(0)
+
+
+def single_threaded_opencv() -> None:
+    """One OpenCV thread per worker: the service runs one worker per core, so OpenCV's own
+    thread pool only adds hand-overs between threads competing for the same cores (about 5-10 %
+    more CPU per frame, docs/performance.md)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def worker_init(factory: PipelineFactory) -> None:
+    global _factory
+    _factory = factory
+    # The server decides when workers stop: Ctrl-C on the terminal reaches the whole process
+    # group, and queued frames must still be processed while the server drains.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    threading.Thread(target=_exit_with_parent, name="swarmvo-parent-watch", daemon=True).start()
+    single_threaded_opencv()
+    warm_up = getattr(factory, "warm_up", None)
+    if callable(warm_up):
+        warm_up()
+
+
+def worker_frame(request: FrameRequest) -> FrameProcessed | FrameFailure:
+    assert _factory is not None
+    return compute_frame(_pipelines, _factory, request)
+
+
+def worker_check(prepared: PreparedSession) -> str | None:
+    assert _factory is not None
+    return session_problem(_factory, prepared)
+
+
+def worker_finish(session_id: str) -> list[StoredSmoothedPose]:
+    return finish_pipeline(_pipelines, session_id)
+
+
+def worker_drop(session_id: str) -> None:
+    _pipelines.pop(session_id, None)
+
+
+def worker_pid() -> int:
+    return os.getpid()
