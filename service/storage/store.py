@@ -10,7 +10,7 @@ from typing import Any
 
 from sqlalchemy import delete, func, select, update
 from sqlalchemy.engine import Engine
-from sqlalchemy.orm import sessionmaker
+from sqlalchemy.orm import Session, sessionmaker
 
 from service.answer import FrameAnswer
 from service.storage.engine import make_engine, run_migrations
@@ -186,24 +186,14 @@ class Store:
         """The last stored pose and the estimator state stored with it, read together."""
         with self._sessions() as db:
             state = db.scalar(select(SessionRow.resume_state).where(SessionRow.id == session_id))
-            row = db.scalars(
-                select(PoseRow)
-                .where(PoseRow.session_id == session_id)
-                .order_by(PoseRow.frame_index.desc())
-                .limit(1)
-            ).first()
+            row = _newest_pose_row(db, session_id)
             if row is None:
                 return None, None
             return answer_of(session_id, row), state
 
     def last_pose(self, session_id: str) -> FrameAnswer | None:
         with self._sessions() as db:
-            row = db.scalars(
-                select(PoseRow)
-                .where(PoseRow.session_id == session_id)
-                .order_by(PoseRow.frame_index.desc())
-                .limit(1)
-            ).first()
+            row = _newest_pose_row(db, session_id)
             return None if row is None else answer_of(session_id, row)
 
     def poses(
@@ -257,3 +247,13 @@ def _put_smoothed(db: Any, session_id: str, smoothed: Sequence[SmoothedPose]) ->
         SmoothedPoseRow(session_id=session_id, timestamp_ns=stamp, pose=list(pose))
         for stamp, pose in zip(stamps, (pose for _, pose in smoothed), strict=True)
     )
+
+
+def _newest_pose_row(db: Session, session_id: str) -> PoseRow | None:
+    """The session's pose with the highest frame index (its last answered frame)."""
+    return db.scalars(
+        select(PoseRow)
+        .where(PoseRow.session_id == session_id)
+        .order_by(PoseRow.frame_index.desc())
+        .limit(1)
+    ).first()
