@@ -9,13 +9,14 @@ gives exactly the same kept corners, and a higher one is cheaper: on a 1241 x 37
 FAST finds about 16 000 corners at 12 grey levels for the 4 800 that ORB looks at
 (docs/performance.md).
 
-The count at a higher threshold is estimated on the image itself, from FAST on a few strips of
-rows (one row in ``1 / SAMPLED_ROW_FRACTION``): the strip corners' scores give the count above
-any threshold at once. An image with too few corners even at the configured threshold (every
-EuRoC image) is detected at that threshold, and the next few images are too, unsampled. The strips run at a sampling threshold a little below the previous image's
-choice, so that they return few corners (each costs a Python object). The threshold chosen is
-the highest whose estimate keeps ``COUNT_MARGIN`` above ``2 n``; when the strips do not show
-that many corners the configured threshold is used, and nothing changes.
+The count at a higher threshold is estimated on the image itself, from FAST on thin strips of
+rows (one row in 16): the strip corners' scores give the count above any threshold at once.
+The strips run at a sampling threshold a little below the previous image's choice, so that
+they return few corners (each costs a Python object). The threshold chosen is the highest whose
+estimate keeps ``COUNT_MARGIN`` above ``2 n``; when the strips do not show that many corners
+the configured threshold is used, and nothing changes. An image with too few corners even at
+the configured threshold (every EuRoC image) is detected at it, and so are the next few,
+unsampled.
 """
 
 from __future__ import annotations
@@ -77,9 +78,7 @@ class AdaptiveFastThreshold:
         self.last = max(chosen, self.base)
         return self.last
 
-    def estimate_counts(
-        self, image: np.ndarray, threshold: int
-    ) -> tuple[np.ndarray, float] | None:
+    def estimate_counts(self, image: np.ndarray, threshold: int) -> tuple[np.ndarray, float] | None:
         """FAST scores of the corners in the sampled strips, and strip rows -> image rows.
 
         Only the area ORB keeps (``edge`` px in from the border) is sampled. Each strip is cut
@@ -89,23 +88,20 @@ class AdaptiveFastThreshold:
         """
         height, width = image.shape[:2]
         pad = _FAST_RADIUS + _NMS_RADIUS
-        top, bottom = self.edge, height - self.edge  # rows ORB keeps: [top, bottom)
-        left, right = self.edge, width - self.edge
-        if bottom - top < 4 * STRIP_ROWS or right - left < 2 * pad or min(top, left) < pad:
+        left, right = self.edge, width - self.edge  # columns ORB keeps: [left, right)
+        starts = self.strip_starts(height)
+        if starts is None or right - left < 2 * pad:
             return None
-        strips = max(1, round((bottom - top) * SAMPLED_ROW_FRACTION / STRIP_ROWS))
-        starts = top + (np.arange(strips) + 0.5) * (bottom - top - STRIP_ROWS) / strips
+        scale = (height - 2 * self.edge) / (len(starts) * STRIP_ROWS)
         window = STRIP_ROWS + 2 * pad
         # The strips, each with its margin, stacked into one image: one FAST call. A corner in
         # a strip's own rows sees only rows of its window, so the seams change nothing.
-        stacked = np.concatenate(
-            [image[start - pad : start + pad + STRIP_ROWS, left - pad : right + pad]
-             for start in starts.astype(int)]
-        )  # fmt: skip
+        columns = slice(left - pad, right + pad)
+        stacked = np.concatenate([image[s - pad : s + pad + STRIP_ROWS, columns] for s in starts])
         self._fast.setThreshold(int(threshold))
         corners = self._fast.detect(stacked)
         if not corners:
-            return np.zeros(0), (bottom - top) / (strips * STRIP_ROWS)
+            return np.zeros(0), scale
         position = cv2.KeyPoint_convert(corners)
         row_in_window = position[:, 1].astype(int) % window
         inside = (
@@ -115,4 +111,13 @@ class AdaptiveFastThreshold:
             & (position[:, 0] < pad + right - left)
         )
         sampled = np.fromiter(map(_RESPONSE, corners), float, len(corners))[inside]
-        return sampled, (bottom - top) / (strips * STRIP_ROWS)
+        return sampled, scale
+
+    def strip_starts(self, height: int) -> np.ndarray | None:
+        """First row of each sampled strip (``STRIP_ROWS`` rows each), spread evenly over the
+        rows ORB keeps; ``None`` when the image is too low to sample."""
+        top, bottom = self.edge, height - self.edge  # rows ORB keeps: [top, bottom)
+        if bottom - top < 4 * STRIP_ROWS or top < _FAST_RADIUS + _NMS_RADIUS:
+            return None
+        strips = max(1, round((bottom - top) * SAMPLED_ROW_FRACTION / STRIP_ROWS))
+        return (top + (np.arange(strips) + 0.5) * (bottom - top - STRIP_ROWS) / strips).astype(int)
