@@ -64,6 +64,9 @@ class FrontendConfig(_Section):
     grid_rows: int = Field(6, gt=0)
     grid_cols: int = Field(8, gt=0)
     fast_threshold: int = Field(12, gt=0)  # ORB's FAST threshold (grey levels)
+    # Raise FAST's threshold per image while ORB still sees the same corners (one ORB level;
+    # estimated from strips of the image, estimator/frontend/fast_threshold.py).
+    adaptive_fast_threshold: bool = True
     orb_levels: int = Field(1, gt=0)  # one level: half the cost, same accuracy at 20 Hz
     orb_scale_factor: float = Field(1.2, gt=1.0)
     # Descriptor acceptance: Hamming bits for ORB, L2 for SIFT (unit 512-norm descriptors).

@@ -19,6 +19,7 @@ import numba
 import numpy as np
 
 from estimator.config import FrontendConfig
+from estimator.frontend.fast_threshold import AdaptiveFastThreshold
 from estimator.frontend.match_kernels import as_words
 
 __all__ = [
@@ -127,6 +128,13 @@ class FeatureDetector:
         else:
             self._detector = cv2.SIFT_create(nfeatures=candidates)
         self.binary = config.detector == "orb"
+        self._candidates = candidates
+        # ORB on one level looks at the 2 x candidates best FAST corners (fast_threshold.py).
+        self.fast_threshold: AdaptiveFastThreshold | None = None
+        if self.binary and config.orb_levels == 1 and config.adaptive_fast_threshold:
+            self.fast_threshold = AdaptiveFastThreshold(
+                config.fast_threshold, 2 * candidates, self._detector.getEdgeThreshold()
+            )
 
     def detect(self, image: np.ndarray) -> Features:
         """Keypoints and descriptors of one 8-bit grey image.
@@ -138,7 +146,7 @@ class FeatureDetector:
         """
         if not self.binary:  # SIFT's compute rebuilds its scale space: one call is cheaper
             return self._detect_and_compute(image)
-        keypoints = self._detector.detect(image, None)
+        keypoints = self._orb_corners(image)
         if not keypoints:
             return self._empty()
         points = cv2.KeyPoint_convert(keypoints).astype(float)
@@ -148,6 +156,23 @@ class FeatureDetector:
             keypoints = [keypoints[i] for i in keep]
             points, response = points[keep], response[keep]
         return self._describe(image, keypoints, points, response)
+
+    def _orb_corners(self, image: np.ndarray) -> list:
+        """ORB's corners, found at the adaptive FAST threshold when there is one.
+
+        Fewer corners than ORB asks for at a raised threshold mean the estimate was wrong
+        (then the configured threshold's corners are taken, the same as without adapting).
+        """
+        if self.fast_threshold is None:
+            return self._detector.detect(image, None)
+        threshold = self.fast_threshold.choose(image)
+        self._detector.setFastThreshold(threshold)
+        keypoints = self._detector.detect(image, None)
+        if threshold > self.fast_threshold.base and len(keypoints) < self._candidates:
+            self._detector.setFastThreshold(self.fast_threshold.base)
+            keypoints = self._detector.detect(image, None)
+            self.fast_threshold.last = self.fast_threshold.base
+        return keypoints
 
     def _describe(
         self, image: np.ndarray, keypoints: list, points: np.ndarray, response: np.ndarray
