@@ -344,7 +344,8 @@ def test_a_one_patch_core_is_replaced_by_a_core_of_precise_pairs() -> None:
         "target_cov": data["reference_cov"].astype(float),
         "gate_chi2": float(data["gate_chi2"]),
     }
-    result = register(current, reference, method="pso-robust", seed=int(data["seed"]), **covariances)
+    seed = int(data["seed"])
+    result = register(current, reference, method="pso-robust", seed=seed, **covariances)
     assert result.success, result.message
     assert np.count_nonzero(result.inliers) >= 0.9 * len(current)
     assert rotation_error_deg(result.rotation, truth[:3, :3]) < 0.02

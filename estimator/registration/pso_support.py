@@ -1,6 +1,6 @@
 """Rigid registration by a particle swarm over rotations with a support count.
 
-(About 620 lines: the estimator's steps read as one algorithm here; its compiled kernels live
+(About 670 lines: the estimator's steps read as one algorithm here; its compiled kernels live
 in ``rigidity.py`` (steps 1-2) and ``swarm_kernels.py`` (steps 3-4).)
 
 ``pso`` follows the paper ("Robot Pose Estimation Based on Visual Information and Particle
@@ -41,6 +41,14 @@ the all-pairs centroids are wrong, every residual is shifted, and the support co
    When the core's threshold passes too few pairs to fit a pose at all (a core on one
    distant patch, whose noise along the rays its distances hardly see), the ladder
    starts from the core's own fit.
+6. Stereo support and a second core. With per-point covariances the Mahalanobis test decides
+   the supporters (``_mahalanobis_support``). The most connected pairs can all lie on one
+   distant patch (a wall 20-40 m away on a drive): their depth error, along the rays, hardly
+   changes their mutual distances, so they form the core, yet it tilts the core's rotation
+   by a degree and shifts its anchor, and the search around it keeps only that patch. When
+   fewer than ``SECOND_CORE_SHARE`` of the pairs support the pose, steps 2-5 run again from a
+   core of the most precise well-ranked pairs (``precise_ranking``), and the pose with more
+   stereo support wins.
 
 Per-pair noise. ``sigmas`` (N,) gives each pair's residual std; only their ratios matter:
 residuals are divided by sigma_j / median(sigma), so ``delta`` (given or adaptive) is the
