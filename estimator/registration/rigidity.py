@@ -59,7 +59,9 @@ def precise_ranking(
     instead of on the most connected ones, which can be one distant patch whose depth error
     the distances between its points barely see.
     """
-    eligible = np.flatnonzero(scores >= share * scores.max()) if len(scores) else scores
+    if len(scores) == 0:
+        return np.empty(0, dtype=np.int64)
+    eligible = np.flatnonzero(scores >= share * scores.max())
     order = np.argsort(noise[eligible], kind="stable")[:count]
     return eligible[order].astype(np.int64)
 
