@@ -1,6 +1,6 @@
 """Rigid registration by a particle swarm over rotations with a support count.
 
-(About 620 lines: the estimator's steps read as one algorithm here; its compiled kernels live
+(About 670 lines: the estimator's steps read as one algorithm here; its compiled kernels live
 in ``rigidity.py`` (steps 1-2) and ``swarm_kernels.py`` (steps 3-4).)
 
 ``pso`` follows the paper ("Robot Pose Estimation Based on Visual Information and Particle
@@ -41,6 +41,14 @@ the all-pairs centroids are wrong, every residual is shifted, and the support co
    When the core's threshold passes too few pairs to fit a pose at all (a core on one
    distant patch, whose noise along the rays its distances hardly see), the ladder
    starts from the core's own fit.
+6. Stereo support and a second core. With per-point covariances the Mahalanobis test decides
+   the supporters (``_mahalanobis_support``). The most connected pairs can all lie on one
+   distant patch (a wall 20-40 m away on a drive): their depth error, along the rays, hardly
+   changes their mutual distances, so they form the core, yet it tilts the core's rotation
+   by a degree and shifts its anchor, and the search around it keeps only that patch. When
+   fewer than ``SECOND_CORE_SHARE`` of the pairs support the pose, steps 2-5 run again from a
+   core of the most precise well-ranked pairs (``precise_ranking``), and the pose with more
+   stereo support wins.
 
 Per-pair noise. ``sigmas`` (N,) gives each pair's residual std; only their ratios matter:
 residuals are divided by sigma_j / median(sigma), so ``delta`` (given or adaptive) is the
@@ -84,6 +92,7 @@ from estimator.registration.result import (
 )
 from estimator.registration.rigidity import (
     graph_sample,
+    precise_ranking,
     rigid_core,
     rigidity_scores,
     rigidity_weights,
@@ -106,6 +115,8 @@ __all__ = ["PsoSupportEstimator", "weighted_horn"]
 GATE_CHI2 = 16.266  # chi-square quantile 0.999 with 3 degrees of freedom
 # Scale ladder: double the threshold while support grows by at least this fraction.
 LADDER_GAIN = 0.05
+# With covariances: below this share of the pairs supporting the pose, a second core is tried.
+SECOND_CORE_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -248,17 +259,52 @@ class PsoSupportEstimator:
         sample = graph_sample(len(source), self.graph_pairs, rng)
         sample_scales = None if scales is None else scales[sample]
         weights = rigidity_weights(source[sample], target[sample], self.rigidity, sample_scales)
+        scores = rigidity_scores(weights)
         # Only the top of the ranking is ever looked at: select it, do not sort all pairs.
-        ranking = top_ranked(rigidity_scores(weights), 4 * self.core_size)
-        local_core = rigid_core(weights, ranking, self.core_size)
-        core = sample[local_core]
-        if degenerate_rows(source, target, core):
+        ranking = top_ranked(scores, 4 * self.core_size)
+        graph = _Graph(sample, weights)
+        pairs = _Pairs.of(source, target, scales)
+        found = self._from_core(pairs, graph, ranking, rng)
+        if found is None:
             return failed_result(len(source), "no rigid, non-collinear core of pairs found")
-        delta = self.delta or self._delta_from_core(weights[local_core[:, None], local_core])
+        if self.source_cov is None or self.target_cov is None:
+            supporters, delta, iterations, pose = found
+            return _finish(source, target, supporters, delta, iterations, pairs.fit, pose)
+        covariances = _covariances(self.source_cov, self.target_cov, len(source))
+        supporters, pose = self._stereo_support(pairs, covariances, found)
+        if np.count_nonzero(supporters) < SECOND_CORE_SHARE * len(source):
+            # A core on one distant patch: the most connected pairs, but its depth error
+            # (along the rays) tilts its rotation and shifts its anchor, and the search
+            # around it keeps only that patch. Try again from the most precise pairs.
+            noise = np.trace(covariances[0], axis1=1, axis2=2)[sample]
+            noise = noise + np.trace(covariances[1], axis1=1, axis2=2)[sample]
+            precise = precise_ranking(scores, noise, 4 * self.core_size)
+            second = self._from_core(pairs, graph, precise, rng)
+            if second is not None:
+                other, other_pose = self._stereo_support(pairs, covariances, second)
+                if np.count_nonzero(other) > np.count_nonzero(supporters):
+                    found, supporters, pose = second, other, other_pose
+        iterations = found[2]
+        return _finish(
+            source, target, supporters, math.sqrt(self.gate_chi2), iterations, pairs.fit, pose
+        )
+
+    def _from_core(
+        self, pairs: _Pairs, graph: _Graph, ranking: np.ndarray, rng: np.random.Generator
+    ) -> tuple[np.ndarray, float, int, Pose | None] | None:
+        """Core from ``ranking`` (positions in the graph), swarm, refits and ladder.
+
+        Returns (supporters, threshold, swarm evaluations, pose), None for a degenerate core.
+        """
+        source, target = pairs.source, pairs.target
+        local_core = rigid_core(graph.weights, ranking, self.core_size)
+        core = graph.sample[local_core]
+        if degenerate_rows(source, target, core):
+            return None
+        delta = self.delta or self._delta_from_core(graph.weights[local_core[:, None], local_core])
 
         # Anchor on the core (not all pairs) and search rotations around its Kabsch fit.
         seed_rotation = np.ascontiguousarray(kabsch(source[core], target[core])[0])
-        pairs = _Pairs.of(source, target, scales)
         objective = _RotationObjective(source, target, core, seed_rotation, delta, pairs.inverse)
         particles = self.particles or 12
         # Particle 0 is the seed itself; the others scatter around it.
@@ -278,15 +324,21 @@ class PsoSupportEstimator:
         supporters, delta, pose = self._refine(pairs, supporters, delta)
         if self.delta is None:
             supporters, delta, pose = self._ladder(pairs, supporters, delta, pose, core)
-        if self.source_cov is not None and self.target_cov is not None:
-            # The isotropic search has found the rigid majority and its pose; the stereo
-            # metric now decides, pair by pair, who supports it.
-            covariances = _covariances(self.source_cov, self.target_cov, len(source))
-            supporters, pose = _mahalanobis_support(
-                source, target, *covariances, supporters, pose, self.gate_chi2, self.refits
-            )
-            delta = math.sqrt(self.gate_chi2)
-        return _finish(source, target, supporters, delta, swarm.iterations, pairs.fit, pose)
+        return supporters, delta, swarm.iterations, pose
+
+    def _stereo_support(
+        self,
+        pairs: _Pairs,
+        covariances: tuple[np.ndarray, np.ndarray],
+        found: tuple[np.ndarray, float, int, Pose | None],
+    ) -> tuple[np.ndarray, Pose | None]:
+        """The isotropic search has found the rigid majority and its pose; the stereo metric
+        now decides, pair by pair, who supports it."""
+        supporters, _, _, pose = found
+        return _mahalanobis_support(
+            pairs.source, pairs.target, *covariances, supporters, pose, self.gate_chi2,
+            self.refits,
+        )  # fmt: skip
 
     def _refine(
         self,
@@ -396,6 +448,14 @@ def _defaults(estimator: type[PsoSupportEstimator], robust: bool) -> PsoSupportE
 Pose = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 # A least-squares pose of the pairs in a mask, with everyone's normalised residual.
 Fit = Callable[[np.ndarray, np.ndarray, np.ndarray], Pose]
+
+
+@dataclass(frozen=True)
+class _Graph:
+    """The rigidity graph: the pair rows it was built on and their (S, S) weights."""
+
+    sample: np.ndarray
+    weights: np.ndarray
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,14 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["graph_sample", "rigid_core", "rigidity_scores", "rigidity_weights", "top_ranked"]
+__all__ = [
+    "graph_sample",
+    "precise_ranking",
+    "rigid_core",
+    "rigidity_scores",
+    "rigidity_weights",
+    "top_ranked",
+]
 
 # Each call of pso-robust runs these on a few hundred pairs: compiled, a step costs
 # microseconds, where the equivalent dozen small numpy calls would cost ten times more.
@@ -39,6 +46,24 @@ def rigid_core(weights: np.ndarray, ranking: np.ndarray, size: int) -> np.ndarra
     if len(taken) < 3:
         return ranking[:size]
     return candidates[taken]
+
+
+def precise_ranking(
+    scores: np.ndarray, noise: np.ndarray, count: int, share: float = 0.5
+) -> np.ndarray:
+    """The ``count`` most precise pairs (smallest ``noise``) among the well-ranked ones.
+
+    Well ranked: a score of at least ``share`` of the best score, where the rigid majority
+    lies (wrong matches agree only by chance and score far lower). Ordered most precise first,
+    so that a greedy core taken from it (``rigid_core``) anchors on the best-measured pairs
+    instead of on the most connected ones, which can be one distant patch whose depth error
+    the distances between its points barely see.
+    """
+    if len(scores) == 0:
+        return np.empty(0, dtype=np.int64)
+    eligible = np.flatnonzero(scores >= share * scores.max())
+    order = np.argsort(noise[eligible], kind="stable")[:count]
+    return eligible[order].astype(np.int64)
 
 
 def rigidity_weights(
