@@ -31,7 +31,8 @@ from estimator.formats.datasets import Sequence, open_sequence
 from estimator.pipeline import build_config, run_sequence, write_outputs
 from estimator.registration.methods import DEFAULT_ESTIMATOR
 from estimator.registration.registry import available_methods
-from estimator.rendered.synthetic import SynthOptions, synthesize
+from estimator.rendered.cache import FINGERPRINT_FILE, rendered_once
+from estimator.rendered.synthetic import SynthOptions
 
 __all__ = ["add_arguments", "run"]
 
@@ -250,26 +251,29 @@ def _row(label: str, metrics: dict[str, Any]) -> str:
 
 
 def _rendered(args: argparse.Namespace, noisy: bool) -> Path:
-    """The rendered loop (clean or with sensor effects), rendered once into ``--data``."""
+    """The rendered loop (clean or with sensor effects), rendered once into ``--data`` and
+    rendered again when the renderer changed (estimator/rendered/cache.py)."""
     frames, length = (40, 4.0) if args.quick else (args.frames, args.length_m)
     effects = NOISY_EFFECTS if noisy else {}
     suffix = "_noisy" if noisy else ""
     root = args.data / f"rendered{suffix}_{frames}f_{length:g}m_seed{args.seed}"
-    if not (root / "mav0").is_dir():
-        synthesize(root, SynthOptions(frames=frames, length_m=length, seed=args.seed, **effects))
-    return root
+    options = SynthOptions(frames=frames, length_m=length, seed=args.seed, **effects)
+    return rendered_once(root, options)
 
 
 def _run_rendered(
     args: argparse.Namespace, estimators: list[str], results: dict[str, Any], save
 ) -> None:
     for name in args.datasets:
-        sequence = _open(_rendered(args, noisy=name == "rendered_noisy"))
+        root = _rendered(args, noisy=name == "rendered_noisy")
+        sequence = _open(root)
         results[name] = {}
         for estimator in estimators:
             config = build_config(estimator, args.seed, imu=True, backend=True)
             result = run_sequence(sequence, config, progress=False)
             summary = write_outputs(result, args.out / name / estimator)
+            # Which rendering the numbers belong to (the same fingerprint reproduces them).
+            summary["render_fingerprint"] = (root / FINGERPRINT_FILE).read_text().strip()
             results[name][estimator] = summary
             for section in ("fused", "frontend"):
                 print(_row(f"{name} {estimator} {section}", summary[section]), flush=True)
