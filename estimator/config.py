@@ -109,6 +109,9 @@ class FrontendConfig(_Section):
     keyframe_min_inliers: int = Field(80, ge=3)
     keyframe_max_translation_m: float = Field(0.25, gt=0)
     keyframe_max_rotation_deg: float = Field(10.0, gt=0)
+    # Also measure each frame against the previous one and combine that chain with the
+    # keyframe measurement by their covariances (estimator/odometry/chains.py).
+    fuse_previous_frame: bool = True
 
 
 class BackendConfig(_Section):

@@ -13,6 +13,7 @@ from estimator.frontend.photometric import normalise_contrast
 from estimator.frontend.stereo import StereoMatcher, StereoPoints
 from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel
 from estimator.geometry import invert_pose, nearest_rigid
+from estimator.odometry.chains import chain_covariance, fuse_poses
 from estimator.odometry.estimation import PoseEstimation
 from estimator.odometry.frames import (
     Estimate,
@@ -231,6 +232,8 @@ class Odometry:
         keyframe_prediction = references.reference_from_previous @ since_previous
         estimate = self._estimate_against(keyframe, keyframe_prediction, points, image, timings)
         estimate = self._estimation.plausible(estimate, keyframe_prediction, previous_ns)
+        if previous is not keyframe and self.config.frontend.fuse_previous_frame:
+            estimate = self._with_previous(estimate, points, image, timings)
         retries = [(previous, since_previous, previous_ns, "the previous frame")]
         if fallback is not None:
             since_fallback = self._last_timestamp_ns - fallback.timestamp_ns
@@ -249,6 +252,39 @@ class Odometry:
                     f"tracked against {name}"
                 )
                 return retry
+        return estimate
+
+    def _with_previous(
+        self,
+        estimate: Estimate,
+        points: StereoPoints,
+        image: np.ndarray,
+        timings: dict[str, float],
+    ) -> Estimate:
+        """The keyframe estimate combined with the chain keyframe -> previous -> current
+        (estimator/odometry/chains.py); as it was when either part has no covariance."""
+        references = self._references
+        previous, to_previous = references.previous, references.reference_from_previous
+        covariance = references.reference_from_previous_covariance
+        measured = estimate.reference_from_current
+        if measured is None or estimate.covariance is None or covariance is None:
+            return estimate
+        assert previous is not None and self._last_timestamp_ns is not None
+        prediction = invert_pose(to_previous) @ measured  # the keyframe's answer, sharper
+        chained = self._estimate_against(previous, prediction, points, image, timings)
+        span_ns = self._last_timestamp_ns - previous.timestamp_ns
+        chained = self._estimation.plausible(chained, prediction, span_ns)
+        step = chained.reference_from_current
+        if step is None or chained.covariance is None:
+            return estimate
+        fused = fuse_poses(
+            measured,
+            estimate.covariance,
+            to_previous @ step,
+            chain_covariance(covariance, step, chained.covariance),
+        )
+        if fused is not None:
+            estimate.reference_from_current, estimate.covariance = fused
         return estimate
 
     def _estimate_against(

@@ -27,6 +27,8 @@ class References:
         self.previous: Reference | None = None  # the last frame with an estimate
         self.fallback: Reference | None = None  # a later failed frame with enough points
         self.reference_from_previous = np.eye(4)  # rectified; for predicting the search
+        # ... and its 6x6 covariance (right perturbation); None when not measured
+        self.reference_from_previous_covariance: np.ndarray | None = None
         self.motion = np.eye(4)  # last measured motion (rectified), constant velocity ...
         self.motion_interval_ns = 1  # ... over this time: predictions scale it to theirs
         self.last_fix_ns = 0  # timestamp of the last frame with a vision estimate
@@ -88,9 +90,11 @@ class References:
         if first or failed or self._needs_new_reference(estimate):
             self.reference = current
             self.reference_from_previous = np.eye(4)
+            self.reference_from_previous_covariance = np.zeros((6, 6))
         else:
             assert reference_from_current is not None
             self.reference_from_previous = reference_from_current
+            self.reference_from_previous_covariance = estimate.covariance
         self.previous = current
 
     def _needs_new_reference(self, estimate: Estimate) -> bool:
