@@ -112,6 +112,8 @@ class FrontendConfig(_Section):
     # Also measure each frame against the previous one and combine that chain with the
     # keyframe measurement by their covariances (estimator/odometry/chains.py).
     fuse_previous_frame: bool = True
+    # ... and against the keyframe before the current one while it is still in view.
+    fuse_previous_keyframe: bool = True
 
 
 class BackendConfig(_Section):

@@ -27,7 +27,7 @@ from estimator.geometry import (
     skew,
 )
 
-__all__ = ["chain_covariance", "fuse_poses", "pose_difference"]
+__all__ = ["chain_covariance", "fuse_poses", "inverse_covariance", "pose_difference"]
 
 
 def pose_difference(first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -57,6 +57,20 @@ def chain_covariance(
     jacobian[3:, :3] = -rotation_t @ skew(second[:3, 3])
     jacobian[3:, 3:] = rotation_t
     return jacobian @ first_covariance @ jacobian.T + second_covariance
+
+
+def inverse_covariance(pose: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """Covariance (6x6, right perturbation) of the inverse of ``pose``.
+
+    Perturbing the pose by (omega, v) moves its inverse by -R omega in rotation and by
+    -[t]x R omega - R v in translation.
+    """
+    rotation = pose[:3, :3]
+    jacobian = np.zeros((6, 6))
+    jacobian[:3, :3] = -rotation
+    jacobian[3:, :3] = -skew(pose[:3, 3]) @ rotation
+    jacobian[3:, 3:] = -rotation
+    return jacobian @ covariance @ jacobian.T
 
 
 def fuse_poses(
