@@ -112,6 +112,12 @@ class FrontendConfig(_Section):
     keyframe_min_inliers: int = Field(80, ge=3)
     keyframe_max_translation_m: float = Field(0.25, gt=0)
     keyframe_max_rotation_deg: float = Field(10.0, gt=0)
+    # Also measure each frame against the previous one and combine that chain with the
+    # keyframe measurement by their covariances (estimator/odometry/chains.py).
+    fuse_previous_frame: bool = True
+    # ... and against the keyframe before the current one while it is still in view (off: on
+    # MH_01 vision alone 4.5 mm instead of 4.6, but the rendered loop's ATE 5 % worse).
+    fuse_previous_keyframe: bool = False
 
 
 class BackendConfig(_Section):

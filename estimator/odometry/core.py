@@ -13,6 +13,7 @@ from estimator.frontend.photometric import normalise_contrast
 from estimator.frontend.stereo import StereoMatcher, StereoPoints
 from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel
 from estimator.geometry import invert_pose, nearest_rigid
+from estimator.odometry.chains import chain_covariance, fuse_poses, inverse_covariance
 from estimator.odometry.estimation import PoseEstimation
 from estimator.odometry.frames import (
     Estimate,
@@ -231,6 +232,9 @@ class Odometry:
         keyframe_prediction = references.reference_from_previous @ since_previous
         estimate = self._estimate_against(keyframe, keyframe_prediction, points, image, timings)
         estimate = self._estimation.plausible(estimate, keyframe_prediction, previous_ns)
+        frontend = self.config.frontend
+        if frontend.fuse_previous_frame or frontend.fuse_previous_keyframe:
+            estimate = self._with_other_references(estimate, points, image, timings)
         retries = [(previous, since_previous, previous_ns, "the previous frame")]
         if fallback is not None:
             since_fallback = self._last_timestamp_ns - fallback.timestamp_ns
@@ -250,6 +254,66 @@ class Odometry:
                 )
                 return retry
         return estimate
+
+    def _with_other_references(
+        self, estimate: Estimate, points: StereoPoints, image: np.ndarray, timings: dict[str, float]
+    ) -> Estimate:
+        """The keyframe estimate combined with the chains through the previous frame and
+        through the keyframe before this one (estimator/odometry/chains.py)."""
+        references = self._references
+        keyframe, previous, older = references.reference, references.previous, references.older
+        combine_previous = self.config.frontend.fuse_previous_frame and previous is not keyframe
+        if previous is not None and combine_previous:
+            covariance = references.reference_from_previous_covariance
+            estimate, _ = self._combined(
+                estimate, previous, references.reference_from_previous, covariance,
+                points, image, timings,
+            )  # fmt: skip
+        if older is not None and self.config.frontend.fuse_previous_keyframe:
+            to_older = invert_pose(references.older_from_reference)
+            covariance = inverse_covariance(
+                references.older_from_reference, references.older_from_reference_covariance
+            )
+            estimate, tracked = self._combined(
+                estimate, older, to_older, covariance, points, image, timings
+            )
+            if not tracked:
+                references.older = None  # out of view: not tried again
+        return estimate
+
+    def _combined(
+        self,
+        estimate: Estimate,
+        reference: Reference,
+        keyframe_from_reference: np.ndarray,
+        covariance: np.ndarray | None,
+        points: StereoPoints,
+        image: np.ndarray,
+        timings: dict[str, float],
+    ) -> tuple[Estimate, bool]:
+        """``estimate`` (against the keyframe) combined with the chain keyframe -> ``reference``
+        -> current, and whether ``reference`` was tracked; the estimate is kept as it was
+        when either part has no covariance."""
+        measured = estimate.reference_from_current
+        if measured is None or estimate.covariance is None or covariance is None:
+            return estimate, True
+        assert self._last_timestamp_ns is not None
+        prediction = invert_pose(keyframe_from_reference) @ measured  # sharper than velocity
+        chained = self._estimate_against(reference, prediction, points, image, timings)
+        span_ns = self._last_timestamp_ns - reference.timestamp_ns
+        chained = self._estimation.plausible(chained, prediction, span_ns)
+        step = chained.reference_from_current
+        if step is None or chained.covariance is None:
+            return estimate, False
+        fused = fuse_poses(
+            measured,
+            estimate.covariance,
+            keyframe_from_reference @ step,
+            chain_covariance(covariance, step, chained.covariance),
+        )
+        if fused is not None:
+            estimate.reference_from_current, estimate.covariance = fused
+        return estimate, True
 
     def _estimate_against(
         self,

@@ -27,6 +27,13 @@ class References:
         self.previous: Reference | None = None  # the last frame with an estimate
         self.fallback: Reference | None = None  # a later failed frame with enough points
         self.reference_from_previous = np.eye(4)  # rectified; for predicting the search
+        # ... and its 6x6 covariance (right perturbation); None when not measured
+        self.reference_from_previous_covariance: np.ndarray | None = None
+        # The keyframe before this one, with the keyframe's pose in it and its covariance,
+        # while frames still register against it (None otherwise)
+        self.older: Reference | None = None
+        self.older_from_reference = np.eye(4)
+        self.older_from_reference_covariance = np.zeros((6, 6))
         self.motion = np.eye(4)  # last measured motion (rectified), constant velocity ...
         self.motion_interval_ns = 1  # ... over this time: predictions scale it to theirs
         self.last_fix_ns = 0  # timestamp of the last frame with a vision estimate
@@ -86,12 +93,29 @@ class References:
             self.motion_interval_ns = max(int(timestamp_ns) - since_ns, 1)
         self.fallback = None
         if first or failed or self._needs_new_reference(estimate):
+            self._keep_older(estimate)
             self.reference = current
             self.reference_from_previous = np.eye(4)
+            self.reference_from_previous_covariance = np.zeros((6, 6))
         else:
             assert reference_from_current is not None
             self.reference_from_previous = reference_from_current
+            self.reference_from_previous_covariance = estimate.covariance
         self.previous = current
+
+    def _keep_older(self, estimate: Estimate) -> None:
+        """The keyframe being replaced stays as a second reference when the new one was
+        measured against it with a covariance."""
+        measured = estimate.reference_from_current
+        if measured is None or estimate.covariance is None or estimate.reference is None:
+            self.older = None
+            return
+        if estimate.reference is not self.reference:
+            self.older = None
+            return
+        self.older = self.reference
+        self.older_from_reference = measured
+        self.older_from_reference_covariance = estimate.covariance
 
     def _needs_new_reference(self, estimate: Estimate) -> bool:
         frontend = self.frontend

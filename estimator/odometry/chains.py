@@ -1,0 +1,95 @@
+"""Two measurements of one frame's pose against the keyframe, combined by their covariances.
+
+Against the keyframe alone, the error of each frame's pose is the error of one registration,
+so consecutive frames differ by two independent errors and the frame-to-frame motion is noisier
+than either. The frame is also measured against the previous frame, whose pose relative to the
+keyframe is already known with its covariance; chained, that gives a second estimate of the
+same pose. The two are combined in the tangent space of the keyframe measurement, weighed by
+their covariances (a Kalman update with the keyframe measurement as the prior).
+
+Poses here use the refinement's right perturbation (``estimator/registration/refine.py``):
+xi = (omega, v) with R <- R Exp(omega), t <- t + R v, so a refined covariance applies as is.
+The two estimates share the current frame's points, so their errors are not independent; the
+combination ignores that (it cannot be measured from one frame), which makes the combined
+covariance somewhat optimistic but leaves the weighting between the two sensible.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from estimator.geometry import (
+    make_pose,
+    matrix_to_quat,
+    quat_to_matrix,
+    quat_to_rotation_vector,
+    rotation_vector_to_quat,
+    skew,
+)
+
+__all__ = ["chain_covariance", "fuse_poses", "inverse_covariance", "pose_difference"]
+
+
+def pose_difference(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """xi (6,) with ``second`` = ``first`` perturbed on the right by xi."""
+    rotation = first[:3, :3].T @ second[:3, :3]
+    omega = quat_to_rotation_vector(matrix_to_quat(rotation))
+    return np.concatenate([omega, first[:3, :3].T @ (second[:3, 3] - first[:3, 3])])
+
+
+def perturbed(pose: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """``pose`` perturbed on the right by xi = (omega, v)."""
+    rotation = pose[:3, :3] @ quat_to_matrix(rotation_vector_to_quat(xi[:3]))
+    return make_pose(rotation, pose[:3, 3] + pose[:3, :3] @ xi[3:])
+
+
+def chain_covariance(
+    first_covariance: np.ndarray, second: np.ndarray, second_covariance: np.ndarray
+) -> np.ndarray:
+    """Covariance (6x6, right perturbation) of A @ B from those of A and B (independent).
+
+    Perturbing A on the right moves A @ B by R_B^T omega in rotation and by
+    R_B^T (v - [t_B]x omega) in translation; perturbing B passes through unchanged.
+    """
+    rotation_t = second[:3, :3].T
+    jacobian = np.zeros((6, 6))
+    jacobian[:3, :3] = rotation_t
+    jacobian[3:, :3] = -rotation_t @ skew(second[:3, 3])
+    jacobian[3:, 3:] = rotation_t
+    return jacobian @ first_covariance @ jacobian.T + second_covariance
+
+
+def inverse_covariance(pose: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """Covariance (6x6, right perturbation) of the inverse of ``pose``.
+
+    Perturbing the pose by (omega, v) moves its inverse by -R omega in rotation and by
+    -[t]x R omega - R v in translation.
+    """
+    rotation = pose[:3, :3]
+    jacobian = np.zeros((6, 6))
+    jacobian[:3, :3] = -rotation
+    jacobian[3:, :3] = -skew(pose[:3, 3]) @ rotation
+    jacobian[3:, 3:] = -rotation
+    return jacobian @ covariance @ jacobian.T
+
+
+def fuse_poses(
+    first: np.ndarray,
+    first_covariance: np.ndarray,
+    second: np.ndarray,
+    second_covariance: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The covariance-weighted combination of two estimates of one pose and its covariance;
+    None when a covariance is not positive definite (nothing to weigh by)."""
+    try:
+        first_information = np.linalg.inv(first_covariance)
+        second_information = np.linalg.inv(second_covariance)
+        covariance = np.linalg.inv(first_information + second_information)
+        np.linalg.cholesky(first_covariance)
+        np.linalg.cholesky(second_covariance)
+    except np.linalg.LinAlgError:
+        return None
+    xi = covariance @ second_information @ pose_difference(first, second)
+    if not np.isfinite(xi).all():
+        return None
+    return perturbed(first, xi), 0.5 * (covariance + covariance.T)
