@@ -377,15 +377,29 @@ class FusionBackend:
             return prediction
         step.accepted = True
         base = gtsam.noiseModel.Gaussian.Covariance(covariance)
+        noise = robust(base, self.config.robust_kernel, self.config.robust_parameter)
+        after_gap = self._last_fix_index != previous
+        mode = self.config.old_reference
+        if not live and (mode == "prior" or (mode == "prior-after-gap" and after_gap)):
+            # The reference has left the window: its estimate and the measurement place this
+            # frame in the world directly (as the front end's chain does), instead of through
+            # recent frames whose estimates the smoother still moves (after a gap, frames
+            # carried by the IMU alone).
+            placed = reference_pose @ body_measured
+            step.factors.add(
+                gtsam.PriorFactorPose3(pose_key(step.current), gtsam.Pose3(placed), noise)
+            )
+            self._window.oldest_reference = max(self._window.oldest_reference, reference)
+            return body_motion
         source, measured = (reference, body_measured) if live else (previous, body_motion)
-        if not live and self._last_fix_index != previous:
+        if not live and after_gap:
             source, measured = self._chained(step, measured, body_motion)
         step.factors.add(
             gtsam.BetweenFactorPose3(
                 pose_key(source),
                 pose_key(step.current),
                 gtsam.Pose3(measured),
-                robust(base, self.config.robust_kernel, self.config.robust_parameter),
+                noise,
             )
         )
         self._window.oldest_reference = max(self._window.oldest_reference, reference)
