@@ -1,4 +1,4 @@
-"""The factor graph: front-end relative poses + IMU factors + a motion prior.
+"""The factor graph: front-end relative poses + IMU factors + a motion prior (docs/backend.md).
 
 ``FusionBackend`` reads as the steps of a frame; each concern lives in a module of its own:
 the smoother and its keys (``smoother.py``), the frames it still holds and their final
@@ -6,24 +6,13 @@ estimates (``window.py``), the IMU factors (``imu_terms.py``), the outlier gate
 (``gating.py``), the motion prior (``motion_prior.py``), the start-up standstill
 (``standstill.py``) and the priors a graph starts from (``anchor.py``).
 
-One Pose3 per frame (body in world) and, with an IMU, one gyro bias per frame. Per frame k:
-
-* the front-end relative pose (left camera, moved into the body frame) as a robust
-  ``BetweenFactorPose3`` from the frame it was measured against (a keyframe) to X_k, with the
-  full 6x6 covariance of the rigid fit when the inlier points are given (``noise.py``),
-  unless it fails the outlier gate against the prediction (gyro rotation, constant-velocity
-  translation);
-* the gyro rotation factor, the bias random walk and, with the accelerometer, the inertial
-  factor (``imu_terms.py``);
-* otherwise the constant-velocity motion prior (``motion_prior.py``).
-
-Smoothed output: ``pose`` is the newest frame's estimate when it arrives (a filter answer);
-the smoother keeps revising a frame until it leaves the window, and that final estimate is
-handed out once (``FusedEstimate.final_poses``, then ``flush()`` at the end of a run).
-
-World frame: the first body pose, rotated so that z is up (roll and pitch from the mean
-accelerometer reading of the first frame's IMU batch, yaw = 0) when the IMU is used; without
-IMU (or without accelerometer data with the first frame) the world is the first body pose.
+Per frame k (one Pose3, body in world, and with an IMU one gyro bias): the front-end relative
+pose as a robust ``BetweenFactorPose3`` from the frame it was measured against (a keyframe) to
+X_k, with its 6x6 covariance (``noise.py``), unless it fails the outlier gate; the IMU factors;
+otherwise the constant-velocity motion prior. ``pose`` is the newest frame's estimate when it
+arrives; the final, smoothed estimate of a frame is handed out once when it leaves the window
+(``FusedEstimate.final_poses``, then ``flush()``). World: the first body pose, levelled (z up,
+yaw 0) from the first frame's accelerometer samples when the IMU is used.
 """
 
 from __future__ import annotations
