@@ -170,7 +170,7 @@ class BackendConfig(_Section):
     # estimates; "prior" places the frame in the world from the reference's estimate and the
     # measurement; "prior-after-gap" does so only for the first frames with vision after frames
     # without (their recent neighbours are carried by the IMU alone), else "chain".
-    old_reference: Literal["chain", "prior", "prior-after-gap"] = "prior-after-gap"
+    old_reference: Literal["chain", "prior", "prior-after-gap"] = "chain"
     cv_translation_sigma_m: float = Field(0.05, gt=0)
     cv_rotation_sigma_rad: float = Field(0.05, gt=0)
     # IMU: noise from sensor.yaml times a scale; bias random walk override (rad/s^2/sqrt(Hz)).

@@ -19,6 +19,8 @@ def _black_every_tenth(path: Path, frames: int) -> dict:
         sequence = open_sequence(path)
     perturbed = perturb_sequence(sequence, replace(PERTURBATIONS["black every 10th"], seed=0))
     config = build_config(seed=0, imu=True, backend=True)
+    backend = config.backend.model_copy(update={"old_reference": "prior-after-gap"})
+    config = config.model_copy(update={"backend": backend})
     summary, _ = summarize(run_sequence(perturbed, config, frames, use_imu=True))
     return summary
 
