@@ -174,6 +174,12 @@ class BackendConfig(_Section):
     # Constant-velocity prior between consecutive frames (per frame interval): on every frame
     # ("always": lets the robust kernel see a wrong relative pose) or only without vision.
     motion_prior: Literal["always", "gaps"] = "gaps"
+    # A relative pose whose reference frame has left the smoother's window: "chain" ties it to
+    # the previous frame (after a gap: the last one with vision) through their current
+    # estimates; "prior" places the frame in the world from the reference's estimate and the
+    # measurement; "prior-after-gap" does so only for the first frames with vision after frames
+    # without (their recent neighbours are carried by the IMU alone), else "chain".
+    old_reference: Literal["chain", "prior", "prior-after-gap"] = "chain"
     cv_translation_sigma_m: float = Field(0.05, gt=0)
     cv_rotation_sigma_rad: float = Field(0.05, gt=0)
     # IMU: noise from sensor.yaml times a scale; bias random walk override (rad/s^2/sqrt(Hz)).

@@ -350,7 +350,7 @@ def test_a_numerical_failure_inside_gtsam_restarts_the_graph_instead_of_crashing
     out = []
     for k, m in enumerate(measurements):
         if k == 10:
-            backend._smoother = Failing(backend._smoother)
+            backend._smoother.graph = Failing(backend._smoother.graph)
         out.append(
             backend.add_frame(
                 int(stamps[k]),
@@ -667,7 +667,7 @@ def test_a_front_end_covariance_must_be_a_finite_6x6():
 
 def _between_keys(backend: FusionBackend) -> set[tuple[int, int]]:
     """(from, to) frame indices of the relative-pose factors the smoother holds."""
-    graph = backend._smoother.getFactors()
+    graph = backend._smoother.graph.getFactors()
     pairs = set()
     for i in range(graph.size()):
         factor = graph.at(i)
@@ -677,14 +677,27 @@ def _between_keys(backend: FusionBackend) -> set[tuple[int, int]]:
     return pairs
 
 
-def test_after_a_gap_an_old_reference_is_reached_through_the_last_frame_with_vision():
+def _prior_keys(backend: FusionBackend) -> set[int]:
+    """Frame indices with a pose prior in the smoother's graph."""
+    graph = backend._smoother.graph.getFactors()
+    return {
+        gtsam.Symbol(graph.at(i).keys()[0]).index()
+        for i in range(graph.size())
+        if graph.at(i) is not None and isinstance(graph.at(i), gtsam.PriorFactorPose3)
+    }
+
+
+@pytest.mark.parametrize("old_reference", ["chain", "prior-after-gap"])
+def test_after_a_gap_an_old_reference_does_not_go_through_the_coasted_frame(old_reference):
     """Frame 20 has no vision; frame 21 is measured against frame 10, long out of the window.
-    Its factor starts at frame 19 (measured), not at the coasted frame 20, whose estimate is
-    only the motion prior's (or the IMU's) and would carry its error into frame 21."""
+    "chain": its factor starts at frame 19 (measured), not at the coasted frame 20, whose
+    estimate is only the motion prior's (or the IMU's) and would carry its error into frame 21.
+    "prior-after-gap": frame 21 is placed from frame 10's estimate directly (a pose prior)."""
     scenario = smooth_trajectory(24, seed=26)
     stamps = scenario.timestamps_ns
     camera = scenario.body_poses @ BODY_FROM_CAMERA
-    backend = FusionBackend(BackendConfig(), BODY_FROM_CAMERA, None)
+    config = BackendConfig(old_reference=old_reference)
+    backend = FusionBackend(config, BODY_FROM_CAMERA, None)
     backend.add_frame(int(stamps[0]), None, None, 0, None)
     for k in range(1, 22):
         reference = 10 if k > 10 else k - 1
@@ -695,7 +708,11 @@ def test_after_a_gap_an_old_reference_is_reached_through_the_last_frame_with_vis
         )  # fmt: skip
     assert out.status is FrameStatus.OK
     pairs = _between_keys(backend)
-    assert (19, 21) in pairs and (20, 21) not in pairs
-    estimated = invert_pose(backend._pose_estimate(19)) @ backend._pose_estimate(21)
+    assert (20, 21) not in pairs
+    if old_reference == "chain":
+        assert (19, 21) in pairs and 21 not in _prior_keys(backend)
+    else:
+        assert not any(second == 21 for _, second in pairs) and 21 in _prior_keys(backend)
+    estimated = invert_pose(backend._smoother.pose(19)) @ backend._smoother.pose(21)
     true = invert_pose(scenario.body_poses[19]) @ scenario.body_poses[21]
     assert np.linalg.norm(estimated[:3, 3] - true[:3, 3]) < 1e-6

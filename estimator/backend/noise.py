@@ -26,6 +26,7 @@ __all__ = [
     "fit_covariance",
     "measured_covariance",
     "pose_noise",
+    "relative_pose_covariance",
     "relative_pose_sigmas",
     "robust",
     "sigma_covariance",
@@ -124,3 +125,19 @@ def robust(base: gtsam.noiseModel.Base, kernel: str, parameter: float) -> gtsam.
     else:
         raise ValueError(f"unknown robust kernel {kernel!r} (huber, cauchy or none)")
     return gtsam.noiseModel.Robust.Create(estimator, base)
+
+
+def relative_pose_covariance(
+    covariance: np.ndarray | None,
+    inlier_points: np.ndarray | None,
+    inlier_residuals: np.ndarray | None,
+    inlier_count: int,
+    config: BackendConfig,
+) -> np.ndarray:
+    """Camera-frame covariance of a relative pose: the front end's own when it has one, else
+    the rigid fit's from the inlier points, else the diagonal one from the residuals."""
+    if covariance is not None:
+        return measured_covariance(covariance, config)
+    if inlier_points is not None and len(inlier_points) > 0:
+        return fit_covariance(inlier_points, inlier_residuals, config)
+    return sigma_covariance(relative_pose_sigmas(inlier_residuals, inlier_count, config))
