@@ -318,6 +318,7 @@ class FusionBackend:
             "gyro_bias": self._bias.tolist(),
             "accel_bias": self._accel_bias.tolist(),
             "gravity": self._gravity.tolist(),
+            "covariance_scale": self._calibration.state() if self._calibration else None,
         }
 
     def restore(self, state: dict[str, Any]) -> None:
@@ -331,6 +332,8 @@ class FusionBackend:
         self._bias = np.asarray(state["gyro_bias"], dtype=float).reshape(3)
         self._accel_bias = np.asarray(state["accel_bias"], dtype=float).reshape(3)
         self._gravity = np.asarray(state["gravity"], dtype=float).reshape(3)
+        if self._calibration is not None and state.get("covariance_scale"):
+            self._calibration.restore(state["covariance_scale"])
         self._starting = False
 
     # ------------------------------------------------------------------ graph building

@@ -225,7 +225,10 @@ class OdometryBuilder:
         if previous is not None:
             motion = invert_pose(previous[0]) @ body_pose
             change = covariance - _transport(previous[1], motion)
-            reported = _transport(previous[2], motion) + scale * change
+            values, vectors = np.linalg.eigh(0.5 * (change + change.T))
+            # What the smoother takes back is not scaled: a large factor would take it many times.
+            grown = (vectors * np.where(values > 0, scale * values, values)) @ vectors.T
+            reported = _transport(previous[2], motion) + grown
             values, vectors = np.linalg.eigh(0.5 * (reported + reported.T))
             reported = (vectors * np.clip(values, 0.0, None)) @ vectors.T
         self._previous_pose = (body_pose, covariance, reported)
