@@ -18,6 +18,13 @@ factor: the missing error affects both blocks alike in the benchmark (rendered 0
 MH_01 4.7 / 4.0 per DOF, rotation / translation), and the IMU cannot measure translation that
 finely. Without an IMU, or before ``covariance_scale_min_samples`` comparisons, the factor is 1.
 
+The session median does not follow episodes of a second or so in which the errors of
+consecutive measurements add up (they share a keyframe, and the back end's gyro bias follows
+them): on MH_01 a few windows had rotation errors 10-35 times their covariance. A time-local
+factor (:class:`ChainDisagreement`) compares the chained vision rotation over the last second
+with the gyro; the reported factor is the larger of the two (the session factor is the floor).
+Both are kept in the back end's resume state, so a resumed session continues with them.
+
 The factor scales the covariances the pipeline reports (odometry messages); the back end's
 factor noise is left as it is, so the trajectory does not change.
 """
