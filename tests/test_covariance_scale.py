@@ -178,5 +178,7 @@ def test_a_restored_back_end_continues_with_the_stored_factors() -> None:
     continued = _run(resumed, range(100, 110))
     assert continued[0].covariance_scale == pytest.approx(stored, rel=1e-9)
     assert all(abs(np.log(e.covariance_scale / stored)) < np.log(2.0) for e in continued)
+    # the pose's factor is the session's raised by the local one, never below it
+    assert all(e.pose_covariance_scale >= e.covariance_scale for e in continued)
     fresh = _run(FusionBackend(BackendConfig(), CAMERA_MOUNT, ImuNoise()), range(100, 110))
     assert fresh[0].covariance_scale == 1.0  # without the state: from 1 again

@@ -22,7 +22,7 @@ The session median does not follow episodes of a second or so in which the error
 consecutive measurements add up (they share a keyframe, and the back end's gyro bias follows
 them): on MH_01 a few windows had rotation errors 10-35 times their covariance. A time-local
 factor (:class:`ChainDisagreement`) compares the chained vision rotation over the last second
-with the gyro; the reported factor is the larger of the two (the session factor is the floor).
+with the gyro; the pose covariance's growth is scaled by the larger of the two.
 Both are kept in the back end's resume state, so a resumed session continues with them.
 
 The factor scales the covariances the pipeline reports (odometry messages); the back end's
@@ -298,9 +298,11 @@ def _positive(covariance: np.ndarray) -> np.ndarray:
 class GyroCalibration:
     """The back end's side: the gyro chain of the frames and the factors measured along it.
 
-    The reported factor is the larger of the session's and the time-local one
-    (:class:`ChainDisagreement`): the session factor is the floor, the local one inflates
-    the covariances through episodes the session median does not follow.
+    ``value`` (the session's factor) scales the frame-to-frame covariances (twist,
+    measurements); ``pose_value``, the larger of it and the time-local one
+    (:class:`ChainDisagreement`), scales the growth of the pose covariance through episodes
+    the session median does not follow (errors adding up over a second do not make a single
+    frame's twist worse than the session factor says: rendered flights, ``bench consistency``).
     """
 
     def __init__(self, config: BackendConfig, body_from_camera: np.ndarray) -> None:
@@ -326,11 +328,13 @@ class GyroCalibration:
 
     @property
     def value(self) -> float:
-        if not self.enabled:
-            return 1.0
+        return self.scale.value if self.enabled else 1.0
+
+    @property
+    def pose_value(self) -> float:
         if self.local is None:
-            return self.scale.value
-        return max(self.scale.value, self.local.value)
+            return self.value
+        return max(self.value, self.local.value) if self.enabled else 1.0
 
     def state(self) -> dict[str, Any]:
         """The factors, for a continuation in another process (JSON-ready)."""

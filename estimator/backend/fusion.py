@@ -138,6 +138,7 @@ class FusedEstimate:
     # Factor on the covariances reported for this frame, measured against the gyro
     # (``covariance_scale.py``; 1 without an IMU). The graph's own noise does not use it.
     covariance_scale: float = 1.0
+    pose_covariance_scale: float = 1.0  # the pose's growth: raised through episodes as well
 
 
 @dataclass
@@ -908,6 +909,7 @@ class FusionBackend:
             body_covariance=covariance,
             body_motion_covariance=motion_covariance,
             covariance_scale=self._calibration.value if self._calibration is not None else 1.0,
+            pose_covariance_scale=self._calibration.pose_value if self._calibration else 1.0,
         )
 
     def _marginals(self, motion: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:

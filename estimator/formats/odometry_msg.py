@@ -192,7 +192,8 @@ class OdometryBuilder:
         odom_pose = self._odom_from_world @ body_pose
         self._previous_ns = report.timestamp_ns
         scale = report.covariance_scale if self.calibrated else 1.0
-        pose_covariance = self._scaled_pose_covariance(pose_covariance, body_pose, max(scale, 1.0))
+        pose_scale = max(report.pose_covariance_scale if self.calibrated else 1.0, 1.0)
+        pose_covariance = self._scaled_pose_covariance(pose_covariance, body_pose, pose_scale)
         return OdometryMessage(
             stamp_ns=report.timestamp_ns,
             frame_id=ODOM_FRAME,
