@@ -171,6 +171,10 @@ class BackendConfig(_Section):
     covariance_scale_max: float = Field(16.0, ge=1)
     covariance_scale_window: int = Field(400, ge=5)
     covariance_scale_gyro_bias_sigma: float = Field(2e-4, ge=0)
+    # Time-local factor (the larger one is reported): the vision chain against the gyro over
+    # stretches of ``local_window_s``, the last ``local_count`` of them (0: off).
+    covariance_scale_local_window_s: float = Field(1.0, gt=0)
+    covariance_scale_local_count: int = Field(10, ge=0)
     # Constant-velocity prior between consecutive frames (per frame interval): on every frame
     # ("always": lets the robust kernel see a wrong relative pose) or only without vision.
     motion_prior: Literal["always", "gaps"] = "gaps"

@@ -108,3 +108,5 @@ class FrameReport:
     # Per-session factor on the reported covariances, measured online against the gyro
     # (``estimator.backend.covariance_scale``); 1 without an IMU or the back end.
     covariance_scale: float = 1.0
+    # The factor on the pose covariance's growth: at least the one above, raised through episodes.
+    pose_covariance_scale: float = 1.0

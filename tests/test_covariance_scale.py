@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
+
 import gtsam
 import numpy as np
 import pytest
 
 from estimator.backend import FusionBackend
-from estimator.backend.covariance_scale import CovarianceScale
+from estimator.backend.covariance_scale import ChainDisagreement, CovarianceScale
 from estimator.config import BackendConfig
 from estimator.geometry import invert_pose
 from estimator.rendered.scenario import CAMERA_MOUNT, smooth_trajectory
@@ -100,3 +102,83 @@ def test_the_frame_interval_is_the_median_of_the_first_intervals() -> None:
     assert answers[2] is None and answers[3] is None  # a dropped frame does not move it
     assert estimate.interval_s == pytest.approx(0.1)
     assert estimate.add(2_000_000_000) is None  # only the first intervals count
+
+
+def _keyframe_flight(
+    scale: CovarianceScale, local: ChainDisagreement, factors: list[float], seed: int = 5
+) -> list[tuple[float, float]]:
+    """Frames at 20 Hz, each measured against its keyframe (a new one every 4 frames), the
+    vision rotation error of frame k being ``factors[k]`` times its stated covariance and the
+    gyro exact; (session factor, local factor) after each frame."""
+    rng = np.random.default_rng(seed)
+    vision = np.diag([1e-3, 2e-3, 1.5e-3]) ** 2
+    gyro = np.eye(3) * 1e-10
+    step = 50_000_000
+    out = []
+    for k in range(1, len(factors)):
+        reference = (k - 1) // 4 * 4
+        truth = gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05).matrix()
+        error = rng.multivariate_normal(np.zeros(3), factors[k] * vision)
+        measured = truth @ gtsam.Rot3.Expmap(error).matrix()
+        duration = (k - reference) * step * 1e-9
+        scale.observe(measured, vision, truth, gyro, duration)
+        local.add(k * step, reference * step, measured, vision, truth, gyro)
+        out.append((scale.value, local.value))
+    return out
+
+
+def test_the_local_factor_follows_an_episode_that_the_session_median_misses() -> None:
+    # 6 s calm, 1 s with errors 25 times the stated covariance, 3 s calm again.
+    factors = [1.0] * 120 + [25.0] * 20 + [1.0] * 60
+    values = _keyframe_flight(
+        CovarianceScale(bias_sigma=0.0), ChainDisagreement(bias_sigma=0.0), factors
+    )
+    session, local = np.array(values).T
+    assert 0.4 < np.median(local[40:118]) < 2.5  # calm: about 1
+    assert local[118:145].max() > 8.0  # the episode is seen within a second
+    assert session[118:145].max() < 2.0  # the session median hardly moves
+    assert local[-1] < 3.0  # and forgotten a second or two after it
+
+
+def test_the_local_factor_is_bounded_and_starts_without_inflation() -> None:
+    local = ChainDisagreement(bounds=(0.25, 4.0), bias_sigma=0.0)
+    assert local.value == 0.25  # no stretch yet
+    values = _keyframe_flight(CovarianceScale(), local, [400.0] * 60)
+    assert values[-1][1] == 4.0
+
+
+def _run(backend: FusionBackend, frames: range, factor: float = 9.0, seed: int = 11) -> list:
+    """Frames of the simulated flight (``_fused``) handed to ``backend``."""
+    scenario = smooth_trajectory(200, seed=4)
+    camera = scenario.body_poses @ CAMERA_MOUNT
+    rng = np.random.default_rng(seed)
+    covariance = np.diag(VISION_SIGMAS**2)
+    stamps, out = scenario.timestamps_ns, []
+    for k in frames:
+        start = stamps[k - 1] if k else stamps[0] - 10**8
+        relative = None
+        if k != frames[0]:
+            error = rng.multivariate_normal(np.zeros(6), factor * covariance)
+            relative = invert_pose(camera[k - 1]) @ camera[k] @ gtsam.Pose3.Expmap(error).matrix()
+        imu = scenario.imu.between(int(start), int(stamps[k]))
+        out.append(backend.add_frame(
+            int(stamps[k]), relative, None, 100, imu,
+            covariance=covariance if relative is not None else None,
+        ))
+    return out
+
+
+def test_a_restored_back_end_continues_with_the_stored_factors() -> None:
+    first = FusionBackend(BackendConfig(), CAMERA_MOUNT, ImuNoise())
+    stored = _run(first, range(0, 100))[-1].covariance_scale
+    assert stored > 3.0  # the injected 9 is being measured
+    state = json.loads(json.dumps(first.state()))  # as the service stores it
+    resumed = FusionBackend(BackendConfig(), CAMERA_MOUNT, ImuNoise())
+    resumed.restore(state)
+    continued = _run(resumed, range(100, 110))
+    assert continued[0].covariance_scale == pytest.approx(stored, rel=1e-9)
+    assert all(abs(np.log(e.covariance_scale / stored)) < np.log(2.0) for e in continued)
+    # the pose's factor is the session's raised by the local one, never below it
+    assert all(e.pose_covariance_scale >= e.covariance_scale for e in continued)
+    fresh = _run(FusionBackend(BackendConfig(), CAMERA_MOUNT, ImuNoise()), range(100, 110))
+    assert fresh[0].covariance_scale == 1.0  # without the state: from 1 again

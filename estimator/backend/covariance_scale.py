@@ -18,6 +18,13 @@ factor: the missing error affects both blocks alike in the benchmark (rendered 0
 MH_01 4.7 / 4.0 per DOF, rotation / translation), and the IMU cannot measure translation that
 finely. Without an IMU, or before ``covariance_scale_min_samples`` comparisons, the factor is 1.
 
+The session median does not follow episodes of a second or so in which the errors of
+consecutive measurements add up (they share a keyframe, and the back end's gyro bias follows
+them): on MH_01 a few windows had rotation errors 10-35 times their covariance. A time-local
+factor (:class:`ChainDisagreement`) compares the chained vision rotation over the last second
+with the gyro; the pose covariance's growth is scaled by the larger of the two.
+Both are kept in the back end's resume state, so a resumed session continues with them.
+
 The factor scales the covariances the pipeline reports (odometry messages); the back end's
 factor noise is left as it is, so the trajectory does not change.
 """
@@ -25,6 +32,8 @@ factor noise is left as it is, so the trajectory does not change.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -34,10 +43,41 @@ from estimator.backend.imu import GyroPreintegration
 from estimator.config import BackendConfig
 from estimator.geometry import invert_pose
 
-__all__ = ["CovarianceScale", "GyroCalibration", "GyroChain"]
+__all__ = ["ChainDisagreement", "CovarianceScale", "GyroCalibration", "GyroChain"]
 
 _CHI2_3_MEDIAN = float(chi2.ppf(0.5, 3))  # 2.366
+_CHI2_3_MEAN = 3.0
 _BISECTION_STEPS = 40
+
+
+def solve_factor(
+    statistic: Callable[[np.ndarray], float],
+    target: float,
+    errors: np.ndarray,
+    vision: np.ndarray,
+    gyro: np.ndarray,
+    bounds: tuple[float, float],
+) -> float:
+    """The factor s whose ``statistic`` of q(s) = e^T (s V + G)^-1 e over the samples equals
+    ``target``; q falls as s grows, so bisection on log s finds it (or a bound)."""
+
+    def value(log_scale: float) -> float:
+        covariance = np.exp(log_scale) * vision + gyro
+        solved = np.linalg.solve(covariance, errors[..., None])[..., 0]
+        return float(statistic(np.einsum("ni,ni->n", errors, solved)))
+
+    low, high = np.log(bounds[0]), np.log(bounds[1])
+    if value(high) >= target:
+        return bounds[1]
+    if value(low) <= target:
+        return bounds[0]
+    for _ in range(_BISECTION_STEPS):
+        middle = 0.5 * (low + high)
+        if value(middle) > target:
+            low = middle
+        else:
+            high = middle
+    return float(np.exp(0.5 * (low + high)))
 
 
 class GyroChain:
@@ -141,45 +181,173 @@ class CovarianceScale:
             self._value = self._solve()
         return self._value
 
-    def _median_q(self, scale: float, errors: np.ndarray, vision: np.ndarray,
-                  gyro: np.ndarray) -> float:
-        solved = np.linalg.solve(scale * vision + gyro, errors[..., None])[..., 0]
-        return float(np.median(np.einsum("ni,ni->n", errors, solved)))
-
     def _solve(self) -> float:
-        """The factor whose median normalised disagreement is chi-square(3)'s median; q falls
-        as the factor grows, so bisection on its logarithm finds it (or a bound)."""
+        """The factor whose median normalised disagreement is chi-square(3)'s median."""
         errors, vision, gyro = np.array(self._errors), np.array(self._vision), np.array(self._gyro)
-        low, high = np.log(self.bounds[0]), np.log(self.bounds[1])
-        if self._median_q(np.exp(high), errors, vision, gyro) >= _CHI2_3_MEDIAN:
-            return self.bounds[1]
-        if self._median_q(np.exp(low), errors, vision, gyro) <= _CHI2_3_MEDIAN:
-            return self.bounds[0]
-        for _ in range(_BISECTION_STEPS):
-            middle = 0.5 * (low + high)
-            if self._median_q(np.exp(middle), errors, vision, gyro) > _CHI2_3_MEDIAN:
-                low = middle
-            else:
-                high = middle
-        return float(np.exp(0.5 * (low + high)))
+        return solve_factor(np.median, _CHI2_3_MEDIAN, errors, vision, gyro, self.bounds)
+
+    def state(self) -> dict[str, float]:
+        return {"value": self._value}
+
+    def restore(self, state: dict[str, float]) -> None:
+        """Continue from a stored factor; it holds until ``min_samples`` new comparisons."""
+        self._value = float(np.clip(state["value"], *self.bounds))
+
+
+class ChainDisagreement:
+    """Time-local factor: the vision chain against the gyro chain over the last ``window_s``.
+
+    The session factor is a median over many short keyframe-to-frame comparisons; it does not
+    follow episodes in which the vision errors of consecutive measurements add up (they share
+    their keyframe, and the back end's gyro bias follows them), which is what makes a pose
+    over-confident over a second. Here the chained vision rotation from the keyframe about
+    ``window_s`` back to the current frame is compared with the gyro over the same time,
+    against the chained covariance of that stretch (keyframe-to-keyframe measurements are
+    independent, so it is the difference of the two chained covariances) plus the gyro's,
+    with a bias error allowance growing with the duration. ``count`` recent stretches give the
+    factor whose mean q is chi-square(3)'s mean: the mean, so that one bad second counts.
+    """
+
+    def __init__(
+        self,
+        window_s: float = 1.0,
+        count: int = 10,
+        bounds: tuple[float, float] = (1 / 16, 16.0),
+        bias_sigma: float = 2e-4,
+    ) -> None:
+        self.window_ns = round(window_s * 1e9)
+        self.bounds = bounds
+        self.bias_sigma = float(bias_sigma)
+        # timestamp -> chained (vision rotation, its covariance, gyro rotation, its covariance)
+        self._chain: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._keyframes: list[int] = []  # stamps used as references, oldest first
+        self._samples: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=count)
+        self._value = bounds[0]  # no stretch yet: no inflation
+
+    @property
+    def value(self) -> float:
+        return self._value
+
+    def add(
+        self,
+        timestamp_ns: int,
+        reference_ns: int,
+        vision_rotation: np.ndarray,
+        vision_covariance: np.ndarray,
+        gyro_rotation: np.ndarray,
+        gyro_covariance: np.ndarray,
+    ) -> float:
+        """Chain one keyframe-to-frame comparison (body frame) and return the local factor."""
+        if reference_ns not in self._chain:  # a restart: the chain begins at the reference
+            self._chain = {reference_ns: (np.eye(3), np.zeros((3, 3)), np.eye(3), np.zeros((3, 3)))}
+            self._keyframes = []
+        if not self._keyframes or self._keyframes[-1] != reference_ns:
+            self._keyframes.append(reference_ns)
+        base_v, cov_v, base_g, cov_g = self._chain[reference_ns]
+        self._chain[timestamp_ns] = (
+            base_v @ vision_rotation,
+            vision_rotation.T @ cov_v @ vision_rotation + vision_covariance,
+            base_g @ gyro_rotation,
+            gyro_rotation.T @ cov_g @ gyro_rotation + gyro_covariance,
+        )
+        anchors = [k for k in self._keyframes if timestamp_ns - k <= self.window_ns]
+        if anchors and timestamp_ns - anchors[0] >= self.window_ns // 2:
+            self._samples.append(self._stretch(anchors[0], timestamp_ns))
+            errors, vision, gyro = (np.array(part) for part in zip(*self._samples, strict=True))
+            self._value = solve_factor(np.mean, _CHI2_3_MEAN, errors, vision, gyro, self.bounds)
+        self._forget(timestamp_ns, reference_ns)
+        return self._value
+
+    def _stretch(self, first_ns: int, last_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(error, vision covariance, gyro covariance) of the chained motion first -> last."""
+        first_v, first_cov_v, first_g, first_cov_g = self._chain[first_ns]
+        last_v, last_cov_v, last_g, last_cov_g = self._chain[last_ns]
+        vision = first_v.T @ last_v
+        gyro = first_g.T @ last_g
+        error = np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(gyro.T @ vision)))
+        duration = (last_ns - first_ns) * 1e-9
+        bias = (self.bias_sigma * duration) ** 2 * np.eye(3)
+        return (
+            error,
+            _positive(last_cov_v - vision.T @ first_cov_v @ vision),
+            _positive(last_cov_g - gyro.T @ first_cov_g @ gyro) + bias,
+        )
+
+    def _forget(self, timestamp_ns: int, reference_ns: int) -> None:
+        """Keep the frames a later stretch or measurement may start from."""
+        horizon = timestamp_ns - 2 * self.window_ns
+        self._keyframes = [k for k in self._keyframes if k >= horizon or k == reference_ns]
+        keep = set(self._keyframes) | {timestamp_ns, reference_ns}
+        for stamp in [s for s in self._chain if s < horizon and s not in keep]:
+            del self._chain[stamp]
+
+    def state(self) -> dict[str, float]:
+        return {"value": self._value}
+
+    def restore(self, state: dict[str, float]) -> None:
+        """Continue from a stored factor; it holds until the first new stretch."""
+        self._value = float(np.clip(state["value"], *self.bounds))
+
+
+def _positive(covariance: np.ndarray) -> np.ndarray:
+    """Symmetric with eigenvalues clipped at zero (a difference of chained covariances)."""
+    values, vectors = np.linalg.eigh(0.5 * (covariance + covariance.T))
+    return (vectors * np.clip(values, 0.0, None)) @ vectors.T
 
 
 class GyroCalibration:
-    """The back end's side: the gyro chain of the frames and the factor measured along it."""
+    """The back end's side: the gyro chain of the frames and the factors measured along it.
+
+    ``value`` (the session's factor) scales the frame-to-frame covariances (twist,
+    measurements); ``pose_value``, the larger of it and the time-local one
+    (:class:`ChainDisagreement`), scales the growth of the pose covariance through episodes
+    the session median does not follow (errors adding up over a second do not make a single
+    frame's twist worse than the session factor says: rendered flights, ``bench consistency``).
+    """
 
     def __init__(self, config: BackendConfig, body_from_camera: np.ndarray) -> None:
         self.body_from_camera = np.asarray(body_from_camera, dtype=float)
         self.enabled = config.covariance_scale == "gyro"
+        bounds = (1.0 / config.covariance_scale_max, config.covariance_scale_max)
         self.scale = CovarianceScale(
             window=config.covariance_scale_window,
-            bounds=(1.0 / config.covariance_scale_max, config.covariance_scale_max),
+            bounds=bounds,
             bias_sigma=config.covariance_scale_gyro_bias_sigma,
+        )
+        self.local = (
+            ChainDisagreement(
+                config.covariance_scale_local_window_s,
+                config.covariance_scale_local_count,
+                bounds,
+                config.covariance_scale_gyro_bias_sigma,
+            )
+            if config.covariance_scale_local_count > 0
+            else None
         )
         self.chain = GyroChain()
 
     @property
     def value(self) -> float:
         return self.scale.value if self.enabled else 1.0
+
+    @property
+    def pose_value(self) -> float:
+        if self.local is None:
+            return self.value
+        return max(self.value, self.local.value) if self.enabled else 1.0
+
+    def state(self) -> dict[str, Any]:
+        """The factors, for a continuation in another process (JSON-ready)."""
+        return {
+            "session": self.scale.state(),
+            "local": self.local.state() if self.local is not None else None,
+        }
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Continue with the stored factors until new comparisons replace them."""
+        self.scale.restore(state["session"])
+        if self.local is not None and state.get("local"):
+            self.local.restore(state["local"])
 
     def add_frame(
         self,
@@ -204,5 +372,9 @@ class GyroCalibration:
             measured = self.body_from_camera @ relative_pose @ camera_from_body
             duration = (timestamp_ns - reference_ns) * 1e-9
             self.scale.observe(measured[:3, :3], covariance[:3, :3], gyro[0], gyro[1], duration)
+            if self.local is not None:
+                self.local.add(
+                    timestamp_ns, reference_ns, measured[:3, :3], covariance[:3, :3], *gyro
+                )
         self.chain.forget_before(reference_ns)
         return self.value

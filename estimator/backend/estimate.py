@@ -39,6 +39,7 @@ class FusedEstimate:
     # Factor on the covariances reported for this frame, measured against the gyro
     # (``covariance_scale.py``; 1 without an IMU). The graph's own noise does not use it.
     covariance_scale: float = 1.0
+    pose_covariance_scale: float = 1.0  # the pose's growth: raised through episodes as well
 
 
 _EYE3 = np.eye(3)

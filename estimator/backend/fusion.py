@@ -150,6 +150,7 @@ class FusionBackend:
             "gyro_bias": self._bias.tolist(),
             "accel_bias": self._accel_bias.tolist(),
             "gravity": self._gravity.tolist(),
+            "covariance_scale": self._calibration.state() if self._calibration else None,
         }
 
     def restore(self, state: dict[str, Any]) -> None:
@@ -163,6 +164,8 @@ class FusionBackend:
         self._bias = np.asarray(state["gyro_bias"], dtype=float).reshape(3)
         self._accel_bias = np.asarray(state["accel_bias"], dtype=float).reshape(3)
         self._gravity = np.asarray(state["gravity"], dtype=float).reshape(3)
+        if self._calibration is not None and state.get("covariance_scale"):
+            self._calibration.restore(state["covariance_scale"])
         self._rest.starting = False
 
     def flush(self) -> tuple[tuple[int, np.ndarray], ...]:
@@ -497,4 +500,5 @@ class FusionBackend:
             body_covariance=covariance,
             body_motion_covariance=motion_covariance,
             covariance_scale=self._calibration.value if self._calibration is not None else 1.0,
+            pose_covariance_scale=self._calibration.pose_value if self._calibration else 1.0,
         )

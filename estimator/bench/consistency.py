@@ -16,8 +16,9 @@ frame, with the covariance each was reported with; ``estimator.consistency.measu
 with ``lag1`` the correlation of consecutive errors against the same keyframe and across a
 keyframe change.
 
-With the IMU the covariances are scaled by the session's factor measured online against the
-gyro (``estimator.backend.covariance_scale``): the ``fused`` rows are what the messages
+With the IMU the covariances are scaled by the factor measured online against the gyro
+(``estimator.backend.covariance_scale``: the session's, raised by a time-local one through
+episodes of larger errors): the ``fused`` rows are what the messages
 report, the ``fused fixed model`` rows the same run without the factor (the noise model
 alone), ``fused measurement`` the front end's measurements of that run with the factor, and
 ``covariance scale`` the factor at the last frame (and its range over the run). The modes

@@ -192,7 +192,8 @@ class OdometryBuilder:
         odom_pose = self._odom_from_world @ body_pose
         self._previous_ns = report.timestamp_ns
         scale = report.covariance_scale if self.calibrated else 1.0
-        pose_covariance = self._scaled_pose_covariance(pose_covariance, body_pose, max(scale, 1.0))
+        pose_scale = max(report.pose_covariance_scale if self.calibrated else 1.0, 1.0)
+        pose_covariance = self._scaled_pose_covariance(pose_covariance, body_pose, pose_scale)
         return OdometryMessage(
             stamp_ns=report.timestamp_ns,
             frame_id=ODOM_FRAME,
@@ -225,7 +226,10 @@ class OdometryBuilder:
         if previous is not None:
             motion = invert_pose(previous[0]) @ body_pose
             change = covariance - _transport(previous[1], motion)
-            reported = _transport(previous[2], motion) + scale * change
+            values, vectors = np.linalg.eigh(0.5 * (change + change.T))
+            # What the smoother takes back is not scaled: a large factor would take it many times.
+            grown = (vectors * np.where(values > 0, scale * values, values)) @ vectors.T
+            reported = _transport(previous[2], motion) + grown
             values, vectors = np.linalg.eigh(0.5 * (reported + reported.T))
             reported = (vectors * np.clip(values, 0.0, None)) @ vectors.T
         self._previous_pose = (body_pose, covariance, reported)

@@ -426,4 +426,5 @@ class Odometry:
             body_motion=fused.body_motion if fused is not None else None,
             body_motion_covariance=fused.body_motion_covariance if fused is not None else None,
             covariance_scale=fused.covariance_scale if fused is not None else 1.0,
+            pose_covariance_scale=fused.pose_covariance_scale if fused is not None else 1.0,
         )
