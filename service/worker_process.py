@@ -7,6 +7,7 @@ name, hence module level).
 
 from __future__ import annotations
 
+import logging
 import multiprocessing
 import multiprocessing.connection
 import os
@@ -61,6 +62,8 @@ def worker_init(factory: PipelineFactory) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     threading.Thread(target=_exit_with_parent, name="swarmvo-parent-watch", daemon=True).start()
     single_threaded_opencv()
+    if not logging.getLogger().handlers:  # spawned: the server's logging is not inherited
+        logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     warm_up = getattr(factory, "warm_up", None)
     if callable(warm_up):
         warm_up()
