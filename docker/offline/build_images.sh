@@ -19,6 +19,10 @@ if ! docker image inspect swarmvo-offline/debian:bookworm >/dev/null 2>&1; then
     fi
     tar -C "$rootfs" -c . | docker import - swarmvo-offline/debian:bookworm
 fi
-"${build[@]}" -t swarmvo-offline/python:3.11 -f "$here/python.Dockerfile" "$here"
+context="$(mktemp -d)"
+trap 'rm -rf "$context"' EXIT
+mkdir "$context/ca-certificates"
+cp /usr/local/share/ca-certificates/*.crt "$context/ca-certificates/" 2>/dev/null || true
+"${build[@]}" -t swarmvo-offline/python:3.11 -f "$here/python.Dockerfile" "$context"
 "${build[@]}" -t swarmvo-offline/nginx -f "$here/nginx.Dockerfile" "$here"
 "${build[@]}" -t swarmvo-offline/postgres -f "$here/postgres.Dockerfile" "$here"
