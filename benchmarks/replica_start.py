@@ -30,7 +30,9 @@ from cluster import new_session, open_local_sequence, render_flights
 from local_cluster import PROJECT_ROOT, REPLICA_CODE, free_port
 
 
-def post_frame(url: str, key: str, session_id: str, sequence, index: int) -> float:
+def post_frame(url: str, key: str, session_id: str, sequence, index: int
+               ) -> tuple[float, int, str]:
+    """Seconds to the answer, its status and (when refused) its reason."""
     left, right = sequence.frame_bytes(index)
     start = time.perf_counter()
     answer = httpx.post(
@@ -38,8 +40,9 @@ def post_frame(url: str, key: str, session_id: str, sequence, index: int) -> flo
         files={"left": ("l.png", left, "image/png"), "right": ("r.png", right, "image/png")},
         data={"timestamp_ns": str(sequence.frames[index].timestamp_ns)}, timeout=900,
     )
-    answer.raise_for_status()
-    return time.perf_counter() - start
+    seconds = time.perf_counter() - start
+    detail = "" if answer.status_code == 200 else answer.json().get("detail", "")[:120]
+    return seconds, answer.status_code, detail
 
 
 def measure(cache: Path, frames: int) -> dict[str, object]:
@@ -66,13 +69,15 @@ def measure(cache: Path, frames: int) -> dict[str, object]:
                 time.sleep(0.1)
             healthy_s = time.perf_counter() - started
             session = new_session(url, key, sequence, "fresh")
-            latencies = [post_frame(url, key, session, sequence, i) for i in range(frames)]
+            answers = [post_frame(url, key, session, sequence, i) for i in range(frames)]
         finally:
             process.terminate()
             process.wait(timeout=60)
     return {"start_to_healthy_s": round(healthy_s, 2),
-            "frame_latency_s": [round(x, 3) for x in latencies],
-            "start_to_first_answer_s": round(healthy_s + latencies[0], 2)}
+            "frame_latency_s": [round(seconds, 3) for seconds, _s, _d in answers],
+            "frame_status": [status for _l, status, _d in answers],
+            "refusals": sorted({detail for _l, _s, detail in answers if detail}),
+            "start_to_first_answer_s": round(healthy_s + answers[0][0], 2)}
 
 
 def main(argv: list[str] | None = None) -> int:

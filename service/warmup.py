@@ -27,23 +27,25 @@ class WarmUp:
     loaded: int  # kernel signatures loaded from the cache
 
 
-def _kernel_cache_counts() -> tuple[int, int]:
-    """Cache misses and hits of every numba dispatcher alive in this process."""
+def cached_kernels() -> dict[str, tuple[int, int]]:
+    """Cache misses and hits of each cached numba kernel alive in this process, by name."""
     from numba.core.caching import NullCache
     from numba.core.registry import CPUDispatcher
 
-    misses = hits = 0
+    counts: dict[str, tuple[int, int]] = {}
     for obj in gc.get_objects():
         if isinstance(obj, CPUDispatcher) and not isinstance(obj._cache, NullCache):
-            misses += sum(obj.stats.cache_misses.values())
-            hits += sum(obj.stats.cache_hits.values())
-    return misses, hits
+            name = f"{obj.py_func.__module__}.{obj.py_func.__qualname__}"
+            misses, hits = counts.get(name, (0, 0))
+            counts[name] = (misses + sum(obj.stats.cache_misses.values()),
+                            hits + sum(obj.stats.cache_hits.values()))
+    return counts
 
 
 def warm_up() -> WarmUp:
     """The workers' own warm-up run, failing loudly, plus the other registration kernels."""
     import estimator
-    from estimator.registration.swarm_kernels import fit_pose
+    from estimator.registration.swarm_kernels import degenerate_points, fit_pose
     from service.estimator_adapter import EstimatorFactory, synthetic_run
 
     start = time.perf_counter()
@@ -53,12 +55,13 @@ def warm_up() -> WarmUp:
     estimator.register(points, points + 1.0, seed=0, sigmas=np.ones(len(points)))
     estimator.register(points, points + 1.0, method="pso", seed=0)
     # Reached only when the threshold ladder judges an unsettled set (real frames, not the
-    # synthetic ones): its kernel would otherwise be compiled during a robot's first frames.
+    # synthetic ones): these kernels would otherwise be compiled during a robot's first frames.
     everyone = np.ones(len(points), dtype=bool)
+    degenerate_points(points, np.flatnonzero(everyone))
     fit_pose(points, points + 1.0, everyone, np.ones(len(points)), np.ones(len(points)))
     seconds = time.perf_counter() - start
-    compiled, loaded = _kernel_cache_counts()
-    return WarmUp(seconds, compiled, loaded)
+    counts = cached_kernels().values()
+    return WarmUp(seconds, sum(m for m, _h in counts), sum(h for _m, h in counts))
 
 
 def main(argv: list[str] | None = None) -> int:
