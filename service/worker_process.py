@@ -74,6 +74,11 @@ def worker_frame(request: FrameRequest) -> FrameProcessed | FrameFailure:
     return compute_frame(_pipelines, _factory, request)
 
 
+def worker_prepare(request: tuple) -> PreparedSession:
+    assert _factory is not None
+    return _factory.prepare(*request)
+
+
 def worker_check(prepared: PreparedSession) -> str | None:
     assert _factory is not None
     return session_problem(_factory, prepared)

@@ -1,6 +1,7 @@
 #!/bin/sh
-# A new data folder gets the user (password authentication over TCP) and the database;
-# then the server runs in the foreground as the postgres user.
+# A new data folder gets the user (password authentication over TCP) and the database, in UTF-8
+# (psycopg hands the text of an SQL_ASCII database over as bytes); then the server runs in the
+# foreground as the postgres user.
 set -eu
 bin=$(ls -d /usr/lib/postgresql/*/bin | tail -n 1)
 mkdir -p "$PGDATA" /var/run/postgresql
@@ -11,7 +12,8 @@ if [ ! -s "$PGDATA/PG_VERSION" ]; then
     printf '%s\n' "$POSTGRES_PASSWORD" > "$password_file"
     chown postgres "$password_file"
     runuser -u postgres -- "$bin/initdb" -D "$PGDATA" -U "$POSTGRES_USER" \
-        --pwfile="$password_file" --auth-local=trust --auth-host=scram-sha-256
+        --pwfile="$password_file" --auth-local=trust --auth-host=scram-sha-256 \
+        --encoding=UTF8 --locale=C.UTF-8
     rm -f "$password_file"
     echo "host all all all scram-sha-256" >> "$PGDATA/pg_hba.conf"
     echo "CREATE DATABASE \"$POSTGRES_DB\" OWNER \"$POSTGRES_USER\";" \

@@ -71,7 +71,8 @@ def _create_session(
             "too_many_sessions",
         )
     try:
-        prepared = state.factory.prepare(calibration, config, imu_noise, frame_rate_hz)
+        prepared = state.manager.runner.prepare_session(
+            (calibration, config, imu_noise, frame_rate_hz))
         problems = work_limit_problems(prepared.config) + image_size_problems(
             prepared.image_size, state.settings
         )
