@@ -45,6 +45,14 @@ def post_frame(url: str, key: str, session_id: str, sequence, index: int
     return seconds, answer.status_code, detail
 
 
+def rss_mb(pid: int) -> float:
+    """The server process alone (its workers hold the estimator whatever the server does)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return round(int(line.split()[1]) / 1024, 1)
+    raise RuntimeError(f"no VmRSS for process {pid}")
+
+
 def measure(cache: Path, frames: int) -> dict[str, object]:
     sequence = open_local_sequence(render_flights(1, 20)[0])
     key = secrets.token_hex(8)
@@ -70,6 +78,7 @@ def measure(cache: Path, frames: int) -> dict[str, object]:
             healthy_s = time.perf_counter() - started
             session = new_session(url, key, sequence, "fresh")
             answers = [post_frame(url, key, session, sequence, i) for i in range(frames)]
+            server_rss_mb = rss_mb(process.pid)
         finally:
             process.terminate()
             process.wait(timeout=60)
@@ -77,7 +86,8 @@ def measure(cache: Path, frames: int) -> dict[str, object]:
             "frame_latency_s": [round(seconds, 3) for seconds, _s, _d in answers],
             "frame_status": [status for _l, status, _d in answers],
             "refusals": sorted({detail for _l, _s, detail in answers if detail}),
-            "start_to_first_answer_s": round(healthy_s + answers[0][0], 2)}
+            "start_to_first_answer_s": round(healthy_s + answers[0][0], 2),
+            "server_process_rss_mb": server_rss_mb}
 
 
 def main(argv: list[str] | None = None) -> int:

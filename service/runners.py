@@ -18,7 +18,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from service.estimator_adapter import Pipeline, PipelineFactory, PreparedSession
 from service.frame_work import (
@@ -45,6 +45,8 @@ from service.worker_process import (
 # What PipelineFactory.prepare takes: calibration, config, IMU noise, frame rate.
 PrepareRequest = tuple[dict[str, Any], dict[str, Any], dict[str, Any] | None, float | None]
 
+T = TypeVar("T")
+
 logger = logging.getLogger("swarmvo.service")
 
 
@@ -63,6 +65,8 @@ class Runner(Protocol):
     async def run(self, slot: int, request: FrameRequest) -> FrameProcessed | FrameFailure: ...
 
     def prepare_session(self, request: PrepareRequest) -> PreparedSession: ...
+
+    def call(self, function: Callable[..., T], *args: Any) -> T: ...
 
     def check_session(self, prepared: PreparedSession) -> None: ...
 
@@ -104,6 +108,9 @@ class ThreadRunner:
 
     def prepare_session(self, request: PrepareRequest) -> PreparedSession:
         return self.factory.prepare(*request)
+
+    def call(self, function: Callable[..., T], *args: Any) -> T:
+        return function(*args)
 
     def check_session(self, prepared: PreparedSession) -> None:
         problem = session_problem(self.factory, prepared)
@@ -197,6 +204,18 @@ class ProcessRunner:
             raise  # the session's own problem, with its message
         except Exception:  # broken, replaced or stuck worker
             return self.factory.prepare(*request)
+
+    def call(self, function: Callable[..., T], *args: Any) -> T:
+        """``function(*args)`` in a worker (blocking): the calibration file readers, which
+        import OpenCV and SciPy, as ``prepare_session``. Module-level functions only."""
+        slot = min(range(len(self.slots)), key=lambda i: (len(self.slots[i].sessions), i))
+        try:
+            future = self.slots[slot].executor.submit(function, *args)
+            return future.result(timeout=self.frame_timeout_s)
+        except ValueError:
+            raise
+        except Exception:  # broken, replaced or stuck worker
+            return function(*args)
 
     def check_session(self, prepared: PreparedSession) -> None:
         """Dry-run a new session in a worker (blocking; call it from a thread).
