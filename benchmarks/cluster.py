@@ -113,29 +113,25 @@ class Fleet:
         self.direct: Replica | None = None
         self.balancer: Balancer | None = None
 
-    def start(self, warm: Path | None = None) -> None:
-        """Start everything; ``warm``: a flight the estimator runs a few frames of first.
+    def start(self, warm: bool = True) -> None:
+        """Start everything; ``warm``: fill the JIT cache first, in one process.
 
-        The replicas compile nothing before their first session, and three processes filling
-        an empty JIT cache at once can fail a frame ("no compiled object yet"): one run fills
-        it while the replicas start, and they all load it.
+        Each replica's worker runs the estimator on synthetic frames before the replica answers
+        (service.estimator_adapter). With an empty cache (a fresh checkout) three workers would
+        compile every kernel at once, for minutes on 2 cores, and could fail a frame ("no
+        compiled object yet"); ``python -m service.warmup`` compiles them once, and the replicas
+        then only load them.
         """
-        warming = None
-        if warm is not None:
-            warming = subprocess.Popen(
-                [sys.executable, "-m", "estimator.cli", "run", str(warm), "--limit", "3",
-                 "--quiet", "--out", str(self.folder / "warm-up")],
-                cwd=PROJECT_ROOT, env={**os.environ, "OMP_NUM_THREADS": "1"},
-                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-            )
+        if warm:
+            subprocess.run([sys.executable, "-m", "service.warmup"], cwd=PROJECT_ROOT,
+                           env={**os.environ, "OMP_NUM_THREADS": "1"}, check=True, timeout=900,
+                           stdout=subprocess.DEVNULL)
         for replica in self.replicas:
             replica.start(wait=False)
         for replica in self.replicas:
             replica.wait_healthy()
         self.balancer = Balancer(self.upstreams(3), self.folder)
         self.balancer.start()
-        if warming is not None and warming.wait(timeout=600) != 0:
-            raise RuntimeError(f"the warm-up run on {warm} failed")
 
     def upstreams(self, count: int) -> list[str]:
         return [f"127.0.0.1:{r.port}" for r in self.replicas[:count]]
@@ -340,7 +336,7 @@ def run(options: Options, folder: Path, speed: bool = True) -> dict[str, Any]:
     fleet = Fleet(folder, options)
     try:
         started = time.perf_counter()
-        fleet.start(warm=render_flights(1, options.frames)[0])
+        fleet.start()
         print(f"PostgreSQL, 3 replicas and nginx up in {time.perf_counter() - started:.1f} s",
               flush=True)
         robots = [RobotRun(f"robot{i}", flights[i % len(flights)]) for i in range(options.robots)]

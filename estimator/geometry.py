@@ -9,7 +9,6 @@ every point by every quaternion at once (particles x points), which is what the 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 __all__ = [
     "compose",
@@ -97,6 +96,8 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
 
 def matrix_to_quat(rotation: np.ndarray) -> np.ndarray:
     """Unit quaternion (w >= 0) of rotation matrix/matrices, via scipy (numerically robust)."""
+    from scipy.spatial.transform import Rotation  # here: SciPy costs 40 MB in every process
+
     xyzw = Rotation.from_matrix(np.asarray(rotation, dtype=float)).as_quat()
     return quat_normalize(np.roll(xyzw, 1, axis=-1))
 
@@ -197,6 +198,8 @@ def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def rotation_angle_deg(rotation: np.ndarray) -> np.ndarray:
     """Geodesic angle of rotation matrix/matrices in degrees (robust near 0 and 180)."""
+    from scipy.spatial.transform import Rotation
+
     return np.degrees(np.linalg.norm(Rotation.from_matrix(rotation).as_rotvec(), axis=-1))
 
 

@@ -10,7 +10,9 @@ from __future__ import annotations
 import importlib
 import logging
 import math
+import os
 import tempfile
+import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -168,12 +170,17 @@ class EstimatorFactory:
         default configuration, so this one-off cost (a few hundred ms) is not paid by the
         first frames of a robot. Best effort: a failure here only means a slower first frame.
         """
+        start = time.perf_counter()
         for module in ("estimator.formats.calibration", "estimator.config", "estimator.odometry"):
             importlib.import_module(module)
+        logger = logging.getLogger("swarmvo.service")
         try:
-            _synthetic_run(self)
+            synthetic_run(self)
         except Exception:
-            logging.getLogger("swarmvo.service").debug("warm-up run failed", exc_info=True)
+            logger.debug("warm-up run failed", exc_info=True)
+        # Minutes instead of seconds here mean an empty or unreadable JIT cache (docker/).
+        logger.info("worker process %d warmed up in %.1f s", os.getpid(),
+                    time.perf_counter() - start)
 
     def create(
         self, prepared: PreparedSession, initial_pose: np.ndarray | None, first_index: int
@@ -300,7 +307,7 @@ class IntervalSettings:
         odometry.config = odometry.config.model_copy(update={"frontend": frontend})
 
 
-def _synthetic_run(factory: EstimatorFactory, frames: int = 4) -> None:
+def synthetic_run(factory: EstimatorFactory, frames: int = 4) -> None:
     """Blurred random texture seen by a stereo pair (8 px disparity) sliding 2 px per frame."""
     import cv2
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -109,6 +108,8 @@ def decode_image(data: bytes, name: str, limits: ImageLimits) -> np.ndarray:
             f"{limits.max_pixels}",
             status_code=413,
         )
+    import cv2  # here: the server process validates headers only, its workers decode
+
     image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise ImageError(f"{name}: the image data could not be decoded (corrupt file)")

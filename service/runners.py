@@ -18,7 +18,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from service.estimator_adapter import Pipeline, PipelineFactory, PreparedSession
 from service.frame_work import (
@@ -39,7 +39,13 @@ from service.worker_process import (
     worker_frame,
     worker_init,
     worker_pid,
+    worker_prepare,
 )
+
+# What PipelineFactory.prepare takes: calibration, config, IMU noise, frame rate.
+PrepareRequest = tuple[dict[str, Any], dict[str, Any], dict[str, Any] | None, float | None]
+
+T = TypeVar("T")
 
 logger = logging.getLogger("swarmvo.service")
 
@@ -57,6 +63,10 @@ class Runner(Protocol):
     def release(self, slot: int, session_id: str) -> None: ...
 
     async def run(self, slot: int, request: FrameRequest) -> FrameProcessed | FrameFailure: ...
+
+    def prepare_session(self, request: PrepareRequest) -> PreparedSession: ...
+
+    def call(self, function: Callable[..., T], *args: Any) -> T: ...
 
     def check_session(self, prepared: PreparedSession) -> None: ...
 
@@ -95,6 +105,12 @@ class ThreadRunner:
         return await loop.run_in_executor(
             self.pool, compute_frame, self.pipelines, self.factory, request
         )
+
+    def prepare_session(self, request: PrepareRequest) -> PreparedSession:
+        return self.factory.prepare(*request)
+
+    def call(self, function: Callable[..., T], *args: Any) -> T:
+        return function(*args)
 
     def check_session(self, prepared: PreparedSession) -> None:
         problem = session_problem(self.factory, prepared)
@@ -172,6 +188,34 @@ class ProcessRunner:
         slot = min(range(len(self.slots)), key=lambda i: (len(self.slots[i].sessions), i))
         self.slots[slot].sessions.add(session_id)
         return slot
+
+    def prepare_session(self, request: PrepareRequest) -> PreparedSession:
+        """Validate a new session in a worker (blocking; call it from a thread).
+
+        Reading the rig imports the estimator's calibration code and OpenCV: in a worker, which
+        has them loaded anyway, the server process stays without them (docs/performance.md). A
+        worker that cannot answer is not a reason to refuse: the preparation then runs here.
+        """
+        slot = min(range(len(self.slots)), key=lambda i: (len(self.slots[i].sessions), i))
+        try:
+            future = self.slots[slot].executor.submit(worker_prepare, request)
+            return future.result(timeout=self.frame_timeout_s)
+        except ValueError:
+            raise  # the session's own problem, with its message
+        except Exception:  # broken, replaced or stuck worker
+            return self.factory.prepare(*request)
+
+    def call(self, function: Callable[..., T], *args: Any) -> T:
+        """``function(*args)`` in a worker (blocking): the calibration file readers, which
+        import OpenCV and SciPy, as ``prepare_session``. Module-level functions only."""
+        slot = min(range(len(self.slots)), key=lambda i: (len(self.slots[i].sessions), i))
+        try:
+            future = self.slots[slot].executor.submit(function, *args)
+            return future.result(timeout=self.frame_timeout_s)
+        except ValueError:
+            raise
+        except Exception:  # broken, replaced or stuck worker
+            return function(*args)
 
     def check_session(self, prepared: PreparedSession) -> None:
         """Dry-run a new session in a worker (blocking; call it from a thread).

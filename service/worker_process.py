@@ -7,6 +7,7 @@ name, hence module level).
 
 from __future__ import annotations
 
+import logging
 import multiprocessing
 import multiprocessing.connection
 import os
@@ -61,6 +62,8 @@ def worker_init(factory: PipelineFactory) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     threading.Thread(target=_exit_with_parent, name="swarmvo-parent-watch", daemon=True).start()
     single_threaded_opencv()
+    if not logging.getLogger().handlers:  # spawned: the server's logging is not inherited
+        logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     warm_up = getattr(factory, "warm_up", None)
     if callable(warm_up):
         warm_up()
@@ -69,6 +72,11 @@ def worker_init(factory: PipelineFactory) -> None:
 def worker_frame(request: FrameRequest) -> FrameProcessed | FrameFailure:
     assert _factory is not None
     return compute_frame(_pipelines, _factory, request)
+
+
+def worker_prepare(request: tuple) -> PreparedSession:
+    assert _factory is not None
+    return _factory.prepare(*request)
 
 
 def worker_check(prepared: PreparedSession) -> str | None:

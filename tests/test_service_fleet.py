@@ -39,11 +39,10 @@ def fleet() -> Iterator[cluster.Fleet]:
     reason = missing_tools()
     if reason is not None:
         pytest.skip(f"the fleet needs nginx and PostgreSQL: {reason}")
-    (flight_folder,) = cluster.render_flights(1, FRAMES)
     with tempfile.TemporaryDirectory(prefix="swarmvo-fleet-test-") as folder:
         running = cluster.Fleet(Path(folder), cluster.Options(lease_ttl_s=1.0))
         try:
-            running.start(warm=flight_folder)
+            running.start()
             yield running
         finally:
             running.stop()

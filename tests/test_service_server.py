@@ -83,7 +83,8 @@ class Server:
             stdout=log.open("ab"),
             stderr=subprocess.STDOUT,
         )
-        deadline = time.monotonic() + 60
+        # The workers warm up before the server answers: 10 s idle, 45-50 s at load 35 on 2 cores.
+        deadline = time.monotonic() + 180
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
                 raise RuntimeError(f"server exited early:\n{log.read_text()}")
@@ -92,7 +93,7 @@ class Server:
                     return
             time.sleep(0.2)
         self.kill()
-        raise RuntimeError(f"server did not become healthy in 60 s:\n{log.read_text()}")
+        raise RuntimeError(f"server did not become healthy in 180 s:\n{log.read_text()}")
 
     def stop(self) -> bool:
         """SIGTERM; uvicorn drains, shuts down and re-raises the signal (exit -15)."""

@@ -71,7 +71,8 @@ def _create_session(
             "too_many_sessions",
         )
     try:
-        prepared = state.factory.prepare(calibration, config, imu_noise, frame_rate_hz)
+        prepared = state.manager.runner.prepare_session(
+            (calibration, config, imu_noise, frame_rate_hz))
         problems = work_limit_problems(prepared.config) + image_size_problems(
             prepared.image_size, state.settings
         )
@@ -103,9 +104,11 @@ async def create_session_euroc(request: Request, owner: Owner, state: State) -> 
     name = text_field(form, "name", required=False) or ""
     config = json_object_field(form, "config")
     try:
-        calibration = await run_in_threadpool(euroc_calibration, cam0, cam1)
-        noise = None if imu0 is None else await run_in_threadpool(euroc_imu_noise, imu0)
-        rate = await run_in_threadpool(euroc_frame_rate, cam0)
+        # In a worker: reading the rig loads OpenCV and SciPy, which the server does without.
+        call = state.manager.runner.call
+        calibration = await run_in_threadpool(call, euroc_calibration, cam0, cam1)
+        noise = None if imu0 is None else await run_in_threadpool(call, euroc_imu_noise, imu0)
+        rate = await run_in_threadpool(call, euroc_frame_rate, cam0)
     except ValueError as error:
         raise Refusal(422, str(error), "bad_session") from error
     return await run_in_threadpool(
@@ -124,7 +127,8 @@ async def create_session_kitti(request: Request, owner: Owner, state: State) -> 
     config = json_object_field(form, "config")
     rate = rate_field(form, "frame_rate_hz", MAX_FRAME_RATE_HZ)
     try:
-        calibration = await run_in_threadpool(kitti_calibration, calib, (width, height))
+        calibration = await run_in_threadpool(
+            state.manager.runner.call, kitti_calibration, calib, (width, height))
     except ValueError as error:
         raise Refusal(422, str(error), "bad_session") from error
     return await run_in_threadpool(
