@@ -14,19 +14,24 @@ from estimator.registration.refine import CHI2_3_MEDIAN
 
 @pytest.mark.slow
 @pytest.mark.euroc
+@pytest.mark.parametrize(
+    ("fuse_previous_frame", "max_rotation_deg"),
+    # Measured 4.7 mm and 0.0211 deg per frame against the keyframe alone (the default), 4.6 mm
+    # and 0.0168 deg with each frame also measured against the previous frame (an option).
+    [(False, 0.023), (True, 0.019)],
+)
 def test_real_clip_is_tracked_with_no_lost_frame_and_a_consistent_noise_model(
-    euroc_mh01_moving: Path,
+    euroc_mh01_moving: Path, fuse_previous_frame: bool, max_rotation_deg: float
 ) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # unpaired camera rows
         sequence = open_sequence(euroc_mh01_moving)
     config = build_config(imu=False)
+    config.frontend.fuse_previous_frame = fuse_previous_frame
     summary, _ = summarize(run_sequence(sequence, config, use_imu=False))
     assert summary["frames_failed"] == 0, summary["status_counts"]
-    # Measured 4.6 mm and 0.0168 deg per frame with each frame also measured against the
-    # previous frame (4.7 mm and 0.0211 deg against the keyframe alone).
     assert summary["ate_rmse_m"] < 0.0052
-    assert summary["rpe_rot_rmse_deg"] < 0.019
+    assert summary["rpe_rot_rmse_deg"] < max_rotation_deg
     # The estimated noise predicts the inliers' residuals: chi-square median within 20 %.
     ratio = summary["noise"]["median_squared_mahalanobis"] / CHI2_3_MEDIAN
     assert 0.8 < ratio < 1.2, summary["noise"]
