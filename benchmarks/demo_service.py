@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-import httpx
+from server_wait import wait_healthy
 from swarmvo_client import replay, write_tum
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
@@ -36,17 +36,7 @@ def _free_port() -> int:
 
 
 def _wait_healthy(url: str, process: subprocess.Popen, timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            raise RuntimeError(f"the server exited during start-up (code {process.returncode})")
-        try:
-            if httpx.get(f"{url}/healthz", timeout=1).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.25)
-    raise RuntimeError(f"the server was not healthy after {timeout:.0f} s")
+    wait_healthy(url, process, timeout, poll_s=0.25)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -35,8 +35,8 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import httpx
 import numpy as np
+from server_wait import wait_healthy
 from swarmvo_client import Client, DroppedFrame, Pose, open_local_sequence, stream
 from swarmvo_client.models import ImuData
 
@@ -350,18 +350,12 @@ def start_server(workers: int | None, queue_size: int, policy: str, executor: st
         command += ["--workers", str(workers)]
     process = subprocess.Popen(command, cwd=PROJECT_ROOT, env=env)
     url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 180  # workers load the estimator first; slow on a busy machine
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            raise RuntimeError("server exited during start-up")
-        try:
-            if httpx.get(f"{url}/healthz", timeout=1).status_code == 200:
-                return process, url
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.25)
-    process.kill()
-    raise RuntimeError("server did not become healthy within 180 s")
+    try:  # workers load the estimator first; slow on a busy machine
+        wait_healthy(url, process, 180, poll_s=0.25)
+    except RuntimeError:
+        process.kill()
+        raise
+    return process, url
 
 
 def _fmt(value: float | None, digits: int = 1) -> str:

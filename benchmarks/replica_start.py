@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from cluster import new_session, open_local_sequence, render_flights
 from local_cluster import PROJECT_ROOT, REPLICA_CODE, free_port
+from server_wait import wait_healthy
 
 
 def post_frame(url: str, key: str, session_id: str, sequence, index: int
@@ -62,20 +63,10 @@ def measure(cache: Path, frames: int) -> dict[str, object]:
         env = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_CACHE_DIR": str(cache),
                "SWARMVO_API_KEYS": key, "SWARMVO_WORKERS": "1", "SWARMVO_HOST": "127.0.0.1",
                "SWARMVO_PORT": str(port), "SWARMVO_DATA_DIR": folder}
-        started = time.perf_counter()
         process = subprocess.Popen([sys.executable, "-c", REPLICA_CODE], cwd=PROJECT_ROOT,
                                    env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
-            while True:
-                if process.poll() is not None:
-                    raise RuntimeError("the replica exited")
-                try:
-                    if httpx.get(f"{url}/healthz", timeout=1).status_code == 200:
-                        break
-                except httpx.HTTPError:
-                    pass
-                time.sleep(0.1)
-            healthy_s = time.perf_counter() - started
+            healthy_s = wait_healthy(url, process, timeout_s=3600, poll_s=0.1)
             session = new_session(url, key, sequence, "fresh")
             answers = [post_frame(url, key, session, sequence, i) for i in range(frames)]
             server_rss_mb = rss_mb(process.pid)

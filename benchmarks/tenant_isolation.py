@@ -25,8 +25,8 @@ import threading
 import time
 from pathlib import Path
 
-import httpx
 import numpy as np
+from server_wait import wait_healthy
 from swarmvo_client import Client, open_local_sequence
 
 from service.limits import CONFIG_BOUNDS, OPTION_BOUNDS
@@ -61,15 +61,12 @@ def start_server(folder: Path) -> tuple[subprocess.Popen, str]:
         stderr=subprocess.STDOUT,
     )
     url = f"http://127.0.0.1:{port}"
-    for _ in range(600):
-        try:
-            if httpx.get(f"{url}/healthz", timeout=1).status_code == 200:
-                return process, url
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.1)
-    process.kill()
-    raise RuntimeError("server did not start")
+    try:
+        wait_healthy(url, process, 60, poll_s=0.1)
+    except RuntimeError:
+        process.kill()
+        raise
+    return process, url
 
 
 class Tenant:

@@ -30,7 +30,7 @@ import threading
 import time
 from pathlib import Path
 
-import httpx
+from server_wait import wait_healthy
 
 from service.answer import FrameAnswer, matrix_of
 from service.settings import hash_key
@@ -86,18 +86,11 @@ class Service:
              "--data-dir", str(data), "--workers", "1", "--log-level", "warning"],
             cwd=PROJECT_ROOT, env=env,
         )
-        deadline = time.monotonic() + 90
-        while time.monotonic() < deadline:
-            if self.process.poll() is not None:
-                raise RuntimeError("the server exited during start-up")
-            try:
-                if httpx.get(f"{self.url}/healthz", timeout=1).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.25)
-        self.stop()
-        raise RuntimeError("the server did not become healthy")
+        try:
+            wait_healthy(self.url, self.process, 90, poll_s=0.25)
+        except RuntimeError:
+            self.stop()
+            raise
 
     def __enter__(self) -> Service:
         return self
