@@ -35,10 +35,6 @@ def _free_port() -> int:
         return int(sock.getsockname()[1])
 
 
-def _wait_healthy(url: str, process: subprocess.Popen, timeout: float) -> None:
-    wait_healthy(url, process, timeout, poll_s=0.25)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", type=Path, help="EuRoC/KITTI folder (default: render one)")
@@ -71,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
             cwd=PROJECT_ROOT, env=env,
         )
         try:
-            _wait_healthy(url, server, timeout=90)
+            wait_healthy(url, server, 90, poll_s=0.25)
             print(f"server healthy at {url} (pid {server.pid}); replaying over WebSocket ...")
             result = _bounded_replay(url, dataset, key, args, timeout=args.timeout)
         finally:
