@@ -24,7 +24,7 @@ import yaml
 from pydantic import ValidationError
 from tqdm import tqdm
 
-from estimator.config import SwarmvoConfig, explain_validation_error
+from estimator.config import FRAME_INTERVAL_CONTEXT, SwarmvoConfig, explain_validation_error
 from estimator.evaluation.metrics import TrajectoryEvaluation, evaluate_trajectory
 from estimator.formats.datasets import Sequence, UnreadableImageError
 from estimator.registration.methods import Estimator
@@ -41,8 +41,11 @@ ESTIMATORS: tuple[str, ...] = tuple(name.value for name in Estimator)
 FIRST_FRAME_IMU_WINDOW_NS = 100_000_000
 
 
-def load_config(path: Path) -> SwarmvoConfig:
-    """SwarmvoConfig from a JSON or YAML file (a clear error for unknown or invalid fields)."""
+def load_config(path: Path, frame_interval_s: float | None = None) -> SwarmvoConfig:
+    """SwarmvoConfig from a JSON or YAML file (a clear error for unknown or invalid fields).
+
+    ``frame_interval_s``: the input's frame period when known, for old keys counted in frames.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"config file not found: {path}")
@@ -51,7 +54,8 @@ def load_config(path: Path) -> SwarmvoConfig:
     except yaml.YAMLError as error:
         raise ValueError(f"{path} is not valid JSON/YAML: {error}") from error
     try:
-        return SwarmvoConfig.model_validate(data or {})
+        context = {FRAME_INTERVAL_CONTEXT: frame_interval_s}
+        return SwarmvoConfig.model_validate(data or {}, context=context)
     except ValidationError as error:
         problems = explain_validation_error(error)
         raise ValueError(f"{path}: invalid configuration: {problems}") from None

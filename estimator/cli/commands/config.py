@@ -35,12 +35,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    config = load_config(args.config) if args.config is not None else SwarmvoConfig()
     if args.dataset is None:
+        config = load_config(args.config) if args.config is not None else SwarmvoConfig()
         yaml.safe_dump(config.model_dump(mode="json"), sys.stdout, sort_keys=False)
         return 0
     sequence = open_sequence(args.dataset, args.format)
     interval = frame_interval_s(sequence)
+    config = load_config(args.config, interval) if args.config is not None else SwarmvoConfig()
     config, derived = apply_rig_settings(config, sequence.rig, interval)
     print(f"# {sequence.name} ({len(sequence.frames)} frames)")
     for line in format_settings(sequence.rig, interval, derived).splitlines():

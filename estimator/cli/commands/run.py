@@ -148,12 +148,15 @@ def open_input(args: argparse.Namespace) -> Sequence:
 def run(args: argparse.Namespace) -> int:
     if args.imu and args.backend is False:
         raise ValueError("--imu needs the back end (the IMU is fused there); drop --no-backend")
-    base = load_config(args.config) if args.config is not None else None
+    if args.config is not None and not args.config.is_file():
+        raise FileNotFoundError(f"config file not found: {args.config}")
     if args.export_bag is not None and args.export_bag.exists():
         raise ValueError(f"{args.export_bag} exists already; choose a new bag path")
     sequence = open_input(args)
-    config = build_config(args.estimator, args.seed, args.imu, args.backend, base)
     interval = frame_interval_s(sequence)
+    # Read once the frame period is known: old keys counted in frames are converted with it.
+    base = load_config(args.config, interval) if args.config is not None else None
+    config = build_config(args.estimator, args.seed, args.imu, args.backend, base)
     config, derived = apply_rig_settings(config, sequence.rig, interval)
     print(format_settings(sequence.rig, interval, derived), flush=True)
     try:
