@@ -139,12 +139,12 @@ def run_sequence(
     if rig_settings:
         config, derived = apply_rig_settings(config, sequence.rig, frame_interval_s(sequence))
     count = len(sequence) if limit is None else min(limit, len(sequence))
+    skipped_ns = _missing_pairs(sequence, count, strict)
     imu_available = use_imu and sequence.imu is not None
     odometry = Odometry(
         sequence.rig, config, imu_noise=sequence.imu_noise if imu_available else None
     )
     reports: list[FrameReport] = []
-    skipped_ns: list[int] = []
     previous_ns: int | None = None
     start = time.perf_counter()
     for index in tqdm(range(count), desc=sequence.name, unit="frame", disable=not progress):
@@ -170,7 +170,26 @@ def run_sequence(
     smoothed.update(odometry.finish())
     elapsed = time.perf_counter() - start
     noise = odometry.noise.summary()
+    skipped_ns.sort()
     return RunResult(sequence, config, reports, elapsed, smoothed, skipped_ns, derived, noise)
+
+
+def _missing_pairs(sequence: Sequence, count: int, strict: bool) -> list[int]:
+    """Stamps of the pairs listed but without an image file, within the first ``count`` frames.
+
+    They were left out when the sequence was opened (one warning line); a run counts them as
+    skipped frames, as it does unreadable ones, or refuses them when ``strict``.
+    """
+    missing = list(sequence.missing_ns)
+    if count < len(sequence):
+        last_ns = sequence.frames[count - 1].timestamp_ns
+        missing = [stamp for stamp in missing if stamp < last_ns]
+    if missing and strict:
+        raise UnreadableImageError(
+            f"{len(missing)} stereo pair(s) listed without an image file "
+            f"(first at {missing[0]} ns)"
+        )
+    return missing
 
 
 def frame_interval_s(sequence: Sequence) -> float | None:
