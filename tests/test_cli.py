@@ -62,6 +62,8 @@ def test_config_of_a_dataset_shows_the_settings_derived_from_its_rig(tmp_path, c
         assert shown["frontend"][name] == expected[name] != getattr(SwarmvoConfig().frontend, name)
         assert f"frontend.{name} = {expected[name]:g}" in out
     assert "10.0 Hz" in out
+    assert main(["config", "--data", str(folder)]) == 0  # the same, as an option
+    assert capsys.readouterr().out == out
     written = tmp_path / "derived.yaml"
     written.write_text(out)
     assert load_config(written).frontend.max_depth_m == expected["max_depth_m"]
