@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from estimator.config import FRAME_INTERVAL_CONTEXT, SwarmvoConfig, explain_validation_error
 from estimator.evaluation.metrics import TrajectoryEvaluation, evaluate_trajectory
-from estimator.formats.datasets import Sequence, UnreadableImageError
+from estimator.formats.datasets import GroundTruth, Sequence, UnreadableImageError
 from estimator.registration.methods import Estimator
 from estimator.rig_settings import DerivedSetting, apply_rig_settings
 from estimator.types import FrameReport, FrameStatus
@@ -244,31 +244,43 @@ def summarize(
         },
         "noise": result.noise or None,
     }
-    evaluations: dict[str, TrajectoryEvaluation] = {}
     ground_truth = result.sequence.ground_truth
-    if ground_truth is not None:
-        T_BS = result.sequence.rig.left.T_BS
-        timestamps = result.timestamps_ns
-        sections = {"fused": "pose", "smoothed": "smoothed", "frontend": "frontend_pose"}
-        if not result.config.backend.enabled:
-            sections = {"frontend": "frontend_pose"}
-        try:
-            for label, attribute in sections.items():
-                evaluations[label] = evaluate_trajectory(
-                    timestamps, result.poses(attribute), ground_truth, T_BS, rpe_delta_m
-                )
-        except ValueError as error:
-            # E.g. ground truth that does not cover the frames: keep the run's outputs.
-            summary["evaluation_error"] = str(error)
-            return _finite(summary), {}
-        main = evaluations["fused" if "fused" in evaluations else "frontend"]
-        summary.update(main.metrics)
-        summary["frames"] = len(reports)
-        summary["frames_evaluated"] = main.metrics["frames"]
-        if len(evaluations) > 1:
-            for label, evaluation in evaluations.items():
-                summary[label] = evaluation.metrics
+    if ground_truth is None:
+        return _finite(summary), {}
+    try:
+        evaluations = _evaluations(result, ground_truth, rpe_delta_m)
+    except ValueError as error:
+        # E.g. ground truth that does not cover the frames: keep the run's outputs.
+        summary["evaluation_error"] = str(error)
+        return _finite(summary), {}
+    main = evaluations["fused" if "fused" in evaluations else "frontend"]
+    summary.update(main.metrics)
+    summary["frames"] = len(reports)
+    summary["frames_evaluated"] = main.metrics["frames"]
+    if len(evaluations) > 1:
+        for label, evaluation in evaluations.items():
+            summary[label] = evaluation.metrics
     return _finite(summary), evaluations
+
+
+def _evaluations(
+    result: RunResult, ground_truth: GroundTruth, rpe_delta_m: float
+) -> dict[str, TrajectoryEvaluation]:
+    """The run's trajectories against the ground truth: the fused online answer, the
+    smoother's final poses and the front end's, or the front end's alone without a back end."""
+    sections = {"fused": "pose", "smoothed": "smoothed", "frontend": "frontend_pose"}
+    if not result.config.backend.enabled:
+        sections = {"frontend": "frontend_pose"}
+    return {
+        label: evaluate_trajectory(
+            result.timestamps_ns,
+            result.poses(attribute),
+            ground_truth,
+            result.sequence.rig.left.T_BS,
+            rpe_delta_m,
+        )
+        for label, attribute in sections.items()
+    }
 
 
 def odometry_messages(result: RunResult, calibrated: bool = True) -> list[OdometryMessage]:

@@ -94,7 +94,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="stop at a missing or corrupt image (default: skip the frame with a warning)",
     )
-    bags = parser.add_argument_group("ROS bags")
+    _add_bag_arguments(parser.add_argument_group("ROS bags"))
+
+
+def _add_bag_arguments(bags: argparse._ArgumentGroup) -> None:
+    """Calibration, topics and stereo pairing of a bag input, and the bag output."""
     bags.add_argument(
         "--calibration",
         type=Path,
