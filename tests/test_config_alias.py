@@ -10,6 +10,7 @@ from test_odometry import FRAME_NS, _blank, _flat_rig
 from estimator.cli.main import main
 from estimator.config import FRAME_INTERVAL_CONTEXT, SwarmvoConfig
 from estimator.odometry import Odometry
+from service.estimator_adapter import EstimatorFactory
 
 
 def _validated(data: dict, interval_s: float | None = None) -> tuple[SwarmvoConfig, list]:
@@ -71,3 +72,15 @@ def test_the_cli_warns_in_one_plain_line(tmp_path, capsys):
     assert captured.err.count("\n") == 1
     assert captured.err.startswith("swarmvo: warning: frontend.max_coast_frames is deprecated")
     assert "max_coast_s: 0.15\n" in captured.out
+
+
+def test_a_service_session_converts_with_its_declared_frame_rate():
+    """A session config written for an earlier release: frames x the declared frame period."""
+    calibration = _flat_rig().to_dict()
+    config = {"frontend": {"max_coast_frames": 3}}
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        at_10_hz = EstimatorFactory().prepare(calibration, config, None, 10.0)
+        unknown = EstimatorFactory().prepare(calibration, config, None)
+    assert at_10_hz.config["frontend"]["max_coast_s"] == pytest.approx(0.3)
+    assert unknown.config["frontend"]["max_coast_s"] == pytest.approx(0.15)  # 20 Hz assumed
