@@ -7,11 +7,26 @@ pass around (the service accepts JSON overrides of it).
 from __future__ import annotations
 
 import difflib
-from typing import Literal
+import warnings
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    model_validator,
+)
 
 from estimator.registration.methods import DEFAULT_ESTIMATOR, Estimator
+
+# Validation context key (``model_validate(data, context=...)``): the rig's frame period in
+# seconds, when the caller knows it; old keys counted in frames are converted with it.
+FRAME_INTERVAL_CONTEXT = "frame_interval_s"
+# The rate the old frame-counted defaults were chosen at (EuRoC's 20 Hz), assumed when the
+# frame period is not known at validation time.
+ASSUMED_FRAME_INTERVAL_S = 0.05
 
 
 class _Section(BaseModel):
@@ -122,6 +137,35 @@ class FrontendConfig(_Section):
     # ... and against the keyframe before the current one while it is still in view (off: on
     # MH_01 vision alone 4.5 mm instead of 4.6, but the rendered loop's ATE 5 % worse).
     fuse_previous_keyframe: bool = False
+
+    @model_validator(mode="before")
+    @classmethod
+    def _max_coast_frames_alias(cls, data: Any, info: ValidationInfo) -> Any:
+        """Accept the old ``max_coast_frames`` as ``max_coast_s`` (frames x frame period).
+
+        Config files written for earlier releases keep working; one warning line says what
+        the key became so that the user can write the new one.
+        """
+        if not isinstance(data, dict) or "max_coast_frames" not in data:
+            return data
+        data = dict(data)
+        frames = data.pop("max_coast_frames")
+        if "max_coast_s" in data:
+            raise ValueError("give max_coast_s or the old max_coast_frames, not both")
+        if isinstance(frames, bool) or not isinstance(frames, int) or frames < 0:
+            raise ValueError(f"max_coast_frames must be a whole number >= 0, got {frames!r}")
+        interval = (info.context or {}).get(FRAME_INTERVAL_CONTEXT)
+        known = interval is not None and interval > 0
+        period = interval if known else ASSUMED_FRAME_INTERVAL_S
+        data["max_coast_s"] = round(frames * period, 6)  # whole microseconds
+        source = "the rig's frame period" if known else "assumed 20 Hz: frame rate not known"
+        warnings.warn(
+            f"frontend.max_coast_frames is deprecated: read as frontend.max_coast_s = "
+            f"{data['max_coast_s']:g} ({frames} frames x {period * 1e3:g} ms, {source})",
+            FutureWarning,
+            stacklevel=2,
+        )
+        return data
 
 
 class BackendConfig(_Section):
@@ -257,7 +301,9 @@ def explain_validation_error(error: ValidationError, model: type[BaseModel] = Sw
             hint = f" (did you mean {'.'.join([*location[:-1], close[0]])}?)" if close else ""
             problems.append(f"{where}: unknown key{hint}")
         else:
-            problems.append(f"{where}: {item['msg']}")
+            # A validator's own ValueError reads "Value error, <message>": keep the message.
+            message = item["msg"].removeprefix("Value error, ")
+            problems.append(f"{where}: {message}")
     return "; ".join(problems)
 
 

@@ -24,9 +24,9 @@ import yaml
 from pydantic import ValidationError
 from tqdm import tqdm
 
-from estimator.config import SwarmvoConfig, explain_validation_error
+from estimator.config import FRAME_INTERVAL_CONTEXT, SwarmvoConfig, explain_validation_error
 from estimator.evaluation.metrics import TrajectoryEvaluation, evaluate_trajectory
-from estimator.formats.datasets import Sequence, UnreadableImageError
+from estimator.formats.datasets import GroundTruth, Sequence, UnreadableImageError
 from estimator.registration.methods import Estimator
 from estimator.rig_settings import DerivedSetting, apply_rig_settings
 from estimator.types import FrameReport, FrameStatus
@@ -41,8 +41,11 @@ ESTIMATORS: tuple[str, ...] = tuple(name.value for name in Estimator)
 FIRST_FRAME_IMU_WINDOW_NS = 100_000_000
 
 
-def load_config(path: Path) -> SwarmvoConfig:
-    """SwarmvoConfig from a JSON or YAML file (a clear error for unknown or invalid fields)."""
+def load_config(path: Path, frame_interval_s: float | None = None) -> SwarmvoConfig:
+    """SwarmvoConfig from a JSON or YAML file (a clear error for unknown or invalid fields).
+
+    ``frame_interval_s``: the input's frame period when known, for old keys counted in frames.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"config file not found: {path}")
@@ -51,7 +54,8 @@ def load_config(path: Path) -> SwarmvoConfig:
     except yaml.YAMLError as error:
         raise ValueError(f"{path} is not valid JSON/YAML: {error}") from error
     try:
-        return SwarmvoConfig.model_validate(data or {})
+        context = {FRAME_INTERVAL_CONTEXT: frame_interval_s}
+        return SwarmvoConfig.model_validate(data or {}, context=context)
     except ValidationError as error:
         problems = explain_validation_error(error)
         raise ValueError(f"{path}: invalid configuration: {problems}") from None
@@ -135,12 +139,12 @@ def run_sequence(
     if rig_settings:
         config, derived = apply_rig_settings(config, sequence.rig, frame_interval_s(sequence))
     count = len(sequence) if limit is None else min(limit, len(sequence))
+    skipped_ns = _missing_pairs(sequence, count, strict)
     imu_available = use_imu and sequence.imu is not None
     odometry = Odometry(
         sequence.rig, config, imu_noise=sequence.imu_noise if imu_available else None
     )
     reports: list[FrameReport] = []
-    skipped_ns: list[int] = []
     previous_ns: int | None = None
     start = time.perf_counter()
     for index in tqdm(range(count), desc=sequence.name, unit="frame", disable=not progress):
@@ -166,7 +170,26 @@ def run_sequence(
     smoothed.update(odometry.finish())
     elapsed = time.perf_counter() - start
     noise = odometry.noise.summary()
+    skipped_ns.sort()
     return RunResult(sequence, config, reports, elapsed, smoothed, skipped_ns, derived, noise)
+
+
+def _missing_pairs(sequence: Sequence, count: int, strict: bool) -> list[int]:
+    """Stamps of the pairs listed but without an image file, within the first ``count`` frames.
+
+    They were left out when the sequence was opened (one warning line); a run counts them as
+    skipped frames, as it does unreadable ones, or refuses them when ``strict``.
+    """
+    missing = list(sequence.missing_ns)
+    if count < len(sequence):
+        last_ns = sequence.frames[count - 1].timestamp_ns
+        missing = [stamp for stamp in missing if stamp < last_ns]
+    if missing and strict:
+        raise UnreadableImageError(
+            f"{len(missing)} stereo pair(s) listed without an image file "
+            f"(first at {missing[0]} ns)"
+        )
+    return missing
 
 
 def frame_interval_s(sequence: Sequence) -> float | None:
@@ -221,31 +244,43 @@ def summarize(
         },
         "noise": result.noise or None,
     }
-    evaluations: dict[str, TrajectoryEvaluation] = {}
     ground_truth = result.sequence.ground_truth
-    if ground_truth is not None:
-        T_BS = result.sequence.rig.left.T_BS
-        timestamps = result.timestamps_ns
-        sections = {"fused": "pose", "smoothed": "smoothed", "frontend": "frontend_pose"}
-        if not result.config.backend.enabled:
-            sections = {"frontend": "frontend_pose"}
-        try:
-            for label, attribute in sections.items():
-                evaluations[label] = evaluate_trajectory(
-                    timestamps, result.poses(attribute), ground_truth, T_BS, rpe_delta_m
-                )
-        except ValueError as error:
-            # E.g. ground truth that does not cover the frames: keep the run's outputs.
-            summary["evaluation_error"] = str(error)
-            return _finite(summary), {}
-        main = evaluations["fused" if "fused" in evaluations else "frontend"]
-        summary.update(main.metrics)
-        summary["frames"] = len(reports)
-        summary["frames_evaluated"] = main.metrics["frames"]
-        if len(evaluations) > 1:
-            for label, evaluation in evaluations.items():
-                summary[label] = evaluation.metrics
+    if ground_truth is None:
+        return _finite(summary), {}
+    try:
+        evaluations = _evaluations(result, ground_truth, rpe_delta_m)
+    except ValueError as error:
+        # E.g. ground truth that does not cover the frames: keep the run's outputs.
+        summary["evaluation_error"] = str(error)
+        return _finite(summary), {}
+    main = evaluations["fused" if "fused" in evaluations else "frontend"]
+    summary.update(main.metrics)
+    summary["frames"] = len(reports)
+    summary["frames_evaluated"] = main.metrics["frames"]
+    if len(evaluations) > 1:
+        for label, evaluation in evaluations.items():
+            summary[label] = evaluation.metrics
     return _finite(summary), evaluations
+
+
+def _evaluations(
+    result: RunResult, ground_truth: GroundTruth, rpe_delta_m: float
+) -> dict[str, TrajectoryEvaluation]:
+    """The run's trajectories against the ground truth: the fused online answer, the
+    smoother's final poses and the front end's, or the front end's alone without a back end."""
+    sections = {"fused": "pose", "smoothed": "smoothed", "frontend": "frontend_pose"}
+    if not result.config.backend.enabled:
+        sections = {"frontend": "frontend_pose"}
+    return {
+        label: evaluate_trajectory(
+            result.timestamps_ns,
+            result.poses(attribute),
+            ground_truth,
+            result.sequence.rig.left.T_BS,
+            rpe_delta_m,
+        )
+        for label, attribute in sections.items()
+    }
 
 
 def odometry_messages(result: RunResult, calibrated: bool = True) -> list[OdometryMessage]:

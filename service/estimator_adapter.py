@@ -93,7 +93,7 @@ class EstimatorFactory:
     ) -> PreparedSession:
         """Validated session; the frontend settings that follow from the rig (and the declared
         frame rate) are filled in where the config leaves them (``estimator.rig_settings``)."""
-        from estimator.config import SwarmvoConfig
+        from estimator.config import FRAME_INTERVAL_CONTEXT, SwarmvoConfig
         from estimator.formats.calibration import StereoRig
         from estimator.rig_settings import (
             RIG_SETTINGS_KEY,
@@ -111,11 +111,12 @@ class EstimatorFactory:
             rig = StereoRig.from_dict(calibration)
         except (TypeError, KeyError) as error:
             raise ValueError(f"invalid calibration: {error}") from error
+        interval = 1.0 / frame_rate_hz if frame_rate_hz else None
         try:
-            swarm_config = SwarmvoConfig.model_validate(config)
+            context = {FRAME_INTERVAL_CONTEXT: interval}  # old keys counted in frames
+            swarm_config = SwarmvoConfig.model_validate(config, context=context)
         except ValueError as error:  # pydantic.ValidationError is a ValueError
             raise ValueError(f"invalid config: {_short_validation(error)}") from error
-        interval = 1.0 / frame_rate_hz if frame_rate_hz else None
         try:
             swarm_config, derived = apply_rig_settings(swarm_config, rig, interval)
         except ValueError as error:

@@ -62,6 +62,8 @@ def test_config_of_a_dataset_shows_the_settings_derived_from_its_rig(tmp_path, c
         assert shown["frontend"][name] == expected[name] != getattr(SwarmvoConfig().frontend, name)
         assert f"frontend.{name} = {expected[name]:g}" in out
     assert "10.0 Hz" in out
+    assert main(["config", "--data", str(folder)]) == 0  # the same, as an option
+    assert capsys.readouterr().out == out
     written = tmp_path / "derived.yaml"
     written.write_text(out)
     assert load_config(written).frontend.max_depth_m == expected["max_depth_m"]
@@ -87,6 +89,10 @@ def test_config_typo_is_one_line_with_a_suggestion(tmp_path, capsys):
     assert "seed:" in error
 
 
-def test_conflicting_flags_are_refused(tmp_path, capsys):
+def test_conflicting_flags_are_refused(tmp_path, capsys, euroc_v101_micro):
     assert main(["run", str(tmp_path), "--imu", "--no-backend"]) == 2
     assert "--imu needs the back end" in capsys.readouterr().err
+    assert main(["run", str(tmp_path), "--export-storage", "mcap"]) == 2
+    assert "--export-storage needs --export-bag" in capsys.readouterr().err
+    assert main(["run", str(euroc_v101_micro), "--left-topic", "/cam0"]) == 2
+    assert "--left-topic is for bags" in capsys.readouterr().err

@@ -232,3 +232,22 @@ def test_a_corrupt_image_is_skipped_with_one_warning_unless_strict(rendered, tmp
     assert main([*args, "--out", str(tmp_path / "strict"), "--strict"]) == 2
     assert "cannot read image" in capsys.readouterr().err
     assert not (tmp_path / "strict" / "trajectory.tum").exists()
+
+
+def test_a_missing_image_is_counted_as_skipped_unless_strict(rendered, tmp_path, capsys):
+    """A pair the CSVs list without its file: one warning, counted in the table and metrics;
+    --strict stops on it before any output is written."""
+    copy = tmp_path / "missing"
+    shutil.copytree(rendered, copy)
+    sorted((copy / "mav0" / "cam0" / "data").glob("*.png"))[3].unlink()
+    out = tmp_path / "out"
+    args = ["run", str(copy), "--limit", "6", "--estimator", "svd", "--no-backend", "--quiet"]
+    assert main([*args, "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert captured.err.count("image file is missing") == 1 and "Traceback" not in captured.err
+    assert "(1 skipped: image missing or unreadable)" in captured.out
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert (metrics["frames"], metrics["frames_skipped"]) == (6, 1)
+    assert main([*args, "--out", str(tmp_path / "strict"), "--strict"]) == 2
+    assert "listed without an image file" in capsys.readouterr().err
+    assert not (tmp_path / "strict" / "trajectory.tum").exists()

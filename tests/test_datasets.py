@@ -176,6 +176,7 @@ def test_missing_image_file_is_skipped_with_a_warning(euroc_copy):
         sequence = open_sequence(euroc_copy)
     assert len(sequence) == 3
     assert images[1].stem not in {str(t) for t in sequence.timestamps_ns}
+    assert [str(t) for t in sequence.missing_ns] == [images[1].stem]  # counted by a run
 
 
 def test_missing_files_and_folders_fail_clearly(euroc_copy, tmp_path):

@@ -35,7 +35,7 @@ def _value(table: str, name: str) -> str:
 def test_table_with_ground_truth() -> None:
     table = results_table(SUMMARY, estimated_path_m=2.46)
     assert table.splitlines()[0] == "results: clip (pso-robust, fused, with IMU)"
-    assert _value(table, "frames") == "10 (1 skipped: unreadable images)"
+    assert _value(table, "frames") == "10 (1 skipped: image missing or unreadable)"
     assert _value(table, "tracked").startswith("7 ")
     assert _value(table, "coasted").startswith("2 ")
     assert _value(table, "lost") == "1"

@@ -351,6 +351,49 @@ def _warm_up(runners: dict[str, Runner | str], sigma: float, n_points: int) -> N
             raise ValueError(f"{name} failed on the warm-up pair: {error}") from error
 
 
+def _run_cell(
+    runners: dict[str, Runner | str],
+    sigma: float,
+    ratio: float,
+    trials: int,
+    seed: int,
+    n_points: int,
+    bar: tqdm,
+) -> dict:
+    """Every method on the same ``trials`` simulated pairs of one (sigma, outlier ratio) cell."""
+    bar.set_description(f"sigma={sigma:g} e={ratio:g}")
+    samples = {name: _Samples.empty() for name in runners}
+    pairs, inliers = [], []
+    for trial in range(trials):
+        sim_seed, method_seed = trial_seeds(seed, sigma, ratio, trial)
+        pair = simulate_pair(n_points, sigma, ratio, rng=sim_seed)
+        pairs.append(len(pair.source))
+        inliers.append(int(pair.inlier_mask.sum()))
+        for name, runner in runners.items():
+            if isinstance(runner, str):
+                continue
+            try:
+                result = runner(pair, sigma, method_seed)
+            except ValueError as error:
+                raise ValueError(
+                    f"{name} failed at sigma={sigma:g} e={ratio:g} trial {trial} "
+                    f"(simulation seed {sim_seed}, method seed {method_seed}): {error}"
+                ) from error
+            samples[name].add(result, pair)
+        bar.update()
+    return {
+        "sigma": sigma,
+        "outlier_ratio": ratio,
+        "mean_pairs": float(np.mean(pairs)),
+        "mean_true_inliers": float(np.mean(inliers)),
+        "min_true_inliers": int(np.min(inliers)),
+        "methods": {
+            name: {"status": runner} if isinstance(runner, str) else _summarise(samples[name])
+            for name, runner in runners.items()
+        },
+    }
+
+
 def run_grid(
     *,
     sigmas: Sequence[float] = SIGMAS,
@@ -369,7 +412,6 @@ def run_grid(
     started = dt.datetime.now(dt.UTC)
     machine = machine_info()
     _warm_up(runners, sigmas[0], n_points)
-    cells = []
     bar = tqdm(
         total=len(sigmas) * len(outlier_ratios) * trials,
         disable=not progress,
@@ -377,45 +419,11 @@ def run_grid(
         file=sys.stderr,
     )
     with bar:
-        for sigma in sigmas:
-            for ratio in outlier_ratios:
-                bar.set_description(f"sigma={sigma:g} e={ratio:g}")
-                samples = {name: _Samples.empty() for name in runners}
-                pairs, inliers = [], []
-                for trial in range(trials):
-                    sim_seed, method_seed = trial_seeds(seed, sigma, ratio, trial)
-                    pair = simulate_pair(n_points, sigma, ratio, rng=sim_seed)
-                    pairs.append(len(pair.source))
-                    inliers.append(int(pair.inlier_mask.sum()))
-                    for name, runner in runners.items():
-                        if isinstance(runner, str):
-                            continue
-                        try:
-                            result = runner(pair, sigma, method_seed)
-                        except ValueError as error:
-                            raise ValueError(
-                                f"{name} failed at sigma={sigma:g} e={ratio:g} trial {trial} "
-                                f"(simulation seed {sim_seed}, method seed {method_seed}): {error}"
-                            ) from error
-                        samples[name].add(result, pair)
-                    bar.update()
-                cells.append(
-                    {
-                        "sigma": sigma,
-                        "outlier_ratio": ratio,
-                        "mean_pairs": float(np.mean(pairs)),
-                        "mean_true_inliers": float(np.mean(inliers)),
-                        "min_true_inliers": int(np.min(inliers)),
-                        "methods": {
-                            name: (
-                                {"status": runner}
-                                if isinstance(runner, str)
-                                else _summarise(samples[name])
-                            )
-                            for name, runner in runners.items()
-                        },
-                    }
-                )
+        cells = [
+            _run_cell(runners, sigma, ratio, trials, seed, n_points, bar)
+            for sigma in sigmas
+            for ratio in outlier_ratios
+        ]
     machine["loadavg_end"] = loadavg()
     report = {
         "benchmark": "registration",

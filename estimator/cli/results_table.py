@@ -15,7 +15,10 @@ def _rows(summary: dict[str, Any], estimated_path_m: float) -> list[tuple[str, s
     skipped = summary.get("frames_skipped", 0)
     coasting = "IMU / motion prior only" if summary.get("imu") else "motion prior only"
     rows = [
-        ("frames", f"{frames}" + (f" ({skipped} skipped: unreadable images)" if skipped else "")),
+        (
+            "frames",
+            f"{frames}" + (f" ({skipped} skipped: image missing or unreadable)" if skipped else ""),
+        ),
         ("tracked", f"{counts.get(str(FrameStatus.OK), 0)} (vision accepted)"),
         ("coasted", f"{counts.get(str(FrameStatus.DEGRADED), 0)} ({coasting})"),
         ("lost", f"{counts.get(str(FrameStatus.LOST), 0)}"),

@@ -194,6 +194,44 @@ def evaluate_trajectory(
     Frames outside the ground-truth time range are left out (counted in
     ``frames_without_gt``); at least two frames must remain.
     """
+    timestamps_ns, poses, covered = _covered_frames(timestamps_ns, poses, ground_truth)
+    estimate = poses[covered]
+    timestamps_ns = timestamps_ns[covered]
+    reference = camera_ground_truth(
+        ground_truth, timestamps_ns, np.eye(4) if T_BS is None else T_BS
+    )
+    traj_ref = _evo_trajectory(timestamps_ns, reference)
+    traj_est = _evo_trajectory(timestamps_ns, estimate)
+    traj_aligned, alignment = _aligned(traj_est, traj_ref)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((traj_ref, traj_aligned))
+    ate_errors = np.asarray(ape.error, dtype=float)
+    rpe = _relative_errors(traj_ref, traj_est, rpe_delta_m)
+    eq20 = eq20_errors(estimate, reference)
+    summary: dict[str, Any] = {
+        "frames": len(timestamps_ns),
+        "frames_without_gt": int((~covered).sum()),
+        "alignment": alignment,
+        **_error_summary(estimate, reference, ate_errors, rpe, eq20, rpe_delta_m),
+    }
+    summary.update(kitti_segment_errors(estimate, reference) or {})
+    return TrajectoryEvaluation(
+        timestamps_ns=timestamps_ns,
+        estimate=estimate,
+        reference=reference,
+        aligned=np.array(traj_aligned.poses_se3),
+        ate_errors_m=ate_errors,
+        rpe_trans_m=rpe["trans"],
+        rpe_rot_deg=rpe["rot"],
+        eq20=eq20,
+        metrics=summary,
+    )
+
+
+def _covered_frames(
+    timestamps_ns: np.ndarray, poses: np.ndarray, ground_truth: GroundTruth
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The inputs as arrays, checked, and which frames the ground truth covers (at least 2)."""
     timestamps_ns = np.asarray(timestamps_ns, dtype=np.int64)
     poses = np.asarray(poses, dtype=float)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) != len(timestamps_ns):
@@ -208,57 +246,52 @@ def evaluate_trajectory(
             f"only {int(covered.sum())} of {len(timestamps_ns)} frames fall inside the "
             "ground-truth time range; need at least 2 to evaluate"
         )
-    timestamps_ns, estimate = timestamps_ns[covered], poses[covered]
-    reference = camera_ground_truth(
-        ground_truth, timestamps_ns, np.eye(4) if T_BS is None else T_BS
-    )
+    return timestamps_ns, poses, covered
 
-    traj_ref = _evo_trajectory(timestamps_ns, reference)
-    traj_est = _evo_trajectory(timestamps_ns, estimate)
-    traj_aligned, alignment = _aligned(traj_est, traj_ref)
-    ape = metrics.APE(metrics.PoseRelation.translation_part)
-    ape.process_data((traj_ref, traj_aligned))
-    ate_errors = np.asarray(ape.error, dtype=float)
 
-    rpe_trans = _rpe(
-        traj_ref, traj_est, metrics.PoseRelation.translation_part, 1, metrics.Unit.frames
-    )
-    rpe_rot = _rpe(
-        traj_ref, traj_est, metrics.PoseRelation.rotation_angle_deg, 1, metrics.Unit.frames
-    )
-    length = path_length(reference)
+def _relative_errors(
+    traj_ref: PoseTrajectory3D, traj_est: PoseTrajectory3D, rpe_delta_m: float
+) -> dict[str, np.ndarray]:
+    """RPE per frame ("trans", "rot") and per ``rpe_delta_m`` of path ("dist_trans",
+    "dist_rot"; empty when the path is shorter than one delta)."""
+    translation = metrics.PoseRelation.translation_part
+    rotation = metrics.PoseRelation.rotation_angle_deg
+    errors = {
+        "trans": _rpe(traj_ref, traj_est, translation, 1, metrics.Unit.frames),
+        "rot": _rpe(traj_ref, traj_est, rotation, 1, metrics.Unit.frames),
+    }
     try:
-        dist_trans = _rpe(
-            traj_ref,
-            traj_est,
-            metrics.PoseRelation.translation_part,
-            rpe_delta_m,
-            metrics.Unit.meters,
+        errors["dist_trans"] = _rpe(
+            traj_ref, traj_est, translation, rpe_delta_m, metrics.Unit.meters
         )
-        dist_rot = _rpe(
-            traj_ref,
-            traj_est,
-            metrics.PoseRelation.rotation_angle_deg,
-            rpe_delta_m,
-            metrics.Unit.meters,
-        )
+        errors["dist_rot"] = _rpe(traj_ref, traj_est, rotation, rpe_delta_m, metrics.Unit.meters)
     except FilterException:
-        dist_trans = dist_rot = np.zeros(0)  # the path is shorter than one delta
+        errors["dist_trans"] = errors["dist_rot"] = np.zeros(0)
+    return errors
 
-    eq20 = eq20_errors(estimate, reference)
+
+def _error_summary(
+    estimate: np.ndarray,
+    reference: np.ndarray,
+    ate_errors: np.ndarray,
+    rpe: dict[str, np.ndarray],
+    eq20: np.ndarray,
+    rpe_delta_m: float,
+) -> dict[str, Any]:
+    """The error statistics of ``TrajectoryEvaluation.metrics`` (after the frame counts)."""
+    length = path_length(reference)
     final = invert_pose(relative_to_first(reference)[-1]) @ relative_to_first(estimate)[-1]
     final_drift = float(np.linalg.norm(final[:3, 3]))
-    summary: dict[str, Any] = {
-        "frames": len(timestamps_ns),
-        "frames_without_gt": int((~covered).sum()),
-        "alignment": alignment,
+    dist_trans, dist_rot = rpe["dist_trans"], rpe["dist_rot"]
+    long_enough = length >= MIN_PATH_FOR_PCT_M
+    return {
         "path_length_m": length,
         "ate_rmse_m": _rmse(ate_errors),
         "ate_mean_m": float(ate_errors.mean()),
         "ate_max_m": float(ate_errors.max()),
-        "rpe_trans_rmse_m": _rmse(rpe_trans),
-        "rpe_rot_rmse_deg": _rmse(rpe_rot),
-        "rpe_rot_max_deg": float(rpe_rot.max()),
+        "rpe_trans_rmse_m": _rmse(rpe["trans"]),
+        "rpe_rot_rmse_deg": _rmse(rpe["rot"]),
+        "rpe_rot_max_deg": float(rpe["rot"].max()),
         "rpe_delta_m": rpe_delta_m,
         "rpe_dist_pairs": len(dist_trans),
         "rpe_dist_trans_pct": _rmse(dist_trans) / rpe_delta_m * 100 if len(dist_trans) else None,
@@ -267,23 +300,9 @@ def evaluate_trajectory(
         "eq20_max": float(eq20.max()),
         "final_drift_m": final_drift,
         "final_rot_drift_deg": float(rotation_angle_deg(final[:3, :3])),
-        "final_drift_pct": final_drift / length * 100 if length >= MIN_PATH_FOR_PCT_M else None,
-        "ate_pct_of_path": _rmse(ate_errors) / length * 100
-        if length >= MIN_PATH_FOR_PCT_M
-        else None,
+        "final_drift_pct": final_drift / length * 100 if long_enough else None,
+        "ate_pct_of_path": _rmse(ate_errors) / length * 100 if long_enough else None,
         "kitti_trans_err_pct": None,
         "kitti_rot_err_deg_per_100m": None,
         "kitti_segments": 0,
     }
-    summary.update(kitti_segment_errors(estimate, reference) or {})
-    return TrajectoryEvaluation(
-        timestamps_ns=timestamps_ns,
-        estimate=estimate,
-        reference=reference,
-        aligned=np.array(traj_aligned.poses_se3),
-        ate_errors_m=ate_errors,
-        rpe_trans_m=rpe_trans,
-        rpe_rot_deg=rpe_rot,
-        eq20=eq20,
-        metrics=summary,
-    )

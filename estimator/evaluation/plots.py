@@ -36,7 +36,22 @@ def plot_run(
     seconds = (np.asarray(timestamps_ns) - t0) * 1e-9
     rows = 3 if evaluations else 2
     figure, axes = plt.subplots(rows, 1, figsize=(8, 3.2 * rows + 2), constrained_layout=True)
-    top = axes[0]
+    _top_view(axes[0], poses, evaluations, title)
+    if evaluations:
+        _error_panel(axes[1], evaluations, t0)
+    counts = axes[-1]
+    counts.plot(seconds, inliers, lw=1, color="tab:green")
+    counts.set_xlabel("time [s]")
+    counts.set_ylabel("registration inliers")
+    counts.grid(alpha=0.3)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def _top_view(
+    top: plt.Axes, poses: np.ndarray, evaluations: dict[str, TrajectoryEvaluation], title: str
+) -> None:
+    """Aligned estimates over the ground truth (x-y), or the raw estimate (x-z) without it."""
     if evaluations:
         first = next(iter(evaluations.values()))
         top.plot(*first.reference[:, :2, 3].T, "k-", lw=2, label="ground truth")
@@ -53,28 +68,21 @@ def plot_run(
     top.set_title(title or "trajectory (top view)")
     top.grid(alpha=0.3)
 
-    if evaluations:
-        errors = axes[1]
-        for (label, evaluation), color in zip(evaluations.items(), COLORS, strict=False):
-            t = (evaluation.timestamps_ns - t0) * 1e-9
-            errors.plot(t, evaluation.ate_errors_m, lw=1.2, color=color, label=f"{label} ATE [m]")
-            errors.plot(
-                t[1:],
-                evaluation.rpe_rot_deg,
-                lw=0.8,
-                ls=":",
-                color=color,
-                label=f"{label} RPE rotation [deg/frame]",
-            )
-        errors.set_xlabel("time [s]")
-        errors.set_ylabel("error")
-        errors.legend(loc="best", fontsize=8)
-        errors.grid(alpha=0.3)
 
-    counts = axes[-1]
-    counts.plot(seconds, inliers, lw=1, color="tab:green")
-    counts.set_xlabel("time [s]")
-    counts.set_ylabel("registration inliers")
-    counts.grid(alpha=0.3)
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+def _error_panel(errors: plt.Axes, evaluations: dict[str, TrajectoryEvaluation], t0: int) -> None:
+    """ATE and per-frame rotation RPE over time, one colour per evaluated trajectory."""
+    for (label, evaluation), color in zip(evaluations.items(), COLORS, strict=False):
+        t = (evaluation.timestamps_ns - t0) * 1e-9
+        errors.plot(t, evaluation.ate_errors_m, lw=1.2, color=color, label=f"{label} ATE [m]")
+        errors.plot(
+            t[1:],
+            evaluation.rpe_rot_deg,
+            lw=0.8,
+            ls=":",
+            color=color,
+            label=f"{label} RPE rotation [deg/frame]",
+        )
+    errors.set_xlabel("time [s]")
+    errors.set_ylabel("error")
+    errors.legend(loc="best", fontsize=8)
+    errors.grid(alpha=0.3)

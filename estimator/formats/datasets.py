@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -126,6 +126,9 @@ class Sequence:
     imu: ImuBatch | None = None
     imu_noise: ImuNoise | None = None
     ground_truth: GroundTruth | None = None
+    # Stamps of pairs the camera CSVs list but whose image file is not on disk (not in
+    # ``frames``): a run counts them as skipped, or stops on them when strict.
+    missing_ns: list[int] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -349,9 +352,10 @@ def _warn(message: str) -> None:
 
 def _pair_frames(
     left: dict[int, Path], right: dict[int, Path], where: Path, tolerance_ns: int | None = None
-) -> list[FrameRecord]:
+) -> tuple[list[FrameRecord], list[int]]:
     """Frames present in both cameras (stamps nearest each other within the tolerance, see
-    ``estimator.formats.stereo_sync``) with both image files on disk, in time order."""
+    ``estimator.formats.stereo_sync``) with both image files on disk, in time order; and the
+    stamps of the pairs with an image file missing."""
     from estimator.formats.stereo_sync import pair_stamps
 
     pairing = pair_stamps(
@@ -373,7 +377,7 @@ def _pair_frames(
             f"{where}: skipping {len(missing)} stereo pair(s) whose image file is missing "
             f"(first at {missing[0]} ns)"
         )
-    return frames
+    return frames, missing
 
 
 def _open_euroc(path: Path, stereo_sync_tolerance_ns: int | None = None) -> Sequence:
@@ -385,7 +389,7 @@ def _open_euroc(path: Path, stereo_sync_tolerance_ns: int | None = None) -> Sequ
             if not (mav0 / camera / name).is_file():
                 raise FileNotFoundError(f"EuRoC file missing: {mav0 / camera / name}")
     rig = load_euroc_rig(mav0 / "cam0" / "sensor.yaml", mav0 / "cam1" / "sensor.yaml")
-    frames = _pair_frames(
+    frames, missing = _pair_frames(
         _read_camera_csv(mav0 / "cam0" / "data.csv"),
         _read_camera_csv(mav0 / "cam1" / "data.csv"),
         mav0,
@@ -402,7 +406,7 @@ def _open_euroc(path: Path, stereo_sync_tolerance_ns: int | None = None) -> Sequ
     if gt_csv.is_file():
         ground_truth = read_euroc_ground_truth(gt_csv)
     name = mav0.parent.name if mav0.name == "mav0" else mav0.name
-    return Sequence(name, "euroc", mav0, rig, frames, imu, imu_noise, ground_truth)
+    return Sequence(name, "euroc", mav0, rig, frames, imu, imu_noise, ground_truth, missing)
 
 
 # ----------------------------------------------------------------------------- KITTI

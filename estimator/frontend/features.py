@@ -46,11 +46,6 @@ class Features:
     def __len__(self) -> int:
         return len(self.points)
 
-    def subset(self, index: np.ndarray) -> Features:
-        return Features(
-            self.points[index], self.descriptors[index], self.response[index], self.binary
-        )
-
 
 @dataclass(frozen=True)
 class MatchSet:
@@ -260,7 +255,6 @@ def _best_per_group(group: np.ndarray, distance: np.ndarray) -> tuple[np.ndarray
     second = np.full(size, np.inf)
     np.minimum.at(second, group[others], distance[others])
     return best_row, second[present]
-    return best_row, second
 
 
 def match_candidates(

@@ -257,12 +257,28 @@ def synthesize(
         _write_ground_truth(mav0, imu_ns, state, gyro_bias, accel_bias)
 
     broken = _choose_broken(options, total, rng)
+    rendered = _render_frames(rig, body_poses, frame_rows, per_frame, options, rng, progress)
+    _write_frames(writer, rendered, broken, total)
+    if broken:
+        lines = [f"{frame_ns[i]},{i},{kind}" for i, kind in sorted(broken.items())]
+        (out_dir / BROKEN_FILE).write_text("#timestamp [ns],index,kind\n" + "\n".join(lines) + "\n")
+    path_length = _write_summary(out_dir, options, rig, body_poses[frame_rows])
+    return SyntheticSequence(
+        out_dir, options, frame_ns, imu_ns, body_poses, broken, path_length, world, trajectory
+    )
+
+
+def _write_frames(
+    writer: Callable[[int, np.ndarray, str], None],
+    rendered: Iterator[tuple[int, np.ndarray, np.ndarray]],
+    broken: dict[int, str],
+    total: int,
+) -> None:
+    """Write every rendered pair, broken the way ``broken`` says (black, blurred, shuffled)."""
     # A shuffled frame gets the (unbroken) right image of the frame half a loop away.
     donors = {i: (i + total // 2) % total for i, kind in broken.items() if kind == "shuffled"}
     kept_right: dict[int, np.ndarray] = {}
-    for index, left, right in _render_frames(
-        rig, body_poses, frame_rows, per_frame, options, rng, progress
-    ):
+    for index, left, right in rendered:
         if index in donors.values():
             kept_right[index] = right
         if broken.get(index) == "black":
@@ -273,31 +289,23 @@ def synthesize(
         writer(index, right, "right")
     for index, donor in donors.items():
         writer(index, kept_right[donor], "right")
-    if broken:
-        lines = [f"{frame_ns[i]},{i},{kind}" for i, kind in sorted(broken.items())]
-        (out_dir / BROKEN_FILE).write_text("#timestamp [ns],index,kind\n" + "\n".join(lines) + "\n")
-    path_length = float(
-        np.linalg.norm(np.diff(body_poses[frame_rows, :3, 3], axis=0), axis=1).sum()
-    )
+
+
+def _write_summary(
+    out_dir: Path, options: SynthOptions, rig: SceneRig, frame_poses: np.ndarray
+) -> float:
+    """``synth.json``: the options, the scene and the body's path length (returned, m)."""
+    trajectory, world = rig.trajectory, rig.world
+    path_length = float(np.linalg.norm(np.diff(frame_poses[:, :3, 3], axis=0), axis=1).sum())
     scene = (
         {"loop_semi_axes_m": [trajectory.a, trajectory.b], "hall_half_extents_m": world.bounds}
         if isinstance(trajectory, LoopTrajectory)
         else {"turns": len(trajectory.turns), "mean_speed_mps": trajectory.mean_speed}
     )
-    (out_dir / "synth.json").write_text(
-        json.dumps(
-            {
-                "options": asdict(options),
-                "path_length_m": path_length,
-                **scene,
-                "planes": len(world.planes),
-            },
-            indent=2,
-        )
-    )
-    return SyntheticSequence(
-        out_dir, options, frame_ns, imu_ns, body_poses, broken, path_length, world, trajectory
-    )
+    summary = {"options": asdict(options), "path_length_m": path_length, **scene}
+    summary["planes"] = len(world.planes)
+    (out_dir / "synth.json").write_text(json.dumps(summary, indent=2))
+    return path_length
 
 
 @dataclass

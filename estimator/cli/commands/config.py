@@ -29,18 +29,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="a EuRoC or KITTI folder: also show the settings derived from its rig and rate",
     )
     parser.add_argument(
+        "--data", type=Path, dest="data_option", metavar="DATASET", help="same as DATASET"
+    )
+    parser.add_argument(
         "--config", type=Path, help="a JSON or YAML config file to check and show merged"
     )
     parser.add_argument("--format", choices=("euroc", "kitti"), help="dataset format (detected)")
 
 
 def run(args: argparse.Namespace) -> int:
-    config = load_config(args.config) if args.config is not None else SwarmvoConfig()
-    if args.dataset is None:
+    if args.dataset is not None and args.data_option is not None:
+        raise ValueError("give the dataset once: as DATASET or as --data")
+    dataset = args.dataset if args.dataset is not None else args.data_option
+    if dataset is None:
+        config = load_config(args.config) if args.config is not None else SwarmvoConfig()
         yaml.safe_dump(config.model_dump(mode="json"), sys.stdout, sort_keys=False)
         return 0
-    sequence = open_sequence(args.dataset, args.format)
+    sequence = open_sequence(dataset, args.format)
     interval = frame_interval_s(sequence)
+    config = load_config(args.config, interval) if args.config is not None else SwarmvoConfig()
     config, derived = apply_rig_settings(config, sequence.rig, interval)
     print(f"# {sequence.name} ({len(sequence.frames)} frames)")
     for line in format_settings(sequence.rig, interval, derived).splitlines():

@@ -94,7 +94,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="stop at a missing or corrupt image (default: skip the frame with a warning)",
     )
-    bags = parser.add_argument_group("ROS bags")
+    _add_bag_arguments(parser.add_argument_group("ROS bags"))
+
+
+def _add_bag_arguments(bags: argparse._ArgumentGroup) -> None:
+    """Calibration, topics and stereo pairing of a bag input, and the bag output."""
     bags.add_argument(
         "--calibration",
         type=Path,
@@ -116,7 +120,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         help="also write the result as a bag: PATH.bag = ROS 1, else a ROS 2 folder",
     )
-    bags.add_argument("--export-storage", choices=("sqlite3", "mcap"), default="sqlite3")
+    bags.add_argument(
+        "--export-storage",
+        choices=("sqlite3", "mcap"),
+        help="storage of a ROS 2 --export-bag (default: sqlite3)",
+    )
 
 
 def open_input(args: argparse.Namespace) -> Sequence:
@@ -130,6 +138,9 @@ def open_input(args: argparse.Namespace) -> Sequence:
     if not is_bag(args.dataset):
         if args.calibration is not None:
             raise ValueError("--calibration is for bags; a dataset folder has its own")
+        for flag in ("left_topic", "right_topic", "imu_topic"):
+            if getattr(args, flag) is not None:
+                raise ValueError(f"--{flag.replace('_', '-')} is for bags, not a dataset folder")
         return open_sequence(args.dataset, args.format, tolerance)
     from estimator.formats.bag_calibration import load_bag_calibration
     from estimator.formats.rosbag_io import open_bag
@@ -148,12 +159,17 @@ def open_input(args: argparse.Namespace) -> Sequence:
 def run(args: argparse.Namespace) -> int:
     if args.imu and args.backend is False:
         raise ValueError("--imu needs the back end (the IMU is fused there); drop --no-backend")
-    base = load_config(args.config) if args.config is not None else None
+    if args.config is not None and not args.config.is_file():
+        raise FileNotFoundError(f"config file not found: {args.config}")
     if args.export_bag is not None and args.export_bag.exists():
         raise ValueError(f"{args.export_bag} exists already; choose a new bag path")
+    if args.export_storage is not None and args.export_bag is None:
+        raise ValueError("--export-storage needs --export-bag")
     sequence = open_input(args)
-    config = build_config(args.estimator, args.seed, args.imu, args.backend, base)
     interval = frame_interval_s(sequence)
+    # Read once the frame period is known: old keys counted in frames are converted with it.
+    base = load_config(args.config, interval) if args.config is not None else None
+    config = build_config(args.estimator, args.seed, args.imu, args.backend, base)
     config, derived = apply_rig_settings(config, sequence.rig, interval)
     print(format_settings(sequence.rig, interval, derived), flush=True)
     try:
@@ -171,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
     result.derived = derived
     out = args.out if args.out is not None else Path("runs") / sequence.name
     summary = write_outputs(result, out)
-    write_odometry(result, out, args.export_bag, args.export_storage)
+    write_odometry(result, out, args.export_bag, args.export_storage or "sqlite3")
     print(results_table(summary, path_length(result.poses())))
     kitti_path = kitti_poses_path(result, out)
     print(
