@@ -687,12 +687,13 @@ def _prior_keys(backend: FusionBackend) -> set[int]:
     }
 
 
-@pytest.mark.parametrize("old_reference", ["chain", "prior-after-gap"])
+@pytest.mark.parametrize("old_reference", ["chain", "prior-after-gap", "prior"])
 def test_after_a_gap_an_old_reference_does_not_go_through_the_coasted_frame(old_reference):
     """Frame 20 has no vision; frame 21 is measured against frame 10, long out of the window.
     "chain": its factor starts at frame 19 (measured), not at the coasted frame 20, whose
     estimate is only the motion prior's (or the IMU's) and would carry its error into frame 21.
-    "prior-after-gap": frame 21 is placed from frame 10's estimate directly (a pose prior)."""
+    "prior-after-gap" and "prior": frame 21 is placed from frame 10's estimate directly (a
+    pose prior)."""
     scenario = smooth_trajectory(24, seed=26)
     stamps = scenario.timestamps_ns
     camera = scenario.body_poses @ BODY_FROM_CAMERA
