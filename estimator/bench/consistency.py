@@ -14,7 +14,8 @@ mean exactly 1 (sqrt of the mean per DOF); the median per DOF of a consistent es
 The row ``frontend measurement`` checks the front end's measurements one by one (keyframe to
 frame, with the covariance each was reported with; ``estimator.consistency.measurement_nees``),
 with ``lag1`` the correlation of consecutive errors against the same keyframe and across a
-keyframe change.
+keyframe change; it checks the covariance the back end weighs (with the graph's floor), which
+without the gyro is not the one the messages report.
 
 With the IMU the covariances are scaled by the factor measured online against the gyro
 (``estimator.backend.covariance_scale``: the session's, raised by a time-local one through
