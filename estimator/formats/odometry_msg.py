@@ -15,7 +15,10 @@ Per frame: the pose of ``base_link`` in ``odom`` with its 6x6 covariance, the tw
   is the drift). Frames without a measurement add the back end's constant-velocity noise. Every
   covariance is floored by the smallest fit sigmas (``backend.fit_min_*``): never zero, never NaN.
   Both are then multiplied by the session's covariance scale, measured online against the gyro
-  (``estimator.backend.covariance_scale``; 1 without an IMU).
+  (``estimator.backend.covariance_scale``). Without the gyro the chain carries the reported
+  measurement covariance of ``estimator.backend.systematic_noise`` (a smaller floor and a
+  calibration error proportional to the motion), also with the back end, and the twist
+  covariance is the chain's growth from the previous frame.
 
 ``OdometryBuilder`` turns the pipeline's ``FrameReport`` stream into these messages; it must
 see every frame in order.
