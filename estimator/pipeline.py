@@ -291,8 +291,11 @@ def odometry_messages(result: RunResult, calibrated: bool = True) -> list[Odomet
 
     first_ns = result.reports[0].timestamp_ns
     first_imu = result.sequence.imu_between(first_ns - FIRST_FRAME_IMU_WINDOW_NS, first_ns)
+    backend = result.config.backend
+    gyro = backend.enabled and backend.use_imu and result.sequence.imu is not None
     builder = OdometryBuilder(
-        result.sequence.rig.left.T_BS, result.config.backend, first_imu.accel, calibrated=calibrated
+        result.sequence.rig.left.T_BS, backend, first_imu.accel, calibrated=calibrated,
+        gyro_calibrated=gyro and backend.covariance_scale != "off",
     )
     return [builder.build(report) for report in result.reports]
 

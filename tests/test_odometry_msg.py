@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
 from estimator.backend.imu import gravity_aligned_rotation
+from estimator.config import BackendConfig, SwarmvoConfig
 from estimator.evaluation.consistency import relative_nees
 from estimator.formats.datasets import open_sequence
 from estimator.formats.odometry_msg import OdometryMessage
@@ -29,8 +31,13 @@ def runs(tmp_path_factory):
     synthesize(root, SynthOptions(frames=40, length_m=3.4, seed=3, standstill_s=0.25))
     sequence = open_sequence(root)
     results = {}
+    # The rendered rig is calibrated exactly: no calibration error in the no-IMU covariances.
+    exact = SwarmvoConfig(
+        backend=BackendConfig(calibration_rotation_gain=0.0, calibration_translation_gain=0.0)
+    )
     for mode, (backend, imu) in MODES.items():
-        result = run_sequence(sequence, build_config(backend=backend, imu=imu), use_imu=imu)
+        config = build_config(backend=backend, imu=imu, base=exact)
+        result = run_sequence(sequence, config, use_imu=imu)
         results[mode] = (result, odometry_messages(result))
     return sequence, results
 
@@ -104,6 +111,32 @@ def test_nees_on_a_short_rendered_flight_is_plausible(runs):
         # Two 6-DOF windows: the mean per DOF of a consistent estimate lies in
         # [0.15, 3] with 99.9 % probability (chi-square with 12 DOF, over 12).
         assert 0.15 <= nees.summary()["mean_nees_per_dof"] <= 3.0, mode
+
+
+@pytest.mark.slow
+def test_covariances_without_the_imu_are_consistent_on_a_rendered_flight(runs):
+    sequence, results = runs
+    messages = results["frontend"][1]
+    for source in ("pose", "twist"):
+        nees = relative_nees(messages, sequence.ground_truth, 1.0, source, stride=1)
+        assert nees.windows == len(messages) - 20
+        assert 0.5 <= nees.summary()["mean_nees_per_dof"] <= 2.0, source
+
+
+@pytest.mark.slow
+def test_calibration_error_widens_the_no_imu_covariances_with_the_motion(runs):
+    _, results = runs
+    result, exact = results["frontend"]
+    backend = result.config.backend.model_copy(
+        update={"calibration_rotation_gain": 0.01, "calibration_translation_gain": 0.02}
+    )
+    config = result.config.model_copy(update={"backend": backend})
+    wider = odometry_messages(dataclasses.replace(result, config=config))
+    # The drift over the flight: at least the calibration term of the path (~3.4 m at 2 %).
+    growth = [np.trace(m.pose_covariance[:3, :3]) for m in (exact[-1], wider[-1])]
+    assert growth[1] > 10 * growth[0]
+    at_rest = [np.trace(m.pose_covariance) for m in (exact[3], wider[3])]
+    assert at_rest[1] == pytest.approx(at_rest[0], rel=0.05)  # no motion yet, no term
 
 
 @pytest.mark.slow

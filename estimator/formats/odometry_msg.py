@@ -15,7 +15,10 @@ Per frame: the pose of ``base_link`` in ``odom`` with its 6x6 covariance, the tw
   is the drift). Frames without a measurement add the back end's constant-velocity noise. Every
   covariance is floored by the smallest fit sigmas (``backend.fit_min_*``): never zero, never NaN.
   Both are then multiplied by the session's covariance scale, measured online against the gyro
-  (``estimator.backend.covariance_scale``; 1 without an IMU).
+  (``estimator.backend.covariance_scale``). Without the gyro the chain carries the reported
+  measurement covariance of ``estimator.backend.systematic_noise`` (a smaller floor and a
+  calibration error proportional to the motion), also with the back end, and the twist
+  covariance is the chain's growth from the previous frame.
 
 ``OdometryBuilder`` turns the pipeline's ``FrameReport`` stream into these messages; it must
 see every frame in order.
@@ -29,6 +32,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from estimator.backend.systematic_noise import drift_growth, reported_measurement_covariance
 from estimator.config import BackendConfig
 from estimator.geometry import invert_pose, make_pose, matrix_to_quat, quat_to_matrix
 from estimator.types import FrameReport, FrameStatus
@@ -156,18 +160,29 @@ class OdometryBuilder:
         first_accel: np.ndarray | None = None,
         odom_from_world: np.ndarray | None = None,
         calibrated: bool = True,
+        gyro_calibrated: bool | None = None,
     ) -> None:
         """``odom_from_world`` fixes the odom frame instead of the first report (a pipeline
         resumed from a stored pose continues in the odom frame it had). ``calibrated`` applies
-        each report's ``covariance_scale`` (False: the fixed noise model's covariances)."""
+        each report's ``covariance_scale`` (False: the fixed noise model's covariances).
+        ``gyro_calibrated`` (default: the back end runs with the IMU and the gyro factor):
+        False reports the covariances without a gyro (``backend.systematic_noise``)."""
         self.calibrated = calibrated
         config = config if config is not None else BackendConfig()
+        if gyro_calibrated is None:
+            gyro_calibrated = config.enabled and config.use_imu and config.covariance_scale != "off"
+        self._config = config
+        self._without_gyro = calibrated and not gyro_calibrated
         self.body_from_camera = np.asarray(body_from_camera, dtype=float)
         self.camera_from_body = invert_pose(self.body_from_camera)
         self._camera_to_body = _adjoint(self.body_from_camera)
         self._level = odom_rotation(first_accel)
         self._floor = np.diag(
             [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
+        )
+        self._report_floor = np.diag(
+            [config.report_min_rotation_sigma_rad**2] * 3
+            + [config.report_min_translation_sigma_m**2] * 3
         )
         self._coast = np.diag(
             [config.cv_rotation_sigma_rad**2] * 3 + [config.cv_translation_sigma_m**2] * 3
@@ -185,7 +200,9 @@ class OdometryBuilder:
         if self._odom_from_world is None:
             self._odom_from_world = make_pose(self._level, np.zeros(3)) @ invert_pose(body_pose)
         chained = self._chain_frontend(report)
-        pose_covariance = report.body_covariance
+        # Without a gyro the back end's marginals carry the graph's noise model; the chain
+        # carries the reported one (the same measurements: equal to rounding on rendered data).
+        pose_covariance = None if self._without_gyro else report.body_covariance
         if pose_covariance is None or not np.isfinite(pose_covariance).all():
             pose_covariance = self._to_body(chained.covariance)
         motion, motion_covariance, dt = self._motion(report, chained)
@@ -194,6 +211,9 @@ class OdometryBuilder:
         scale = report.covariance_scale if self.calibrated else 1.0
         pose_scale = max(report.pose_covariance_scale if self.calibrated else 1.0, 1.0)
         pose_covariance = self._scaled_pose_covariance(pose_covariance, body_pose, pose_scale)
+        # Without the gyro the twist floor is a drift rate (the reporting floor per second):
+        # a per-frame floor summed over a window's frames alone exceeded the drift 2-4x.
+        twist_floor = self._report_floor * min(dt, 1.0) if self._without_gyro else self._floor
         return OdometryMessage(
             stamp_ns=report.timestamp_ns,
             frame_id=ODOM_FRAME,
@@ -202,7 +222,7 @@ class OdometryBuilder:
             pose_covariance=_pose_covariance_ros(pose_covariance + self._floor, odom_pose),
             linear_velocity=motion[3:] / dt,
             angular_velocity=motion[:3] / dt,
-            twist_covariance=scale * _swap_blocks(motion_covariance + self._floor) / dt**2,
+            twist_covariance=scale * _swap_blocks(motion_covariance + twist_floor) / dt**2,
             status=report.status,
             camera_pose=self._odom_from_world @ report.pose,
         )
@@ -249,6 +269,8 @@ class OdometryBuilder:
             chained = _Chained(pose, np.zeros((6, 6)), None, None)
         elif measurement is not None and reference is not None:
             motion = invert_pose(reference.pose) @ pose
+            if self._without_gyro:
+                measurement = reported_measurement_covariance(measurement, motion, self._config)
             covariance = _transport(reference.covariance, motion) + measurement
             chained = _Chained(pose, covariance, measurement, report.reference_timestamp_ns)
         else:  # no measurement: the previous pose, moved on at constant velocity
@@ -279,7 +301,11 @@ class OdometryBuilder:
             unknown = np.eye(6) * _UNKNOWN_TWIST_VARIANCE
             return np.zeros(6), unknown, 1.0
         dt = (report.timestamp_ns - self._previous_ns) * 1e-9
-        if report.body_motion is not None and report.body_motion_covariance is not None:
+        if (
+            report.body_motion is not None
+            and report.body_motion_covariance is not None
+            and not self._without_gyro
+        ):
             motion, covariance = report.body_motion, report.body_motion_covariance
         else:
             camera_motion = report.relative_pose
@@ -301,6 +327,8 @@ class OdometryBuilder:
         previous = self._chain[self._previous_ns]
         if chained.measurement is None:
             return self._coast
+        if self._without_gyro:
+            return drift_growth(chained.covariance, previous.covariance, camera_motion)
         if chained.reference_ns == self._previous_ns or previous.measurement is None:
             return chained.measurement
         return chained.measurement + _transport(previous.measurement, camera_motion)

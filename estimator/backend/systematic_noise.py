@@ -1,0 +1,79 @@
+"""Reported covariance of a vision measurement when no gyro can calibrate it.
+
+With an IMU the reported covariances are scaled by a factor measured against the gyro
+(``covariance_scale.py``). Without one, nothing independent sees the errors the stereo noise
+model misses, so the reported covariance of each keyframe-to-frame measurement T_ref_cur is
+built from what is known about their sources (``swarmvo bench consistency``, the rows without
+the IMU; docs/robot-integration.md):
+
+* the refinement's covariance (per-point stereo noise through the fit) - on rendered flights,
+  whose calibration is exact, the actual errors are about 2x its variance;
+* a floor, smaller than the one the back end's factors use (``backend.fit_min_*``): that one
+  (0.1 mrad, 0.5 mm) lies above the fit's covariance on rendered flights and made their
+  reported covariances 2-5x too large;
+* a calibration term proportional to the measured motion: an error of the focal lengths, the
+  rectification or the stereo baseline is common to every point of a frame, so the fit's
+  residuals cannot show it, and it scales the measured motion: a focal-length or rectification
+  error of a fraction g turns a rotation theta into (1 + g) theta, and depth = focal x baseline /
+  disparity makes the translation's scale wrong by the focal and the baseline errors together.
+  Per axis, sigma_rotation = ``calibration_rotation_gain`` x |theta| and sigma_translation =
+  ``calibration_translation_gain`` x |t| (defaults 1 % and 2 %: the accuracy a target-based
+  calibration of a small stereo rig achieves). A rendered rig is calibrated exactly: 0 there.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from estimator.config import BackendConfig
+
+__all__ = ["calibration_covariance", "drift_growth", "reported_measurement_covariance"]
+
+
+def calibration_covariance(
+    relative_pose: np.ndarray, rotation_gain: float, translation_gain: float
+) -> np.ndarray:
+    """6x6 (rotation, translation) covariance of a motion-proportional calibration error."""
+    tangent = np.asarray(gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(relative_pose, dtype=float))))
+    rotation = (rotation_gain * np.linalg.norm(tangent[:3])) ** 2
+    translation = (translation_gain * np.linalg.norm(relative_pose[:3, 3])) ** 2
+    return np.diag([rotation] * 3 + [translation] * 3)
+
+
+def reported_measurement_covariance(
+    floored: np.ndarray, relative_pose: np.ndarray, config: BackendConfig
+) -> np.ndarray:
+    """The reported covariance of T_ref_cur (left camera tangent) from the one the back end
+    weighs (``floored``: the fit's plus the ``fit_min_*`` floor): the fit's, the reporting
+    floor and the calibration term (module doc)."""
+    graph_floor = np.diag(
+        [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
+    )
+    report_floor = np.diag(
+        [config.report_min_rotation_sigma_rad**2] * 3
+        + [config.report_min_translation_sigma_m**2] * 3
+    )
+    calibration = calibration_covariance(
+        relative_pose, config.calibration_rotation_gain, config.calibration_translation_gain
+    )
+    covariance = np.asarray(floored, dtype=float) - graph_floor + report_floor + calibration
+    return 0.5 * (covariance + covariance.T)
+
+
+def drift_growth(
+    current: np.ndarray, previous: np.ndarray, motion: np.ndarray
+) -> np.ndarray:
+    """What the chained pose covariance gained from the previous frame to this one (its
+    positive part), as the covariance of the frame-to-frame motion.
+
+    Consecutive frames measured against one keyframe share its points, so their errors largely
+    cancel in the motion between them; the sum of both measurements' covariances (independent
+    errors) made the integrated twist 5-12x too conservative. The growth of the chain, summed
+    over a window, is the drift the pose covariance reports for it: a filter integrating the
+    twist gets the same uncertainty as the poses say.
+    """
+    adjoint = np.asarray(gtsam.Pose3(np.linalg.inv(motion)).AdjointMap())
+    change = current - adjoint @ previous @ adjoint.T
+    values, vectors = np.linalg.eigh(0.5 * (change + change.T))
+    return (vectors * np.clip(values, 0.0, None)) @ vectors.T
