@@ -102,7 +102,7 @@ class FrontendConfig(_Section):
     mode: Literal["detect", "track"] = "detect"
     max_tracks: int = Field(300, gt=0)  # live tracks in track mode
     track_window: int = Field(5, ge=2, le=30)  # half size of the tracks' LK window
-    track_levels: int = Field(2, ge=0, le=6)  # LK pyramid levels of the tracks in time
+    track_levels: int = Field(3, ge=0, le=6)  # LK pyramid levels of the tracks in time
     track_refill_ratio: float = Field(0.8, gt=0, le=1)  # new corners below this share
     track_min_distance_px: float = Field(12.0, gt=0)  # new corners this far from live tracks
     temporal_refine: bool = True  # sub-pixel current positions by Lucas-Kanade
