@@ -135,7 +135,7 @@ class Tracker:
         spacing = config.track_min_distance_px
         mask = np.zeros(image.shape, np.uint8)
         mask[_BORDER_PX:-_BORDER_PX, _BORDER_PX:-_BORDER_PX] = 255
-        radius = max(int(round(spacing)), 1)
+        radius = max(round(spacing), 1)
         for u, v in np.rint(self._pixels).astype(int):
             cv2.circle(mask, (int(u), int(v)), radius, 0, -1)
         keypoints = self._fast.detect(image, mask)
@@ -281,9 +281,7 @@ def match_tracks(
             current.pixels[current_index], config.temporal_refine_window,
         )  # fmt: skip
         reference_index, current_index = reference_index[found], current_index[found]
-        current_points = triangulate(
-            pixels[found], current.disparity[current_index], rectification
-        )
+        current_points = triangulate(pixels[found], current.disparity[current_index], rectification)
     return Correspondences(
         reference_index=reference_index.astype(np.intp),
         current_index=current_index.astype(np.intp),
