@@ -204,20 +204,26 @@ class Tracker:
         points = triangulate(start[good].astype(float), measured[good], self.rectification)
         in_range = (points[:, 2] >= config.min_depth_m) & (points[:, 2] <= config.max_depth_m)
         kept = rows[good][in_range]
-        self._disparity[:] = np.nan
-        self._points[:] = np.nan
         self._disparity[kept] = measured[good][in_range]
         self._points[kept] = points[in_range]
+        # A new track without a stereo match is dropped (searching it again every frame costs
+        # more than a new corner); an older one keeps its last disparity as the next guess.
+        matched = np.zeros(len(self._ids), dtype=bool)
+        matched[kept] = True
+        stays = matched | np.isfinite(self._disparity)
+        self._pixels = np.ascontiguousarray(self._pixels[stays])
+        self._ids, self._disparity = self._ids[stays], self._disparity[stays]
+        self._points, matched = self._points[stays], matched[stays]
         f_b = self.rectification.fx * self.rectification.baseline
-        depth = points[in_range, 2]
+        depth = self._points[matched, 2]
         return TrackedPoints(
-            pixels=self._pixels[kept].astype(float),
-            disparity=self._disparity[kept],
-            points=self._points[kept],
+            pixels=self._pixels[matched].astype(float),
+            disparity=self._disparity[matched],
+            points=self._points[matched],
             depth_sigma=depth**2 * config.disparity_sigma_px / f_b,
-            descriptors=np.zeros((len(kept), 0), np.uint8),
+            descriptors=np.zeros((len(depth), 0), np.uint8),
             binary=True,
-            ids=self._ids[kept],
+            ids=self._ids[matched],
         )
 
     def _search_disparity(
