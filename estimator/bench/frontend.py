@@ -240,6 +240,7 @@ def _markdown(result: dict) -> str:
         f"{result['image_size'][1]} x {result['repeat']} passes "
         f"(method {config['registration']['method']}, tracking {config['frontend']['tracking']}, "
         f"temporal matcher {config['frontend']['temporal_matcher']}, "
+        f"{'front end mode track, ' if config['frontend'].get('mode') == 'track' else ''}"
         f"back end {'on' if config['backend']['enabled'] else 'off'}, "
         f"OMP_NUM_THREADS={result['environment']['OMP_NUM_THREADS']}, "
         f"load average {result['environment']['load_average']})",
