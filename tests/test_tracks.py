@@ -33,10 +33,12 @@ def test_tracks_follow_a_known_image_shift() -> None:
     second = _shift(texture, *shift)[:, :WIDTH].clip(0, 255).astype(np.uint8)
     tracker = Tracker(FrontendConfig(max_tracks=300), _rig().rectification)
     tracker.follow(first)
-    before = dict(zip(tracker._ids.tolist(), tracker._pixels.astype(float), strict=True))
+    ids, pixels = tracker.live
+    before = dict(zip(ids.tolist(), pixels, strict=True))
     assert len(before) > 200
     tracker.follow(second)
-    after = dict(zip(tracker._ids.tolist(), tracker._pixels.astype(float), strict=True))
+    ids, pixels = tracker.live
+    after = dict(zip(ids.tolist(), pixels, strict=True))
     kept = [i for i in before if i in after]
     assert len(kept) > 0.9 * len(before)
     moved = np.array([after[i] - before[i] for i in kept])

@@ -75,6 +75,11 @@ class Tracker:
     def __len__(self) -> int:
         return len(self._ids)
 
+    @property
+    def live(self) -> tuple[np.ndarray, np.ndarray]:
+        """Ids and left-image pixels of the live tracks (with or without a stereo match)."""
+        return self._ids.copy(), self._pixels.astype(float)
+
     # ------------------------------------------------------------------ left image, in time
 
     def follow(self, image: np.ndarray, current_from_previous: np.ndarray | None = None) -> None:
