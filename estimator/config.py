@@ -111,6 +111,15 @@ class FrontendConfig(_Section):
     klt_window: int = Field(10, ge=2, le=30)  # half size of the KLT window
     klt_levels: int = Field(3, ge=0, le=6)  # KLT pyramid levels
     klt_association_px: float = Field(2.0, gt=0)  # track -> nearest stereo point
+    # "detect": ORB in both images every frame, stereo and temporal descriptor matching;
+    # "track": persistent Lucas-Kanade tracks, new corners only where they thinned out, stereo
+    # by LK along the row, pairs by track id (estimator/frontend/tracks.py, docs/frontend.md).
+    mode: Literal["detect", "track"] = "detect"
+    max_tracks: int = Field(300, gt=0)  # live tracks in track mode
+    track_window: int = Field(5, ge=2, le=30)  # half size of the tracks' LK window
+    track_levels: int = Field(3, ge=0, le=6)  # LK pyramid levels of the tracks in time
+    track_refill_ratio: float = Field(0.8, gt=0, le=1)  # new corners below this share
+    track_min_distance_px: float = Field(12.0, gt=0)  # new corners this far from live tracks
     temporal_refine: bool = True  # sub-pixel current positions by Lucas-Kanade
     temporal_refine_window: int = Field(5, ge=1, le=15)  # half size of the LK window
     min_matches: int = Field(12, ge=3)  # fewer 3D-3D pairs: the frame is not estimated

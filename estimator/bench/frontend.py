@@ -42,6 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--tracking", choices=("keyframe", "frame"), default=None)
     parser.add_argument("--temporal-matcher", choices=("descriptor", "klt"), default=None)
+    parser.add_argument(
+        "--mode", choices=("detect", "track"), default=None,
+        help="front end: detect every frame or follow tracks (default: the config's)",
+    )  # fmt: skip
     parser.add_argument("--backend", action="store_true", help="include the GTSAM back end")
     parser.add_argument("--repeat", type=int, default=3, help="passes over the sequence")
     parser.add_argument("--frames", type=int, default=None, help="use only the first N frames")
@@ -59,6 +63,8 @@ def _config(args: argparse.Namespace) -> SwarmvoConfig:
         config.frontend.tracking = args.tracking
     if args.temporal_matcher is not None:
         config.frontend.temporal_matcher = args.temporal_matcher
+    if args.mode is not None:
+        config.frontend.mode = args.mode
     config.backend.enabled = bool(args.backend)
     return SwarmvoConfig.model_validate(config.model_dump())  # re-validate the overrides
 
@@ -234,6 +240,7 @@ def _markdown(result: dict) -> str:
         f"{result['image_size'][1]} x {result['repeat']} passes "
         f"(method {config['registration']['method']}, tracking {config['frontend']['tracking']}, "
         f"temporal matcher {config['frontend']['temporal_matcher']}, "
+        f"{'front end mode track, ' if config['frontend'].get('mode') == 'track' else ''}"
         f"back end {'on' if config['backend']['enabled'] else 'off'}, "
         f"OMP_NUM_THREADS={result['environment']['OMP_NUM_THREADS']}, "
         f"load average {result['environment']['load_average']})",

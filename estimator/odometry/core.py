@@ -12,6 +12,7 @@ from estimator.frontend.features import FeatureDetector
 from estimator.frontend.photometric import normalise_contrast
 from estimator.frontend.stereo import StereoMatcher, StereoPoints
 from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel
+from estimator.frontend.tracks import Tracker
 from estimator.geometry import invert_pose, nearest_rigid
 from estimator.odometry.chains import chain_covariance, fuse_poses, inverse_covariance
 from estimator.odometry.estimation import PoseEstimation
@@ -56,6 +57,8 @@ class Odometry:
         self.rectification = rig.rectification
         self.detector = FeatureDetector(self.config.frontend)
         self.stereo = StereoMatcher(self.config.frontend, self.rectification)
+        track_mode = self.config.frontend.mode == "track"
+        self._tracker = Tracker(self.config.frontend, self.rectification) if track_mode else None
         self._frames = CameraFrames(self.rectification.R_left)
         self._initial_pose = checked_pose(initial_pose) if initial_pose is not None else None
         self._backend = self._make_backend(imu_noise) if self.config.backend.enabled else None
@@ -147,11 +150,7 @@ class Odometry:
             with stage(timings, "rectify"):
                 left, right = self.rectification.rectify(left, right)
                 left, right = self._normalised(left), self._normalised(right)
-            with stage(timings, "detect"):
-                left_features = self.detector.detect(left)
-                right_features = self.detector.detect(right)
-            with stage(timings, "stereo"):
-                points = self.stereo.match(left_features, right_features, left, right)
+            points = self._stereo_points(left, right, timings)
             if self._references.reference is None:
                 estimate = Estimate(None, None, "")
             else:
@@ -209,6 +208,22 @@ class Odometry:
             self._frame_interval_ns = timestamp - self._last_timestamp_ns
         self._last_timestamp_ns = timestamp
         return left, right
+
+    def _stereo_points(
+        self, left: np.ndarray, right: np.ndarray, timings: dict[str, float]
+    ) -> StereoPoints:
+        """Detect and match both images, or follow the tracks (``frontend.mode``)."""
+        if self._tracker is not None:
+            with stage(timings, "detect"):
+                step = self._references.motion_over(self._frame_interval_ns)
+                self._tracker.follow(left, invert_pose(step))
+            with stage(timings, "stereo"):
+                return self._tracker.stereo(right)
+        with stage(timings, "detect"):
+            left_features = self.detector.detect(left)
+            right_features = self.detector.detect(right)
+        with stage(timings, "stereo"):
+            return self.stereo.match(left_features, right_features, left, right)
 
     def _normalised(self, image: np.ndarray) -> np.ndarray:
         frontend = self.config.frontend

@@ -10,6 +10,7 @@ from estimator.formats.calibration import Rectification
 from estimator.frontend.stereo import StereoPoints
 from estimator.frontend.stereo_noise import StereoNoiseModel
 from estimator.frontend.temporal import Correspondences, match_temporal
+from estimator.frontend.tracks import match_tracks
 from estimator.geometry import invert_pose, make_pose, rotation_angle_deg
 from estimator.odometry.frames import Estimate, Reference, failed, frame_seed, stage
 from estimator.registration.refine import refine_pose_mahalanobis
@@ -39,14 +40,20 @@ class PoseEstimation:
     ) -> Estimate:
         """T_ref_cur of frame ``index`` (its ``points`` and rectified left ``image``)."""
         with stage(timings, "temporal"):
-            pairs = match_temporal(
-                reference.points,
-                points,
-                self.config.frontend,
-                self.rectification,
-                predicted_current_from_reference=invert_pose(predicted_reference_from_current),
-                images=(reference.image, image),
-            )
+            if self.config.frontend.mode == "track":
+                pairs = match_tracks(
+                    reference.points, points, self.config.frontend, self.rectification,
+                    images=(reference.image, image),
+                )  # fmt: skip
+            else:
+                pairs = match_temporal(
+                    reference.points,
+                    points,
+                    self.config.frontend,
+                    self.rectification,
+                    predicted_current_from_reference=invert_pose(predicted_reference_from_current),
+                    images=(reference.image, image),
+                )
         with stage(timings, "estimate"):
             covariances = (
                 self.noise.covariances(pairs.current_points),
