@@ -91,6 +91,16 @@ class FrontendConfig(_Section):
     # Temporal matching (current frame <-> reference frame).
     temporal_ratio: float = Field(0.85, gt=0, le=1)
     search_radius_px: float = Field(40.0, ge=0)  # around the predicted position; 0 = anywhere
+    # "predicted": each reference point gets its own window, the predicted motion's uncertainty
+    # projected at the point's pixel and depth (3 sigma; estimator/frontend/temporal.py), within
+    # [min_search_radius_px, search_radius_px]; search_radius_px when the prediction is poor
+    # (first frames, after a gap or a failed frame). "fixed": search_radius_px everywhere.
+    search_windows: Literal["fixed", "predicted"] = "fixed"
+    min_search_radius_px: float = Field(10.0, ge=0)
+    # What a constant-velocity prediction misses over a span T: angular and linear
+    # acceleration times T^2 (one sigma).
+    prediction_angular_accel_deg_s2: float = Field(200.0, ge=0)
+    prediction_linear_accel_m_s2: float = Field(5.0, ge=0)
     # "descriptor": ratio + mutual descriptor matching; "klt": Lucas-Kanade tracking.
     temporal_matcher: Literal["descriptor", "klt"] = "descriptor"
     klt_window: int = Field(10, ge=2, le=30)  # half size of the KLT window
