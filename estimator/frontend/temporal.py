@@ -5,7 +5,7 @@ triangulated points with left-image descriptors. A reference point may only pair
 points near where it is expected to appear: its own pixel, or, better, its projection under a
 predicted motion. Among those candidates the ratio and mutual checks pick at most one partner.
 
-How near is "near" depends on the point (``frontend.search_windows = "predicted"``): an error
+How near is "near" depends on the point (with ``frontend.min_search_radius_px`` set): an error
 of the predicted rotation moves every pixel alike (f radians, more towards the image edges),
 an error of the predicted translation moves a point by f t / Z. On a drive a point 3 m away
 may be 40 px from its prediction while one at 80 m is within 2 px; one wide window for all
@@ -87,8 +87,8 @@ def search_radii(
     The radius is kept within [``min_search_radius_px``, ``search_radius_px``]; without an
     uncertainty (the prediction is poor) every point gets ``search_radius_px``.
     """
-    wide = float(config.search_radius_px)
-    if uncertainty is None or config.search_windows == "fixed" or wide <= 0:
+    wide, floor = float(config.search_radius_px), config.min_search_radius_px
+    if uncertainty is None or floor is None or wide <= 0:
         return np.full(len(expected), wide)
     rect = rectification
     focal = float(rect.fx)
@@ -97,8 +97,7 @@ def search_radii(
     rotation_px = focal * (1.0 + offset**2) * uncertainty.rotation_rad
     translation_px = focal * np.sqrt(1.0 + offset**2) * uncertainty.translation_m / depth
     radii = WINDOW_SIGMAS * np.hypot(rotation_px, translation_px)
-    low = min(float(config.min_search_radius_px), wide)
-    return np.clip(np.nan_to_num(radii, nan=wide), low, wide)
+    return np.clip(np.nan_to_num(radii, nan=wide), min(float(floor), wide), wide)
 
 
 def _candidate_pairs(

@@ -82,6 +82,20 @@ class References:
             np.sqrt(1 - w) * self.linear_accel, np.sqrt(w) * shift / span_s**2
         ))  # fmt: skip
 
+    def keyframe_translation_m(self) -> float:
+        """Translation from the keyframe beyond which a frame becomes the next keyframe:
+        ``keyframe_max_parallax`` times the median depth of the keyframe's points when that is
+        set (and the metre threshold is not configured), else ``keyframe_max_translation_m``."""
+        frontend = self.frontend
+        parallax = frontend.keyframe_max_parallax
+        explicit = "keyframe_max_translation_m" in frontend.model_fields_set
+        if parallax is None or explicit or self.reference is None:
+            return frontend.keyframe_max_translation_m
+        depth = self.reference.points.points[:, 2]
+        if len(depth) == 0:
+            return frontend.keyframe_max_translation_m
+        return parallax * float(np.median(depth))
+
     def held(self, now_ns: int) -> bool:
         """Whether a frame without an estimate at ``now_ns`` holds the pose: the last vision fix
         is more than ``frontend.max_coast_s`` old (1 ms more for timestamp jitter)."""
@@ -170,6 +184,6 @@ class References:
         assert estimate.result is not None and motion is not None
         return bool(
             estimate.result.inliers.sum() < frontend.keyframe_min_inliers
-            or np.linalg.norm(motion[:3, 3]) > frontend.keyframe_max_translation_m
+            or np.linalg.norm(motion[:3, 3]) > self.keyframe_translation_m()
             or rotation_angle_deg(motion[:3, :3]) > frontend.keyframe_max_rotation_deg
         )
