@@ -42,6 +42,8 @@ _MAX_REFINE_SHIFT_PX = 1.5
 _KLT_ROUND_TRIP_PX = 0.5
 # A per-point window spans this many standard deviations of its predicted pixel.
 WINDOW_SIGMAS = 3.0
+# Matches this far out in their windows (median) show a prediction error beyond the windows.
+WINDOW_MISS_FRACTION = 0.5
 
 
 @dataclass(frozen=True)
@@ -152,6 +154,45 @@ def _window_matches(
     return MatchSet(finite[a], b, distance)
 
 
+def _windows_missed(
+    expected: np.ndarray,
+    current: StereoPoints,
+    matches: MatchSet,
+    radii: np.ndarray,
+    config: FrontendConfig,
+) -> bool:
+    """Narrow windows that did not hold the motion: too few matches, or matches that lie, at
+    the median, further from their predicted pixels than ``WINDOW_MISS_FRACTION`` of their
+    windows (3-sigma windows of a right prediction hold them near the centre; the points
+    whose motion went beyond their windows are then missing)."""
+    if len(matches) < config.keyframe_min_inliers:
+        return True
+    offsets = np.linalg.norm(current.pixels[matches.b] - expected[matches.a], axis=1)
+    return bool(np.median(offsets / radii[matches.a]) > WINDOW_MISS_FRACTION)
+
+
+def _descriptor_matches(
+    expected: np.ndarray,
+    reference: StereoPoints,
+    current: StereoPoints,
+    radii: np.ndarray,
+    config: FrontendConfig,
+) -> MatchSet:
+    """Ratio-tested mutual descriptor matches within each reference point's window."""
+    max_distance = config.max_hamming if reference.binary else config.max_sift_distance
+    if reference.binary and config.search_radius_px > 0:
+        return _window_matches(
+            expected, reference, current, radii, config.temporal_ratio, max_distance
+        )
+    ia, ib = _candidate_pairs(expected, current.pixels, radii)
+    distance = descriptor_distances(
+        reference.descriptors, current.descriptors, ia, ib, reference.binary
+    )
+    return match_candidates(
+        ia, ib, distance, ratio=config.temporal_ratio, max_distance=max_distance
+    )
+
+
 def match_temporal(
     reference: StereoPoints,
     current: StereoPoints,
@@ -183,20 +224,14 @@ def match_temporal(
         if images is None:
             raise ValueError("the KLT temporal matcher needs the reference and current images")
         return track_klt(reference, current, expected, images, config, rect)
-    max_distance = config.max_hamming if reference.binary else config.max_sift_distance
     radii = search_radii(moved, expected, uncertainty, config, rect)
-    if reference.binary and config.search_radius_px > 0:
-        matches = _window_matches(
-            expected, reference, current, radii, config.temporal_ratio, max_distance
-        )
-    else:
-        ia, ib = _candidate_pairs(expected, current.pixels, radii)
-        distance = descriptor_distances(
-            reference.descriptors, current.descriptors, ia, ib, reference.binary
-        )
-        matches = match_candidates(
-            ia, ib, distance, ratio=config.temporal_ratio, max_distance=max_distance
-        )
+    matches = _descriptor_matches(expected, reference, current, radii, config)
+    wide = np.full(len(expected), float(config.search_radius_px))
+    narrowed = not np.array_equal(radii, wide)
+    if narrowed and _windows_missed(expected, current, matches, radii, config):
+        # The prediction is off by more than its windows allow (a motion it did not
+        # foresee, e.g. the start of a turn): search wide.
+        matches = _descriptor_matches(expected, reference, current, wide, config)
     reference_index, current_index = matches.a, matches.b
     current_points = current.points[current_index]
     if images is not None and config.temporal_refine and len(matches):

@@ -17,8 +17,9 @@ _JITTER_NS = 1_000_000  # timestamp jitter tolerated by time limits
 # A prediction over more than this many times the interval its motion was measured over
 # bridges a gap (dropped frames): too uncertain for narrow windows.
 _GAP_FACTOR = 2.0
-# Weight of one frame's observed prediction error in the running level (mean square).
-_LEVEL_WEIGHT = 0.2
+# The level follows the largest recent prediction error: it rises at once (a turn begins)
+# and falls by this factor per frame (a level 10x too high halves the window in 20 frames).
+_LEVEL_DECAY = 0.9
 
 
 class References:
@@ -45,7 +46,7 @@ class References:
         # The motion was measured by the last frame (not assumed, not left from before a
         # failed frame): only then are predictions good enough for narrow search windows.
         self.motion_measured = False
-        # Running RMS of what constant velocity missed, as accelerations (rad/s^2, m/s^2):
+        # Decaying peak of what constant velocity missed, as accelerations (rad/s^2, m/s^2):
         # starts at the configured prior, then follows the session (a car turns 20x slower
         # than a hand-held or flying camera).
         self.angular_accel = float(np.radians(frontend.prediction_angular_accel_deg_s2))
@@ -74,13 +75,8 @@ class References:
         predicted = scale_motion(self.motion, interval_ns / self.motion_interval_ns)
         angle = np.radians(rotation_angle_deg(predicted[:3, :3].T @ motion[:3, :3]))
         shift = float(np.linalg.norm(motion[:3, 3] - predicted[:3, 3]))
-        w = _LEVEL_WEIGHT
-        self.angular_accel = float(np.hypot(
-            np.sqrt(1 - w) * self.angular_accel, np.sqrt(w) * angle / span_s**2
-        ))  # fmt: skip
-        self.linear_accel = float(np.hypot(
-            np.sqrt(1 - w) * self.linear_accel, np.sqrt(w) * shift / span_s**2
-        ))  # fmt: skip
+        self.angular_accel = max(angle / span_s**2, _LEVEL_DECAY * self.angular_accel)
+        self.linear_accel = max(shift / span_s**2, _LEVEL_DECAY * self.linear_accel)
 
     def keyframe_translation_m(self) -> float:
         """Translation from the keyframe beyond which a frame becomes the next keyframe:
