@@ -162,16 +162,30 @@ def test_a_failed_frame_or_a_gap_makes_the_next_search_wide() -> None:
     assert references.prediction_uncertainty(DT_NS) is None  # nothing measured yet
     references.update(0, points, image, np.eye(4), Estimate(None, None, ""), 0)
     assert references.prediction_uncertainty(DT_NS) is None  # the first frame: at rest
-    for index in range(1, 6):
+    for index in range(1, 26):
         estimate = Estimate(step, None, "", reference=references.reference)
         references.update(index, points, image, np.eye(4), estimate, index * DT_NS)
     learned = references.prediction_uncertainty(DT_NS)
     assert learned is not None
-    # Constant velocity explained every step: the level fell from the prior.
-    prior = FrontendConfig().prediction_angular_accel_deg_s2
-    assert learned.rotation_rad < math.radians(prior) * 0.01 * 0.5
+    # Constant velocity explained every step from frame 2 on: 24 times the level decayed by
+    # 0.9 from the prior; one sigma = acceleration x (0.1 s)^2.
+    config = FrontendConfig()
+    decay = 0.9**24 * 0.01
+    assert learned.rotation_rad == pytest.approx(
+        math.radians(config.prediction_angular_accel_deg_s2) * decay, rel=1e-9
+    )
+    assert learned.translation_m == pytest.approx(
+        config.prediction_linear_accel_m_s2 * decay, rel=1e-9
+    )
+    # A step that turns 1 deg more than the last one raises the level at once.
+    estimate = Estimate(make_pose(_yaw(math.radians(1.0)), [0, 0, 1.0]), None, "",
+                        reference=references.reference)  # fmt: skip
+    references.update(26, points, image, np.eye(4), estimate, 26 * DT_NS)
+    raised = references.prediction_uncertainty(DT_NS)
+    assert raised is not None
+    assert raised.rotation_rad == pytest.approx(math.radians(1.0), rel=1e-6)
     assert references.prediction_uncertainty(3 * DT_NS) is None  # a gap of two frames
-    references.update(6, points, image, np.eye(4), Estimate(None, None, "lost"), 6 * DT_NS)
+    references.update(27, points, image, np.eye(4), Estimate(None, None, "lost"), 27 * DT_NS)
     assert references.prediction_uncertainty(2 * DT_NS) is None  # after a failed frame
 
 
