@@ -57,7 +57,8 @@ __all__ = [
 # whether the frame interval is still to come from the first frames' stamps.
 RIG_SETTINGS_KEY = "rig_settings"
 # Settings that need the frame interval (the others follow from the rig alone).
-_INTERVAL_SETTINGS = ("search_radius_px", "min_search_radius_px")
+# (min_search_radius_px follows the derived search_radius_px: a configured one leaves both.)
+_INTERVAL_SETTINGS = ("search_radius_px",)
 
 # Depth error / depth at the farthest point kept (EuRoC: 30 m with sigma_d = 0.5 px).
 MAX_RELATIVE_DEPTH_ERROR = 0.3125  # d_min = 1.6 px at the default sigma_d of 0.5 px
@@ -118,7 +119,7 @@ def derive_rig_settings(
                 f"{frame_interval_s * 1e3:.1f} ms",
             )
         )
-        if radius > NARROW_WINDOWS_ABOVE_PX:
+        if radius > NARROW_WINDOWS_ABOVE_PX and "search_radius_px" not in explicit:
             settings.append(
                 DerivedSetting(
                     "min_search_radius_px",

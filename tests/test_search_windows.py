@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from estimator.config import FrontendConfig
+from estimator.config import FrontendConfig, SwarmvoConfig
 from estimator.formats.calibration import CameraModel, StereoRig
 from estimator.frontend.stereo import StereoPoints
 from estimator.frontend.temporal import (
@@ -20,19 +20,22 @@ from estimator.frontend.temporal import (
 from estimator.geometry import invert_pose, make_pose, transform_points
 from estimator.odometry.frames import Estimate
 from estimator.odometry.references import References
+from estimator.rig_settings import NARROW_SEARCH_RADIUS_PX, apply_rig_settings
 
 WIDTH, HEIGHT, FOCAL, BASELINE = 1241, 376, 718.856, 0.54  # a KITTI-like rig
 DT_NS = 100_000_000  # 10 Hz
 
 
-def _rig() -> StereoRig:
+def _rig(
+    width: int = WIDTH, height: int = HEIGHT, focal: float = FOCAL, baseline: float = BASELINE
+) -> StereoRig:
     def camera(x: float) -> CameraModel:
         return CameraModel(
-            width=WIDTH, height=HEIGHT, fx=FOCAL, fy=FOCAL, cx=WIDTH / 2, cy=HEIGHT / 2,
+            width=width, height=height, fx=focal, fy=focal, cx=width / 2, cy=height / 2,
             distortion_model="none", distortion=(), T_BS=make_pose(np.eye(3), [x, 0.0, 0.0]),
         )  # fmt: skip
 
-    return StereoRig(left=camera(0.0), right=camera(BASELINE))
+    return StereoRig(left=camera(0.0), right=camera(baseline))
 
 
 RECT = _rig().rectification
@@ -224,3 +227,25 @@ def test_keyframe_spacing_scales_with_scene_depth() -> None:
     explicit = FrontendConfig(keyframe_max_parallax=0.05, keyframe_max_translation_m=0.25)
     assert _keyframe_changes(30.0, explicit, 0.4) == 40
     assert References(by_depth).keyframe_translation_m() == 0.25  # no keyframe yet
+
+
+@pytest.mark.parametrize(
+    ("rig", "interval_s", "narrowed"),
+    [
+        ((752, 480, 436.2, 0.110), 0.05, False),  # EuRoC: one 40 px window, as tuned
+        ((1241, 376, 718.856, 0.54), 0.1, True),  # KITTI: 132 px wide, per-point windows
+        ((848, 480, 425.0, 0.050), 1 / 30, False),  # RealSense D435
+        ((1280, 720, 700.0, 0.120), 1 / 30, False),  # ZED
+    ],
+)
+def test_per_point_windows_are_derived_where_the_wide_window_is_large(
+    rig, interval_s, narrowed
+) -> None:
+    config, _ = apply_rig_settings(SwarmvoConfig(), _rig(*rig), interval_s)
+    expected = NARROW_SEARCH_RADIUS_PX if narrowed else None
+    assert config.frontend.min_search_radius_px == expected
+    # A configured wide window: nothing about the windows is derived.
+    user = SwarmvoConfig.model_validate({"frontend": {"search_radius_px": 150.0}})
+    config, _ = apply_rig_settings(user, _rig(*rig), interval_s)
+    assert config.frontend.min_search_radius_px is None
+    assert config.frontend.search_radius_px == 150.0
