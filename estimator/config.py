@@ -106,6 +106,16 @@ class FrontendConfig(_Section):
     # Temporal matching (current frame <-> reference frame).
     temporal_ratio: float = Field(0.85, gt=0, le=1)
     search_radius_px: float = Field(40.0, ge=0)  # around the predicted position; 0 = anywhere
+    # Per-point windows (estimator/frontend/temporal.py): each reference point's window is the
+    # predicted motion's uncertainty projected at its pixel and depth (3 sigma), within
+    # [min_search_radius_px, search_radius_px]; search_radius_px when the prediction is poor
+    # (first frames, after a gap or a failed frame). None: search_radius_px for every point
+    # (derived from the rig where the wide window is large, estimator/rig_settings.py).
+    min_search_radius_px: float | None = Field(None, ge=0)
+    # What a constant-velocity prediction misses over a span T: angular and linear
+    # acceleration times T^2 (one sigma).
+    prediction_angular_accel_deg_s2: float = Field(200.0, ge=0)
+    prediction_linear_accel_m_s2: float = Field(5.0, ge=0)
     # "descriptor": ratio + mutual descriptor matching; "klt": Lucas-Kanade tracking.
     temporal_matcher: Literal["descriptor", "klt"] = "descriptor"
     klt_window: int = Field(10, ge=2, le=30)  # half size of the KLT window
@@ -136,6 +146,11 @@ class FrontendConfig(_Section):
     keyframe_min_inliers: int = Field(80, ge=3)
     keyframe_max_translation_m: float = Field(0.25, gt=0)
     keyframe_max_rotation_deg: float = Field(10.0, gt=0)
+    # Translation threshold relative to the scene instead: this times the median depth of the
+    # keyframe's points (parallax), so that a street at 40 m and a room at 3 m both keep their
+    # keyframes while the view overlaps. None: keyframe_max_translation_m. A configured
+    # keyframe_max_translation_m wins.
+    keyframe_max_parallax: float | None = Field(None, gt=0)
     # Also measure each frame against the previous one and combine that chain with the
     # keyframe measurement by their covariances (estimator/odometry/chains.py). Off: on MH_01
     # vision alone 0.0168 instead of 0.0211 deg per frame, but the noisy rendered loop's

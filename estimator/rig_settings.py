@@ -18,6 +18,11 @@ interval, with constants chosen so that the real EuRoC rig (436 px after rectifi
 - ``search_radius_px``: the image motion a constant-velocity prediction misses grows with the
   focal length (pixels per radian) and the frame interval (the motion changes more between
   frames), so the window scales with f * dt: 40 px at 436 px and 50 ms.
+- ``min_search_radius_px``: where that wide window is much larger than EuRoC's (over
+  ``NARROW_WINDOWS_ABOVE_PX``: KITTI's 132 px), one window for every point hands each point
+  dozens of wrong candidates; each point then gets its own window from the prediction's
+  uncertainty and its depth, no narrower than ``NARROW_SEARCH_RADIUS_PX``
+  (estimator/frontend/temporal.py). Rigs with EuRoC-like windows keep one window for all.
 
 Explicit configuration always wins: a field the user set (``model_fields_set`` of the frontend
 section) is never replaced.
@@ -36,6 +41,8 @@ __all__ = [
     "FEATURES_PER_PIXEL",
     "MAX_DERIVED_FEATURES",
     "MAX_RELATIVE_DEPTH_ERROR",
+    "NARROW_SEARCH_RADIUS_PX",
+    "NARROW_WINDOWS_ABOVE_PX",
     "RIG_SETTINGS_KEY",
     "DerivedSetting",
     "FrameIntervalEstimate",
@@ -50,6 +57,7 @@ __all__ = [
 # whether the frame interval is still to come from the first frames' stamps.
 RIG_SETTINGS_KEY = "rig_settings"
 # Settings that need the frame interval (the others follow from the rig alone).
+# (min_search_radius_px follows the derived search_radius_px: a configured one leaves both.)
 _INTERVAL_SETTINGS = ("search_radius_px",)
 
 # Depth error / depth at the farthest point kept (EuRoC: 30 m with sigma_d = 0.5 px).
@@ -62,6 +70,10 @@ SEARCH_RADIUS_PER_FOCAL_SECOND = 40.0 / (436.0 * 0.05)
 # Windows are kept within these bounds (a few px of noise; a third of a small image).
 MIN_SEARCH_RADIUS_PX = 20.0
 MAX_SEARCH_RADIUS_PX = 250.0
+# Wide windows above this get per-point windows with this floor (a few px of prediction noise
+# and of the session's first, still prior-sized, error level).
+NARROW_WINDOWS_ABOVE_PX = 50.0
+NARROW_SEARCH_RADIUS_PX = 10.0
 
 
 @dataclass(frozen=True)
@@ -69,7 +81,7 @@ class DerivedSetting:
     """One rig-derived frontend setting, and whether the configuration's own value won."""
 
     name: str  # field of FrontendConfig
-    value: float
+    value: float | None  # None: a configured "off" (min_search_radius_px)
     reason: str
     overridden: bool = False  # the user set the field explicitly: their value is used
 
@@ -107,10 +119,19 @@ def derive_rig_settings(
                 f"{frame_interval_s * 1e3:.1f} ms",
             )
         )
+        if radius > NARROW_WINDOWS_ABOVE_PX and "search_radius_px" not in explicit:
+            settings.append(
+                DerivedSetting(
+                    "min_search_radius_px",
+                    NARROW_SEARCH_RADIUS_PX,
+                    f"per-point windows: the wide one ({radius:.0f} px) is over "
+                    f"{NARROW_WINDOWS_ABOVE_PX:g} px",
+                )
+            )
     return [
         DerivedSetting(
             s.name,
-            float(getattr(frontend, s.name)),
+            _configured(getattr(frontend, s.name)),
             f"configured; the rig suggests {s.value:g}",
             overridden=True,
         )
@@ -118,6 +139,10 @@ def derive_rig_settings(
         else s
         for s in settings
     ]
+
+
+def _configured(value: float | None) -> float | None:
+    return None if value is None else float(value)
 
 
 def apply_rig_settings(
@@ -143,7 +168,8 @@ def format_settings(
         f"baseline {rig.baseline:.3f} m{rate}; settings derived from it:"
     ]
     for s in settings:
-        lines.append(f"  frontend.{s.name} = {s.value:g}  ({s.reason})")
+        shown = "none" if s.value is None else f"{s.value:g}"
+        lines.append(f"  frontend.{s.name} = {shown}  ({s.reason})")
     return "\n".join(lines)
 
 

@@ -120,10 +120,11 @@ def test_zero_mean_sad_equals_patch_arithmetic() -> None:
 
 
 def _brute_force_window_matches(expected, observed, da, db, radius, ratio, max_distance):
-    """Reference: every pair within the radius, nearest + ratio test, mutual with ties of a
-    current point going to the smallest reference index."""
+    """Reference: every pair within each expected point's radius, nearest + ratio test, mutual
+    with ties of a current point going to the smallest reference index."""
     distance = np.unpackbits(da[:, None, :] ^ db[None, :, :], axis=2).sum(axis=2).astype(float)
-    near = np.linalg.norm(expected[:, None, :] - observed[None, :, :], axis=2) <= radius
+    gaps = np.linalg.norm(expected[:, None, :] - observed[None, :, :], axis=2)
+    near = gaps <= np.asarray(radius)[:, None]
     distance[~near] = np.inf
     matches = []
     for i in range(len(expected)):
@@ -136,19 +137,20 @@ def _brute_force_window_matches(expected, observed, da, db, radius, ratio, max_d
     return matches
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_window_matches_equal_brute_force(seed: int) -> None:
+@pytest.mark.parametrize(("seed", "per_point"), [(0, False), (1, False), (2, True), (3, True)])
+def test_window_matches_equal_brute_force(seed: int, per_point: bool) -> None:
     rng = np.random.default_rng(seed)
     expected = rng.uniform(0, 200, (150, 2))
     observed = np.round(expected[rng.permutation(150)] + rng.normal(0, 3, (150, 2)), 1)
     palette = rng.integers(0, 256, (20, 32), dtype=np.uint8)
     da, db = palette[rng.integers(0, 20, 150)], palette[rng.integers(0, 20, 150)]
+    radii = rng.uniform(4.0, 30.0, 150) if per_point else np.full(150, 15.0)
     order = np.argsort(observed[:, 1], kind="stable")
-    low = np.searchsorted(observed[order, 1], expected[:, 1] - 15.0, side="left")
-    high = np.searchsorted(observed[order, 1], expected[:, 1] + 15.0, side="right")
+    low = np.searchsorted(observed[order, 1], expected[:, 1] - radii, side="left")
+    high = np.searchsorted(observed[order, 1], expected[:, 1] + radii, side="right")
     a, b, distance = window_matches(
-        expected, observed, as_words(da), as_words(db), order, low, high, 15.0, 0.85, 100.0
+        expected, observed, as_words(da), as_words(db), order, low, high, radii, 0.85, 100.0
     )
-    reference = _brute_force_window_matches(expected, observed, da, db, 15.0, 0.85, 100.0)
+    reference = _brute_force_window_matches(expected, observed, da, db, radii, 0.85, 100.0)
     assert len(reference) > 10
     assert list(zip(a.tolist(), b.tolist(), distance.tolist(), strict=True)) == reference

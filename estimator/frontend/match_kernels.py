@@ -87,16 +87,16 @@ def window_matches(
     order: np.ndarray,
     low: np.ndarray,
     high: np.ndarray,
-    radius: float,
+    radii: np.ndarray,
     ratio: float,
     max_distance: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`band_matches` with a round window: observed points within ``radius`` pixels of
-    an expected position are its candidates (``order[low[i]:high[i]]``: those whose row is
-    within ``radius``, sorted by row)."""
+    """:func:`band_matches` with round windows: observed points within ``radii[i]`` pixels of
+    expected position i are its candidates (``order[low[i]:high[i]]``: those whose row is
+    within ``radii[i]``, sorted by row)."""
     tables = _nearest_tables(len(expected), len(observed))
-    squared_radius = radius * radius
     for i in range(len(expected)):
+        squared_radius = radii[i] * radii[i]
         for k in range(low[i], high[i]):
             j = order[k]
             dx = observed[j, 0] - expected[i, 0]

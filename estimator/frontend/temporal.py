@@ -4,6 +4,12 @@ The reference frame (the keyframe, or the previous frame) and the current frame 
 triangulated points with left-image descriptors. A reference point may only pair with current
 points near where it is expected to appear: its own pixel, or, better, its projection under a
 predicted motion. Among those candidates the ratio and mutual checks pick at most one partner.
+
+How near is "near" depends on the point (with ``frontend.min_search_radius_px`` set): an error
+of the predicted rotation moves every pixel alike (f radians, more towards the image edges),
+an error of the predicted translation moves a point by f t / Z. On a drive a point 3 m away
+may be 40 px from its prediction while one at 80 m is within 2 px; one wide window for all
+gives the far points dozens of wrong candidates and the matcher the work of comparing them.
 """
 
 from __future__ import annotations
@@ -21,12 +27,32 @@ from estimator.frontend.match_kernels import as_words, window_matches
 from estimator.frontend.stereo import StereoPoints, triangulate
 from estimator.geometry import transform_points
 
-__all__ = ["Correspondences", "match_temporal", "project", "refine_pixels"]
+__all__ = [
+    "Correspondences",
+    "PredictionUncertainty",
+    "match_temporal",
+    "project",
+    "refine_pixels",
+    "search_radii",
+]
 
 # A refined position further than this from the descriptor match is a different corner.
 _MAX_REFINE_SHIFT_PX = 1.5
 # A KLT track must come back to where it started within this (forward-backward check).
 _KLT_ROUND_TRIP_PX = 0.5
+# A per-point window spans this many standard deviations of its predicted pixel.
+WINDOW_SIGMAS = 3.0
+# Matches this far out in their windows (median) show a prediction error beyond the windows.
+WINDOW_MISS_FRACTION = 0.5
+
+
+@dataclass(frozen=True)
+class PredictionUncertainty:
+    """One standard deviation of a predicted relative pose's error: rotation angle (rad) and
+    translation (m); the search windows follow from it."""
+
+    rotation_rad: float
+    translation_m: float
 
 
 @dataclass(frozen=True)
@@ -48,10 +74,39 @@ def project(points: np.ndarray, fx: float, cx: float, cy: float) -> np.ndarray:
     return np.column_stack([fx * points[:, 0] / depth + cx, fx * points[:, 1] / depth + cy])
 
 
+def search_radii(
+    moved: np.ndarray,
+    expected: np.ndarray,
+    uncertainty: PredictionUncertainty | None,
+    config: FrontendConfig,
+    rectification: Rectification,
+) -> np.ndarray:
+    """Search radius (px) of each reference point: ``WINDOW_SIGMAS`` times the spread of its
+    predicted pixel ``expected`` (its point ``moved`` into the predicted current camera).
+
+    A rotation error dtheta moves a pixel at distance r from the principal point by about
+    f (1 + r^2 / f^2) dtheta; a translation error dt moves it by up to sqrt(f^2 + r^2) dt / Z.
+    The radius is kept within [``min_search_radius_px``, ``search_radius_px``]; without an
+    uncertainty (the prediction is poor) every point gets ``search_radius_px``.
+    """
+    wide, floor = float(config.search_radius_px), config.min_search_radius_px
+    if uncertainty is None or floor is None or wide <= 0:
+        return np.full(len(expected), wide)
+    rect = rectification
+    focal = float(rect.fx)
+    offset = np.hypot(expected[:, 0] - rect.cx, expected[:, 1] - rect.cy) / focal
+    depth = np.maximum(moved[:, 2], 1e-6)
+    rotation_px = focal * (1.0 + offset**2) * uncertainty.rotation_rad
+    translation_px = focal * np.sqrt(1.0 + offset**2) * uncertainty.translation_m / depth
+    radii = WINDOW_SIGMAS * np.hypot(rotation_px, translation_px)
+    return np.clip(np.nan_to_num(radii, nan=wide), min(float(floor), wide), wide)
+
+
 def _candidate_pairs(
-    expected: np.ndarray, observed: np.ndarray, radius: float
+    expected: np.ndarray, observed: np.ndarray, radii: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(i, j) with observed[j] within ``radius`` pixels of expected[i] (all pairs if 0)."""
+    """(i, j) with observed[j] within ``radii[i]`` pixels of expected[i] (all pairs if 0)."""
+    radius = float(radii.max()) if len(radii) else 0.0
     if radius <= 0:
         ia, ib = np.meshgrid(np.arange(len(expected)), np.arange(len(observed)), indexing="ij")
         return ia.ravel(), ib.ravel()
@@ -62,20 +117,22 @@ def _candidate_pairs(
     pairs = cKDTree(expected[finite]).sparse_distance_matrix(
         cKDTree(observed), radius, output_type="ndarray"
     )
-    return finite[pairs["i"]], pairs["j"].astype(np.intp)
+    ia = finite[pairs["i"]]
+    inside = pairs["v"] <= radii[ia]
+    return ia[inside], pairs["j"][inside].astype(np.intp)
 
 
 def _window_matches(
     expected: np.ndarray,
     reference: StereoPoints,
     current: StereoPoints,
-    radius: float,
+    radii: np.ndarray,
     ratio: float,
     max_distance: float,
 ) -> MatchSet:
     """:func:`_candidate_pairs` + Hamming distances + mutual ratio test in one compiled pass.
 
-    Candidates of a reference point are the current points within ``radius`` of its expected
+    Candidates of reference point i are the current points within ``radii[i]`` of its expected
     pixel; where two reference points are equally near one current point, the one with the
     smaller index keeps it.
     """
@@ -86,14 +143,54 @@ def _window_matches(
     order = np.argsort(current.pixels[:, 1], kind="stable")
     rows = current.pixels[order, 1]
     centres = np.ascontiguousarray(expected[finite])
-    low = np.searchsorted(rows, centres[:, 1] - radius, side="left")
-    high = np.searchsorted(rows, centres[:, 1] + radius, side="right")
+    windows = np.ascontiguousarray(radii[finite], dtype=float)
+    low = np.searchsorted(rows, centres[:, 1] - windows, side="left")
+    high = np.searchsorted(rows, centres[:, 1] + windows, side="right")
     a, b, distance = window_matches(
         centres, np.ascontiguousarray(current.pixels), as_words(reference.descriptors[finite]),
-        as_words(current.descriptors), order, low, high, float(radius), float(ratio),
+        as_words(current.descriptors), order, low, high, windows, float(ratio),
         float(max_distance),
     )  # fmt: skip
     return MatchSet(finite[a], b, distance)
+
+
+def _windows_missed(
+    expected: np.ndarray,
+    current: StereoPoints,
+    matches: MatchSet,
+    radii: np.ndarray,
+    config: FrontendConfig,
+) -> bool:
+    """Narrow windows that did not hold the motion: too few matches, or matches that lie, at
+    the median, further from their predicted pixels than ``WINDOW_MISS_FRACTION`` of their
+    windows (3-sigma windows of a right prediction hold them near the centre; the points
+    whose motion went beyond their windows are then missing)."""
+    if len(matches) < config.keyframe_min_inliers:
+        return True
+    offsets = np.linalg.norm(current.pixels[matches.b] - expected[matches.a], axis=1)
+    return bool(np.median(offsets / radii[matches.a]) > WINDOW_MISS_FRACTION)
+
+
+def _descriptor_matches(
+    expected: np.ndarray,
+    reference: StereoPoints,
+    current: StereoPoints,
+    radii: np.ndarray,
+    config: FrontendConfig,
+) -> MatchSet:
+    """Ratio-tested mutual descriptor matches within each reference point's window."""
+    max_distance = config.max_hamming if reference.binary else config.max_sift_distance
+    if reference.binary and config.search_radius_px > 0:
+        return _window_matches(
+            expected, reference, current, radii, config.temporal_ratio, max_distance
+        )
+    ia, ib = _candidate_pairs(expected, current.pixels, radii)
+    distance = descriptor_distances(
+        reference.descriptors, current.descriptors, ia, ib, reference.binary
+    )
+    return match_candidates(
+        ia, ib, distance, ratio=config.temporal_ratio, max_distance=max_distance
+    )
 
 
 def match_temporal(
@@ -103,12 +200,15 @@ def match_temporal(
     rectification: Rectification,
     predicted_current_from_reference: np.ndarray | None = None,
     images: tuple[np.ndarray, np.ndarray] | None = None,
+    uncertainty: PredictionUncertainty | None = None,
 ) -> Correspondences:
     """3D-3D correspondences between a reference frame's and the current frame's points.
 
     ``predicted_current_from_reference`` (4x4, rectified frames) moves reference points into
     the predicted current camera; their projections centre the search windows. Without it the
-    window is centred on the reference pixel (small-motion assumption). With ``images``
+    window is centred on the reference pixel (small-motion assumption). ``uncertainty`` (of the
+    prediction; None when it is poor) sizes each point's window (see :func:`search_radii`).
+    With ``images``
     (reference, current rectified left images) and ``config.temporal_refine`` the current
     pixels are refined to sub-pixel precision (see :func:`refine_pixels`).
     ``config.temporal_matcher = "klt"`` tracks the reference pixels instead of comparing
@@ -116,7 +216,7 @@ def match_temporal(
     """
     rect = rectification
     if predicted_current_from_reference is None:
-        expected = reference.pixels
+        expected, moved = reference.pixels, reference.points
     else:
         moved = transform_points(predicted_current_from_reference, reference.points)
         expected = project(moved, rect.fx, rect.cx, rect.cy)
@@ -124,20 +224,14 @@ def match_temporal(
         if images is None:
             raise ValueError("the KLT temporal matcher needs the reference and current images")
         return track_klt(reference, current, expected, images, config, rect)
-    max_distance = config.max_hamming if reference.binary else config.max_sift_distance
-    if reference.binary and config.search_radius_px > 0:
-        matches = _window_matches(
-            expected, reference, current, config.search_radius_px, config.temporal_ratio,
-            max_distance,
-        )  # fmt: skip
-    else:
-        ia, ib = _candidate_pairs(expected, current.pixels, config.search_radius_px)
-        distance = descriptor_distances(
-            reference.descriptors, current.descriptors, ia, ib, reference.binary
-        )
-        matches = match_candidates(
-            ia, ib, distance, ratio=config.temporal_ratio, max_distance=max_distance
-        )
+    radii = search_radii(moved, expected, uncertainty, config, rect)
+    matches = _descriptor_matches(expected, reference, current, radii, config)
+    wide = np.full(len(expected), float(config.search_radius_px))
+    narrowed = not np.array_equal(radii, wide)
+    if narrowed and _windows_missed(expected, current, matches, radii, config):
+        # The prediction is off by more than its windows allow (a motion it did not
+        # foresee, e.g. the start of a turn): search wide.
+        matches = _descriptor_matches(expected, reference, current, wide, config)
     reference_index, current_index = matches.a, matches.b
     current_points = current.points[current_index]
     if images is not None and config.temporal_refine and len(matches):

@@ -12,6 +12,7 @@ from estimator.frontend.features import FeatureDetector
 from estimator.frontend.photometric import normalise_contrast
 from estimator.frontend.stereo import StereoMatcher, StereoPoints
 from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel
+from estimator.frontend.temporal import PredictionUncertainty
 from estimator.frontend.tracks import Tracker
 from estimator.geometry import invert_pose, nearest_rigid
 from estimator.odometry.chains import chain_covariance, fuse_poses, inverse_covariance
@@ -245,7 +246,10 @@ class Odometry:
         previous_ns = self._last_timestamp_ns - previous.timestamp_ns
         since_previous = references.motion_over(previous_ns)
         keyframe_prediction = references.reference_from_previous @ since_previous
-        estimate = self._estimate_against(keyframe, keyframe_prediction, points, image, timings)
+        estimate = self._estimate_against(
+            keyframe, keyframe_prediction, points, image, timings,
+            references.prediction_uncertainty(previous_ns),
+        )  # fmt: skip
         estimate = self._estimation.plausible(estimate, keyframe_prediction, previous_ns)
         frontend = self.config.frontend
         if frontend.fuse_previous_frame or frontend.fuse_previous_keyframe:
@@ -260,7 +264,10 @@ class Odometry:
         for reference, prediction, span_ns, name in retries:
             if estimate.reference_from_current is not None or reference is keyframe:
                 continue
-            retry = self._estimate_against(reference, prediction, points, image, timings)
+            retry = self._estimate_against(
+                reference, prediction, points, image, timings,
+                references.prediction_uncertainty(span_ns),
+            )  # fmt: skip
             retry = self._estimation.plausible(retry, prediction, span_ns)
             if retry.reference_from_current is not None:
                 retry.message = (
@@ -337,10 +344,12 @@ class Odometry:
         points: StereoPoints,
         image: np.ndarray,
         timings: dict[str, float],
+        uncertainty: PredictionUncertainty | None = None,
     ) -> Estimate:
         return self._estimation.against(
-            reference, predicted_reference_from_current, points, image, timings, self._index
-        )
+            reference, predicted_reference_from_current, points, image, timings, self._index,
+            uncertainty,
+        )  # fmt: skip
 
     def _chain(self, estimate: Estimate) -> tuple[np.ndarray, FrameStatus, str]:
         """pose_k = pose_ref @ T_ref_cur (paper eq. 2), in the original left camera frame."""

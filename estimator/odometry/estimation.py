@@ -9,7 +9,7 @@ from estimator.config import SwarmvoConfig
 from estimator.formats.calibration import Rectification
 from estimator.frontend.stereo import StereoPoints
 from estimator.frontend.stereo_noise import StereoNoiseModel
-from estimator.frontend.temporal import Correspondences, match_temporal
+from estimator.frontend.temporal import Correspondences, PredictionUncertainty, match_temporal
 from estimator.frontend.tracks import match_tracks
 from estimator.geometry import invert_pose, make_pose, rotation_angle_deg
 from estimator.odometry.frames import Estimate, Reference, failed, frame_seed, stage
@@ -37,8 +37,10 @@ class PoseEstimation:
         image: np.ndarray,
         timings: dict[str, float],
         index: int,
+        uncertainty: PredictionUncertainty | None = None,
     ) -> Estimate:
-        """T_ref_cur of frame ``index`` (its ``points`` and rectified left ``image``)."""
+        """T_ref_cur of frame ``index`` (its ``points`` and rectified left ``image``);
+        ``uncertainty`` of the prediction sizes the search windows (None: a wide search)."""
         with stage(timings, "temporal"):
             if self.config.frontend.mode == "track":
                 pairs = match_tracks(
@@ -53,6 +55,7 @@ class PoseEstimation:
                     self.rectification,
                     predicted_current_from_reference=invert_pose(predicted_reference_from_current),
                     images=(reference.image, image),
+                    uncertainty=uncertainty,
                 )
         with stage(timings, "estimate"):
             covariances = (

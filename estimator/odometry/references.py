@@ -7,12 +7,19 @@ import numpy as np
 
 from estimator.config import FrontendConfig
 from estimator.frontend.stereo import StereoPoints
+from estimator.frontend.temporal import PredictionUncertainty
 from estimator.geometry import invert_pose, rotation_angle_deg, scale_motion
 from estimator.odometry.frames import Estimate, Reference
 
 __all__ = ["References"]
 
 _JITTER_NS = 1_000_000  # timestamp jitter tolerated by time limits
+# A prediction over more than this many times the interval its motion was measured over
+# bridges a gap (dropped frames): too uncertain for narrow windows.
+_GAP_FACTOR = 2.0
+# The level follows the largest recent prediction error: it rises at once (a turn begins)
+# and falls by this factor per frame (a level 10x too high halves the window in 20 frames).
+_LEVEL_DECAY = 0.9
 
 
 class References:
@@ -36,11 +43,54 @@ class References:
         self.older_from_reference_covariance = np.zeros((6, 6))
         self.motion = np.eye(4)  # last measured motion (rectified), constant velocity ...
         self.motion_interval_ns = 1  # ... over this time: predictions scale it to theirs
+        # The motion was measured by the last frame (not assumed, not left from before a
+        # failed frame): only then are predictions good enough for narrow search windows.
+        self.motion_measured = False
+        # Decaying peak of what constant velocity missed, as accelerations (rad/s^2, m/s^2):
+        # starts at the configured prior, then follows the session (a car turns 20x slower
+        # than a hand-held or flying camera).
+        self.angular_accel = float(np.radians(frontend.prediction_angular_accel_deg_s2))
+        self.linear_accel = float(frontend.prediction_linear_accel_m_s2)
         self.last_fix_ns = 0  # timestamp of the last frame with a vision estimate
 
     def motion_over(self, interval_ns: int) -> np.ndarray:
         """The last measured motion at the same velocity over ``interval_ns`` (rectified)."""
         return scale_motion(self.motion, interval_ns / self.motion_interval_ns)
+
+    def prediction_uncertainty(self, span_ns: int) -> PredictionUncertainty | None:
+        """One sigma of the error of :meth:`motion_over` ``span_ns``: what the session's
+        angular and linear acceleration levels do in that time (a T^2). None when the
+        prediction is poor: no motion measured yet, the last frame failed, or ``span_ns``
+        bridges a gap."""
+        if not self.motion_measured or span_ns > _GAP_FACTOR * self.motion_interval_ns:
+            return None
+        span_s2 = (max(span_ns, 0) * 1e-9) ** 2
+        return PredictionUncertainty(
+            rotation_rad=self.angular_accel * span_s2, translation_m=self.linear_accel * span_s2
+        )
+
+    def _learn_prediction_error(self, motion: np.ndarray, interval_ns: int) -> None:
+        """Fold in what the last motion, at constant velocity, missed of ``motion``."""
+        span_s = interval_ns * 1e-9
+        predicted = scale_motion(self.motion, interval_ns / self.motion_interval_ns)
+        angle = np.radians(rotation_angle_deg(predicted[:3, :3].T @ motion[:3, :3]))
+        shift = float(np.linalg.norm(motion[:3, 3] - predicted[:3, 3]))
+        self.angular_accel = max(angle / span_s**2, _LEVEL_DECAY * self.angular_accel)
+        self.linear_accel = max(shift / span_s**2, _LEVEL_DECAY * self.linear_accel)
+
+    def keyframe_translation_m(self) -> float:
+        """Translation from the keyframe beyond which a frame becomes the next keyframe:
+        ``keyframe_max_parallax`` times the median depth of the keyframe's points when that is
+        set (and the metre threshold is not configured), else ``keyframe_max_translation_m``."""
+        frontend = self.frontend
+        parallax = frontend.keyframe_max_parallax
+        explicit = "keyframe_max_translation_m" in frontend.model_fields_set
+        if parallax is None or explicit or self.reference is None:
+            return frontend.keyframe_max_translation_m
+        depth = self.reference.points.points[:, 2]
+        if len(depth) == 0:
+            return frontend.keyframe_max_translation_m
+        return parallax * float(np.median(depth))
 
     def held(self, now_ns: int) -> bool:
         """Whether a frame without an estimate at ``now_ns`` holds the pose: the last vision fix
@@ -71,6 +121,8 @@ class References:
         reference_from_current = estimate.reference_from_current
         first = self.reference is None
         failed = reference_from_current is None and not first
+        was_measured = self.motion_measured
+        self.motion_measured = reference_from_current is not None
         if not failed:
             self.last_fix_ns = int(timestamp_ns)
         if failed:
@@ -85,12 +137,15 @@ class References:
         elif reference_from_current is not None:
             assert self.previous is not None and estimate.reference is not None
             if estimate.reference is self.reference:
-                self.motion = invert_pose(self.reference_from_previous) @ reference_from_current
+                motion = invert_pose(self.reference_from_previous) @ reference_from_current
                 since_ns = self.previous.timestamp_ns
             else:
-                self.motion = reference_from_current  # measured against a later frame
+                motion = reference_from_current  # measured against a later frame
                 since_ns = estimate.reference.timestamp_ns
-            self.motion_interval_ns = max(int(timestamp_ns) - since_ns, 1)
+            interval_ns = max(int(timestamp_ns) - since_ns, 1)
+            if was_measured:
+                self._learn_prediction_error(motion, interval_ns)
+            self.motion, self.motion_interval_ns = motion, interval_ns
         self.fallback = None
         if first or failed or self._needs_new_reference(estimate):
             self._keep_older(estimate)
@@ -125,6 +180,6 @@ class References:
         assert estimate.result is not None and motion is not None
         return bool(
             estimate.result.inliers.sum() < frontend.keyframe_min_inliers
-            or np.linalg.norm(motion[:3, 3]) > frontend.keyframe_max_translation_m
+            or np.linalg.norm(motion[:3, 3]) > self.keyframe_translation_m()
             or rotation_angle_deg(motion[:3, :3]) > frontend.keyframe_max_rotation_deg
         )
