@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -17,7 +17,11 @@ from estimator.backend.imu import preintegrate_gyro, rotation_params
 from estimator.bench.markdown import titled_table
 from estimator.config import BackendConfig
 from estimator.geometry import rotation_angle_deg
-from estimator.rendered.scenario import simulate_frontend
+from estimator.rendered.scenario import FrontendMeasurement, simulate_frontend
+from estimator.types import ImuBatch, ImuNoise
+
+if TYPE_CHECKING:
+    import gtsam
 
 __all__ = ["bench_gyro"]
 
@@ -42,33 +46,62 @@ def _euroc_20hz(root: Path):
 
 
 def bench_gyro(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    """Per-step rotation error of preintegration, vision-like poses and the graph; JSON, table."""
     if not (args.euroc_imu / "mav0").is_dir():
         return {"skipped": f"{args.euroc_imu} not found"}, "gyro: skipped (no data)\n"
     imu, noise, stamps, poses, bias = _euroc_20hz(args.euroc_imu)
-    params = rotation_params(noise)
     truth_steps = np.swapaxes(poses[:-1, :3, :3], 1, 2) @ poses[1:, :3, :3]
-
-    def step_errors(biases: np.ndarray | None) -> np.ndarray:
-        errors = []
-        for k in range(len(stamps) - 1):
-            pre = preintegrate_gyro(
-                imu.timestamps_ns,
-                imu.gyro,
-                stamps[k],
-                stamps[k + 1],
-                params,
-                None if biases is None else biases[k],
-            )
-            errors.append(rotation_angle_deg(pre.delta_rotation.T @ truth_steps[k]))
-        return np.asarray(errors)
-
+    params = rotation_params(noise)
     rows: dict[str, dict[str, float]] = {}
     for name, biases in (("gyro, ground-truth bias", bias), ("gyro, zero bias", None)):
-        errors = step_errors(biases)
-        rows[name] = {"rms_deg": float(np.sqrt(np.mean(errors**2))), "max_deg": float(errors.max())}
-
+        errors = _preintegration_errors(imu, params, stamps, truth_steps, biases)
+        rows[name] = _rms_max(errors)
     # Online bias: the graph with the real gyro and vision-like noisy relative poses.
     measurements = simulate_frontend(poses, np.eye(4), seed=args.seed)
+    fused_poses, estimates, increments = _run_graph(imu, noise, stamps, measurements)
+    fused_steps = np.swapaxes(fused_poses[:-1, :3, :3], 1, 2) @ fused_poses[1:, :3, :3]
+    vision = np.stack([m.relative_pose[:3, :3] for m in measurements[1:]])
+    rows["vision-like relative poses alone"] = _rms_max(_step_errors(vision, truth_steps))
+    rows["graph (bias online): consecutive output poses"] = _rms_max(
+        _step_errors(fused_steps, truth_steps)
+    )
+    rows["graph (bias online): motion X_k-1 -> X_k solved at frame k"] = _rms_max(
+        _step_errors(np.stack(increments), truth_steps)
+    )
+    result = _gyro_result(stamps, rows, bias, estimates)
+    return result, _gyro_table(result, rows)
+
+
+def _preintegration_errors(
+    imu: ImuBatch,
+    params: gtsam.PreintegratedRotationParams,
+    stamps: np.ndarray,
+    truth_steps: np.ndarray,
+    biases: np.ndarray | None,
+) -> np.ndarray:
+    """Angle (deg) between the preintegrated gyro rotation and the truth at every step."""
+    errors = []
+    for k in range(len(stamps) - 1):
+        pre = preintegrate_gyro(
+            imu.timestamps_ns,
+            imu.gyro,
+            stamps[k],
+            stamps[k + 1],
+            params,
+            None if biases is None else biases[k],
+        )
+        errors.append(rotation_angle_deg(pre.delta_rotation.T @ truth_steps[k]))
+    return np.asarray(errors)
+
+
+def _run_graph(
+    imu: ImuBatch, noise: ImuNoise, stamps: np.ndarray, measurements: list[FrontendMeasurement]
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Feed the back end frame by frame; its body poses, gyro biases and solved rotations.
+
+    The rotations are the motion X_k-1 -> X_k as solved when frame k arrives, before later
+    frames smooth it: what a live consumer of the odometry gets.
+    """
     backend = FusionBackend(BackendConfig(), np.eye(4), noise)
     fused, estimates, increments = [], [], []
     for k, stamp in enumerate(stamps):
@@ -84,27 +117,29 @@ def bench_gyro(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
         estimates.append(out.gyro_bias)
         if out.body_motion is not None:
             increments.append(out.body_motion[:3, :3])
-    fused_poses, estimates = np.stack(fused), np.stack(estimates)
-    fused_steps = np.swapaxes(fused_poses[:-1, :3, :3], 1, 2) @ fused_poses[1:, :3, :3]
-    errors = rotation_angle_deg(np.swapaxes(fused_steps, 1, 2) @ truth_steps)
-    vision = np.stack([m.relative_pose[:3, :3] for m in measurements[1:]])
-    vision_errors = rotation_angle_deg(np.swapaxes(vision, 1, 2) @ truth_steps)
-    rows["vision-like relative poses alone"] = {
-        "rms_deg": float(np.sqrt(np.mean(vision_errors**2))),
-        "max_deg": float(vision_errors.max()),
-    }
-    rows["graph (bias online): consecutive output poses"] = {
-        "rms_deg": float(np.sqrt(np.mean(errors**2))),
-        "max_deg": float(errors.max()),
-    }
-    increment_errors = rotation_angle_deg(np.swapaxes(np.stack(increments), 1, 2) @ truth_steps)
-    rows["graph (bias online): motion X_k-1 -> X_k solved at frame k"] = {
-        "rms_deg": float(np.sqrt(np.mean(increment_errors**2))),
-        "max_deg": float(increment_errors.max()),
-    }
+    return np.stack(fused), np.stack(estimates), increments
+
+
+def _step_errors(rotations: np.ndarray, truth_steps: np.ndarray) -> np.ndarray:
+    """Angle (deg) between each estimated per-step rotation and the true one."""
+    return rotation_angle_deg(np.swapaxes(rotations, 1, 2) @ truth_steps)
+
+
+def _rms_max(errors: np.ndarray) -> dict[str, float]:
+    """RMS and worst of per-step angle errors, the two numbers each table row shows."""
+    return {"rms_deg": float(np.sqrt(np.mean(errors**2))), "max_deg": float(errors.max())}
+
+
+def _gyro_result(
+    stamps: np.ndarray,
+    rows: dict[str, dict[str, float]],
+    bias: np.ndarray,
+    estimates: np.ndarray,
+) -> dict[str, Any]:
+    """The JSON of the part: per-step rotation errors and how the online bias converged."""
     bias_error = np.linalg.norm(estimates - bias, axis=1)
     half = len(bias_error) // 2
-    result = {
+    return {
         "steps": len(stamps) - 1,
         "duration_s": float((stamps[-1] - stamps[0]) * 1e-9),
         "rotation_per_step": rows,
@@ -114,14 +149,17 @@ def bench_gyro(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
         "bias_estimated_final_rad_s": estimates[-1].tolist(),
         "bias_error_initial_rad_s": float(np.linalg.norm(bias[0])),
     }
+
+
+def _gyro_table(result: dict[str, Any], rows: dict[str, dict[str, float]]) -> str:
+    """The Markdown table of the rotation errors, then one line on the bias estimate."""
     table = titled_table(
         f"Real gyro, EuRoC V1_02 ({result['steps']} steps of 50 ms, {result['duration_s']:.0f} s)",
         ["relative rotation per 20 Hz step", "RMS deg", "max deg"],
         [[name, f"{row['rms_deg']:.4f}", f"{row['max_deg']:.4f}"] for name, row in rows.items()],
     )
-    table += (
+    return table + (
         f"\nOnline gyro bias (starts at 0; true |b| = {result['bias_error_initial_rad_s']:.4f} "
         f"rad/s): final error {result['bias_error_final_rad_s']:.4f} rad/s, mean over the "
         f"second half {result['bias_error_mean_second_half_rad_s']:.4f} rad/s.\n"
     )
-    return result, table

@@ -248,56 +248,24 @@ class StereoRig:
     @cached_property
     def rectification(self) -> Rectification:
         """Rectifying rotations, projections and remap tables (computed once per rig)."""
-        # OpenCV wants the transform taking left-camera points into the right camera.
-        T_right_left = invert_pose(self.T_left_right)
-        rotation = T_right_left[:3, :3].copy()
-        translation = T_right_left[:3, 3].reshape(3, 1).copy()
         if self._already_rectified():
             return self._identity_rectification()
         models = {self.left.distortion_model, self.right.distortion_model}
         if "equidistant" in models and models != {"equidistant"}:
             raise ValueError("mixed equidistant and pinhole-distortion cameras are not supported")
         if models == {"equidistant"}:
-            r1, r2, p1, p2, q = cv2.fisheye.stereoRectify(
-                self.left.K,
-                self.left.D,
-                self.right.K,
-                self.right.D,
-                self.size,
-                rotation,
-                translation,
-                flags=cv2.CALIB_ZERO_DISPARITY,
-                newImageSize=self.size,
-                balance=0.0,
-                fov_scale=1.0,
-            )
-            maps = [
-                cv2.fisheye.initUndistortRectifyMap(
-                    camera.K, camera.D, r, p, self.size, cv2.CV_16SC2
-                )
-                for camera, r, p in ((self.left, r1, p1), (self.right, r2, p2))
-            ]
+            r1, r2, p1, p2, q = self._fisheye_rectify()
+            init_map = cv2.fisheye.initUndistortRectifyMap
         else:
-            r1, r2, p1, p2, q, _, _ = cv2.stereoRectify(
-                self.left.K,
-                self.left.D,
-                self.right.K,
-                self.right.D,
-                self.size,
-                rotation,
-                translation,
-                flags=cv2.CALIB_ZERO_DISPARITY,
-                alpha=0.0,
-                newImageSize=self.size,
-            )
-            maps = [
-                cv2.initUndistortRectifyMap(camera.K, camera.D, r, p, self.size, cv2.CV_16SC2)
-                for camera, r, p in ((self.left, r1, p1), (self.right, r2, p2))
-            ]
-        fx = float(p1[0, 0])
+            r1, r2, p1, p2, q = self._pinhole_rectify()
+            init_map = cv2.initUndistortRectifyMap
+        maps = [
+            init_map(camera.K, camera.D, r, p, self.size, cv2.CV_16SC2)
+            for camera, r, p in ((self.left, r1, p1), (self.right, r2, p2))
+        ]
         return Rectification(
             size=self.size,
-            fx=fx,
+            fx=float(p1[0, 0]),
             cx=float(p1[0, 2]),
             cy=float(p1[1, 2]),
             baseline=float(-p2[0, 3] / p2[0, 0]),
@@ -309,6 +277,48 @@ class StereoRig:
             left_maps=(maps[0][0], maps[0][1]),
             right_maps=(maps[1][0], maps[1][1]),
         )
+
+    def _right_from_left(self) -> tuple[np.ndarray, np.ndarray]:
+        """Rotation and (3, 1) translation taking left-camera points into the right camera.
+
+        This is the direction OpenCV's stereo rectification expects.
+        """
+        T_right_left = invert_pose(self.T_left_right)
+        return T_right_left[:3, :3].copy(), T_right_left[:3, 3].reshape(3, 1).copy()
+
+    def _fisheye_rectify(self) -> tuple[np.ndarray, ...]:
+        """R1, R2, P1, P2, Q for two equidistant (fisheye) cameras, no black border kept."""
+        rotation, translation = self._right_from_left()
+        return cv2.fisheye.stereoRectify(
+            self.left.K,
+            self.left.D,
+            self.right.K,
+            self.right.D,
+            self.size,
+            rotation,
+            translation,
+            flags=cv2.CALIB_ZERO_DISPARITY,
+            newImageSize=self.size,
+            balance=0.0,
+            fov_scale=1.0,
+        )
+
+    def _pinhole_rectify(self) -> tuple[np.ndarray, ...]:
+        """R1, R2, P1, P2, Q for two pinhole cameras (radtan or none), no black border kept."""
+        rotation, translation = self._right_from_left()
+        r1, r2, p1, p2, q, _, _ = cv2.stereoRectify(
+            self.left.K,
+            self.left.D,
+            self.right.K,
+            self.right.D,
+            self.size,
+            rotation,
+            translation,
+            flags=cv2.CALIB_ZERO_DISPARITY,
+            alpha=0.0,
+            newImageSize=self.size,
+        )
+        return r1, r2, p1, p2, q
 
     def _already_rectified(self) -> bool:
         """True for distortion-free cameras with equal intrinsics offset purely along x."""

@@ -78,24 +78,11 @@ def _sample_texture(
     instead of the full texture keeps distant surfaces free of aliasing, which would otherwise
     flicker from frame to frame as no real camera does.
     """
-    # The footprint varies slowly across a plane: evaluate it every 8th pixel, then upsample.
-    step = 8
-    coarse_x, coarse_y = rx[::step], ry[::step]
-    coarse_inv = plane_inv[::step, ::step]
-    ray_norm = np.sqrt(
-        (coarse_y * coarse_y)[:, None] + (coarse_x * coarse_x)[None, :] + np.float32(f * f)
-    ) / np.float32(f)
-    ahead = coarse_inv > 0
-    if not ahead.any():
+    levels = _footprint_levels(plane, plane_inv, rx, ry, px_per_m, d_c, f)
+    if levels is None:
         return np.zeros(plane_inv.shape, dtype=np.float32)
-    inv = np.maximum(coarse_inv, np.float32(1e-6))
-    cos_incidence = np.clip(np.float32(abs(d_c)) * inv / ray_norm, 1e-3, 1.0)
-    footprint = np.float32(px_per_m / f) / (inv * np.sqrt(cos_incidence))
-    coarse_level = np.clip(np.log2(np.maximum(footprint, 1.0)), 0.0, len(plane.levels) - 1)
-    lowest = int(np.floor(coarse_level[ahead].min()))
-    highest = int(np.ceil(coarse_level[ahead].max()))
+    coarse_level, lowest, highest = levels
     size = (len(rx), len(ry))
-    result = np.zeros(plane_inv.shape, dtype=np.float32)
     if highest == lowest == 0:
         level = None
     else:
@@ -105,8 +92,59 @@ def _sample_texture(
             lowest,
             highest,
         )
+    indices = range(lowest, highest + 1)
+    return _blend_levels(plane, homography, size, level, indices, plane_inv.shape)
+
+
+def _footprint_levels(
+    plane: Plane,
+    plane_inv: np.ndarray,
+    rx: np.ndarray,
+    ry: np.ndarray,
+    px_per_m: float,
+    d_c: float,
+    f: float,
+) -> tuple[np.ndarray, int, int] | None:
+    """Pyramid level of each pixel's footprint on a coarse grid, and the range of levels needed.
+
+    Returns (level every 8th pixel, lowest, highest), or None when the plane lies wholly
+    behind the camera. The footprint varies slowly across a plane, so evaluating it every 8th
+    pixel and upsampling is enough.
+    """
+    step = 8
+    coarse_x, coarse_y = rx[::step], ry[::step]
+    coarse_inv = plane_inv[::step, ::step]
+    ray_norm = np.sqrt(
+        (coarse_y * coarse_y)[:, None] + (coarse_x * coarse_x)[None, :] + np.float32(f * f)
+    ) / np.float32(f)
+    ahead = coarse_inv > 0
+    if not ahead.any():
+        return None
+    inv = np.maximum(coarse_inv, np.float32(1e-6))
+    cos_incidence = np.clip(np.float32(abs(d_c)) * inv / ray_norm, 1e-3, 1.0)
+    footprint = np.float32(px_per_m / f) / (inv * np.sqrt(cos_incidence))
+    coarse_level = np.clip(np.log2(np.maximum(footprint, 1.0)), 0.0, len(plane.levels) - 1)
+    lowest = int(np.floor(coarse_level[ahead].min()))
+    highest = int(np.ceil(coarse_level[ahead].max()))
+    return coarse_level, lowest, highest
+
+
+def _blend_levels(
+    plane: Plane,
+    homography: np.ndarray,
+    size: tuple[int, int],
+    level: np.ndarray | None,
+    indices: range,
+    shape: tuple[int, ...],
+) -> np.ndarray:
+    """Warp each pyramid level in ``indices`` and blend them with tent weights around ``level``.
+
+    ``level`` None means every pixel samples level 0, which then needs no weights at all
+    (the common case for near surfaces, kept cheap).
+    """
+    result = np.zeros(shape, dtype=np.float32)
     weight = np.empty_like(result)
-    for index in range(lowest, highest + 1):
+    for index in indices:
         warped = cv2.warpPerspective(
             plane.levels[index],
             homography @ np.diag([2.0**index, 2.0**index, 1.0]),

@@ -102,6 +102,19 @@ def simulate_pair(
     ``noise_sigma * Z^2`` (so ``noise_sigma`` is the std at 1 m), and ``noise_sigmas`` holds
     each pair's residual std sqrt(sigma_source^2 + sigma_target^2).
     """
+    _check_options(n_points, noise_sigma, outlier_ratio, scene)
+    params = {**DEFAULT_SCENE, **scene}
+    rng = np.random.default_rng(rng)
+    points, moved, rotation, translation = _mutually_visible_scene(n_points, params, rng)
+    source, target, noise_sigmas = _noisy_observations(points, moved, noise_sigma, depth_noise, rng)
+    inlier_mask = _swap_in_outliers(target, outlier_ratio, rng)
+    return SimulatedPair(source, target, rotation, translation, inlier_mask, noise_sigmas)
+
+
+def _check_options(
+    n_points: int, noise_sigma: float, outlier_ratio: float, scene: dict[str, float]
+) -> None:
+    """Reject bad arguments with one clear message before any random number is drawn."""
     unknown = set(scene) - set(DEFAULT_SCENE)
     if unknown:
         raise ValueError(f"unknown scene option(s) {sorted(unknown)}; known: {list(DEFAULT_SCENE)}")
@@ -111,11 +124,19 @@ def simulate_pair(
         raise ValueError(f"outlier_ratio must be in [0, 1], got {outlier_ratio}")
     if noise_sigma < 0.0:
         raise ValueError(f"noise_sigma must be >= 0, got {noise_sigma}")
-    params = {**DEFAULT_SCENE, **scene}
-    rng = np.random.default_rng(rng)
-    intrinsics = camera_matrix(params["focal"], params["width"], params["height"])
 
-    pixels = rng.uniform(0.0, 1.0, size=(n_points, 2)) * [params["width"], params["height"]]
+
+def _mutually_visible_scene(
+    n_points: int, params: dict[str, float], rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Points in the first view's frustum, a random motion, and the points seen in both views.
+
+    Returns the kept points in the first and the second camera frame (noise-free) and the
+    motion; keeping only mutually visible points mimics what a feature tracker can match.
+    """
+    width, height = params["width"], params["height"]
+    intrinsics = camera_matrix(params["focal"], width, height)
+    pixels = rng.uniform(0.0, 1.0, size=(n_points, 2)) * [width, height]
     depth = rng.uniform(params["min_depth_m"], params["max_depth_m"], n_points)
     rays = np.column_stack([pixels, np.ones(n_points)]) @ np.linalg.inv(intrinsics).T
     points = rays * depth[:, None]
@@ -123,19 +144,38 @@ def simulate_pair(
         rng, params["max_rotation_deg"], params["max_translation_m"]
     )
     moved = points @ rotation.T + translation
-    keep = visible(points, intrinsics, params["width"], params["height"]) & visible(
-        moved, intrinsics, params["width"], params["height"]
-    )
-    source = points[keep]
-    noise_sigmas = None
-    if depth_noise:
-        source, source_sigma = _along_rays(source, noise_sigma, rng)
-        target, target_sigma = _along_rays(moved[keep], noise_sigma, rng)
-        noise_sigmas = np.hypot(source_sigma, target_sigma)
-    else:
-        target = moved[keep] + rng.normal(0.0, noise_sigma, size=(int(keep.sum()), 3))
+    keep = visible(points, intrinsics, width, height) & visible(moved, intrinsics, width, height)
+    return points[keep], moved[keep], rotation, translation
 
-    count = len(source)
+
+def _noisy_observations(
+    source: np.ndarray,
+    target: np.ndarray,
+    noise_sigma: float,
+    depth_noise: bool,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Isotropic noise on the target only, or stereo-like noise along the rays of both sets.
+
+    Returns (source, target, per-pair residual std or None); the std is only known per pair
+    when it depends on depth.
+    """
+    if not depth_noise:
+        return source, target + rng.normal(0.0, noise_sigma, size=(len(target), 3)), None
+    source, source_sigma = _along_rays(source, noise_sigma, rng)
+    target, target_sigma = _along_rays(target, noise_sigma, rng)
+    return source, target, np.hypot(source_sigma, target_sigma)
+
+
+def _swap_in_outliers(
+    target: np.ndarray, outlier_ratio: float, rng: np.random.Generator
+) -> np.ndarray:
+    """Give ``round(outlier_ratio * M)`` pairs another point's target (in place); inlier mask.
+
+    A wrong match in temporal tracking lands on another real point, so outliers are drawn
+    from the visible targets rather than from thin air.
+    """
+    count = len(target)
     n_outliers = round(outlier_ratio * count) if count > 1 else 0
     inlier_mask = np.ones(count, dtype=bool)
     if n_outliers:
@@ -144,7 +184,7 @@ def simulate_pair(
         partner = (wrong + rng.integers(1, count, size=n_outliers)) % count
         target[wrong] = target[partner].copy()
         inlier_mask[wrong] = False
-    return SimulatedPair(source, target, rotation, translation, inlier_mask, noise_sigmas)
+    return inlier_mask
 
 
 def _along_rays(
