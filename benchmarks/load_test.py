@@ -13,6 +13,7 @@ pages they share in each of them, and PSS, which shares them out). Loopback only
     python benchmarks/load_test.py --executor thread    # the in-process thread pool instead
     python benchmarks/load_test.py --encoding raw8      # raw 8-bit pixels, no PNG decode
     python benchmarks/load_test.py --robots 8 --duration 30 --runs 5   # 5 consecutive runs
+    python benchmarks/load_test.py --hold-back  # robots skip frames the server would refuse
 
 With ``--runs N`` every level is run N times in a row against the same server; besides the JSON
 a Markdown table of all runs (not the best of them) is written next to it, with the machine's
@@ -51,6 +52,7 @@ class RobotStats:
     answered: int = 0
     dropped: int = 0
     rejected: int = 0
+    held_back: int = 0  # not sent: the server's window for the session was full (--hold-back)
     latencies_s: list[float] = field(default_factory=list)
     first_send: float | None = None
     last_answer: float | None = None
@@ -84,6 +86,11 @@ class LevelResult:
     stage_median_ms: dict[str, float]
     reject_reasons: dict[str, int]
     run: int = 1
+    # Frames the robots did not send because the server would have refused them (--hold-back).
+    held_back: int = 0
+    # CPU of the server process per frame it received (answered or refused): what a frame
+    # costs it before any work is done on it.
+    server_cpu_ms_per_received: float | None = None
     load_average_start: list[float] = field(default_factory=list)
     load_average_end: list[float] = field(default_factory=list)
 
@@ -136,9 +143,9 @@ def _grey_pixels(encoded: bytes) -> bytes:
 
 
 async def robot(url: str, session_id: str, frames: Frames, rate: float, duration: float,
-                drain: float, stats: RobotStats, start_at: float) -> None:
+                drain: float, stats: RobotStats, start_at: float, hold_back: bool) -> None:
     sent_at: dict[int, float] = {}
-    async with stream(url, session_id, API_KEY) as connection:
+    async with stream(url, session_id, API_KEY, hold_back=hold_back) as connection:
         done_sending = asyncio.Event()
 
         async def produce() -> None:
@@ -155,10 +162,12 @@ async def robot(url: str, session_id: str, frames: Frames, rate: float, duration
                 stats.first_send = stats.first_send or sent_at[timestamp]
                 if frames.raw:
                     width, height = frames.sequence.image_size
-                    await connection.send_raw_frame(timestamp, left, right, width, height, imu)
+                    sent = await connection.send_raw_frame(timestamp, left, right, width,
+                                                           height, imu)
                 else:
-                    await connection.send_frame(timestamp, left, right, imu)
-                stats.sent += 1
+                    sent = await connection.send_frame(timestamp, left, right, imu)
+                stats.sent += sent
+                stats.held_back += not sent
                 k += 1
             done_sending.set()
 
@@ -252,7 +261,8 @@ def _cpu_s(pid: int | None) -> dict[int, float]:
 
 
 async def run_level(url: str, frames: Frames, robots: int, rate: float, duration: float,
-                    drain: float, config: dict, server_pid: int | None) -> LevelResult:
+                    drain: float, config: dict, server_pid: int | None,
+                    hold_back: bool = False) -> LevelResult:
     with Client(url, API_KEY) as client:
         files = frames.sequence.calibration_files
         sessions = [
@@ -283,7 +293,8 @@ async def run_level(url: str, frames: Frames, robots: int, rate: float, duration
     load_start = list(os.getloadavg())
     cpu_before = _cpu_s(server_pid)
     start_at = time.perf_counter() + 0.5
-    await asyncio.gather(*(robot(url, s.id, frames, rate, duration, drain, st, start_at)
+    await asyncio.gather(*(robot(url, s.id, frames, rate, duration, drain, st, start_at,
+                                 hold_back)
                            for s, st in zip(sessions, stats, strict=True)))
     stop.set()
     await sampler
@@ -309,10 +320,13 @@ async def run_level(url: str, frames: Frames, robots: int, rate: float, duration
             reasons[reason] = reasons.get(reason, 0) + count
 
     cpu: dict[str, float] = {}
+    per_received = None
     if cpu_after and answered:
         used = {p: t - cpu_before.get(p, 0.0) for p, t in cpu_after.items()}
-        cpu["server_process"] = used.pop(server_pid, 0.0) * 1000 / answered
+        server_s = used.pop(server_pid, 0.0)
+        cpu["server_process"] = server_s * 1000 / answered
         cpu["worker_processes"] = sum(used.values()) * 1000 / answered
+        per_received = server_s * 1000 / sent
 
     def pct(q: float) -> float | None:
         return float(np.percentile(latencies, q) * 1000) if len(latencies) else None
@@ -328,6 +342,7 @@ async def run_level(url: str, frames: Frames, robots: int, rate: float, duration
         server_cpu_ms_per_frame=cpu,
         stage_median_ms={k: float(np.median(v) * 1000) for k, v in sorted(stages.items())},
         reject_reasons=reasons,
+        held_back=sum(s.held_back for s in stats), server_cpu_ms_per_received=per_received,
         load_average_start=load_start,
         load_average_end=list(os.getloadavg()),
     )
@@ -391,7 +406,7 @@ def print_table(results: list[LevelResult]) -> None:
 RUNS_HEADER = (
     "| run | robots | offered/s | answered/s | sent | answered | dropped | rejected | lost "
     "| p50 ms | p95 ms | p99 ms | CPU ms/frame server | CPU ms/frame workers | CPU ms/frame total "
-    "| RSS MB | PSS MB | load avg start -> end |"
+    "| server CPU ms/received | held back | RSS MB | PSS MB | load avg start -> end |"
 )
 
 
@@ -408,7 +423,8 @@ def runs_table(results: list[LevelResult]) -> str:
             f"| {r.answered} | {r.dropped} | {r.rejected} | {r.unanswered} "
             f"| {_fmt(r.latency_p50_ms)} | {_fmt(r.latency_p95_ms)} | {_fmt(r.latency_p99_ms)} "
             f"| {_fmt(cpu.get('server_process'))} | {_fmt(cpu.get('worker_processes'))} "
-            f"| {_fmt(r.cpu_ms_per_frame)} | {_fmt(r.server_rss_mb_peak, 0)} "
+            f"| {_fmt(r.cpu_ms_per_frame)} | {_fmt(r.server_cpu_ms_per_received, 2)} "
+            f"| {r.held_back} | {_fmt(r.server_rss_mb_peak, 0)} "
             f"| {_fmt(r.server_pss_mb_peak, 0)} | {load} |"
         )
     return "\n".join(lines)
@@ -431,6 +447,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="frame payload: the dataset's PNG files or raw 8-bit pixels")
     parser.add_argument("--runs", type=int, default=1,
                         help="consecutive runs of every level against the same server")
+    parser.add_argument("--hold-back", action="store_true",
+                        help="robots do not send frames the server's full window would refuse")
     parser.add_argument("--queue-size", type=int, default=8)
     parser.add_argument("--policy", choices=("reject", "drop_oldest"), default="reject")
     parser.add_argument("--config", default="{}", help="estimator config overrides (JSON)")
@@ -469,7 +487,8 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"K={k}, run {run}/{args.runs}: {args.duration:.0f} s at {args.rate:g} "
                           "Hz per robot ...", flush=True)
                     result = asyncio.run(run_level(
-                        url, frames, k, args.rate, args.duration, args.drain, config, pid))
+                        url, frames, k, args.rate, args.duration, args.drain, config, pid,
+                        args.hold_back))
                     result.run = run
                     results.append(result)
         finally:
@@ -496,7 +515,7 @@ def main(argv: list[str] | None = None) -> int:
                      "workers": args.workers or os.cpu_count(), "config": config,
                      "runs": args.runs,
                      "executor": None if args.url else args.executor,
-                     "encoding": args.encoding,
+                     "encoding": args.encoding, "hold_back": args.hold_back,
                      "dataset": str(args.dataset), "image_size": [width, height]},
         "levels": [{**asdict(r), "cpu_ms_per_frame": r.cpu_ms_per_frame} for r in results],
     }

@@ -177,6 +177,7 @@ class EstimatorFactory:
         logger = logging.getLogger("swarmvo.service")
         try:
             synthetic_run(self)
+            registration_kernels()
         except Exception:
             logger.debug("warm-up run failed", exc_info=True)
         # Minutes instead of seconds here mean an empty or unreadable JIT cache (docker/).
@@ -338,6 +339,26 @@ def synthetic_run(factory: EstimatorFactory, frames: int = 4) -> None:
             accel = np.tile([0.0, 0.0, 9.81], (len(times), 1))
             imu = ImuBatch(times.astype(np.int64), np.zeros((len(times), 3)), accel)
         pipeline.process(StereoFrame(k * period_ns, left, right), imu)
+
+
+def registration_kernels() -> None:
+    """Run the registration kernels the synthetic frames do not reach (real frames do).
+
+    The threshold ladder judges an unsettled set only on real frames. Without this, a worker
+    with an empty JIT cache compiles these kernels inside a frame, where the frame's CPU budget
+    interrupts the compile: the frame is refused, and the cache is never written
+    (docs/performance.md).
+    """
+    import estimator
+    from estimator.registration.swarm_kernels import degenerate_points, fit_pose
+
+    points = np.random.default_rng(0).normal(size=(60, 3))
+    estimator.register(points, points + 1.0, seed=0)
+    estimator.register(points, points + 1.0, seed=0, sigmas=np.ones(len(points)))
+    estimator.register(points, points + 1.0, method="pso", seed=0)
+    everyone = np.ones(len(points), dtype=bool)
+    degenerate_points(points, np.flatnonzero(everyone))
+    fit_pose(points, points + 1.0, everyone, np.ones(len(points)), np.ones(len(points)))
 
 
 def _short_validation(error: ValueError) -> str:

@@ -17,8 +17,6 @@ import sys
 import time
 from dataclasses import dataclass
 
-import numpy as np
-
 
 @dataclass(frozen=True)
 class WarmUp:
@@ -43,22 +41,13 @@ def cached_kernels() -> dict[str, tuple[int, int]]:
 
 
 def warm_up() -> WarmUp:
-    """The workers' own warm-up run, failing loudly, plus the other registration kernels."""
-    import estimator
-    from estimator.registration.swarm_kernels import degenerate_points, fit_pose
-    from service.estimator_adapter import EstimatorFactory, synthetic_run
+    """The workers' own warm-up run (synthetic frames and the registration kernels they do
+    not reach), failing loudly."""
+    from service.estimator_adapter import EstimatorFactory, registration_kernels, synthetic_run
 
     start = time.perf_counter()
     synthetic_run(EstimatorFactory())
-    points = np.random.default_rng(0).normal(size=(60, 3))
-    estimator.register(points, points + 1.0, seed=0)
-    estimator.register(points, points + 1.0, seed=0, sigmas=np.ones(len(points)))
-    estimator.register(points, points + 1.0, method="pso", seed=0)
-    # Reached only when the threshold ladder judges an unsettled set (real frames, not the
-    # synthetic ones): these kernels would otherwise be compiled during a robot's first frames.
-    everyone = np.ones(len(points), dtype=bool)
-    degenerate_points(points, np.flatnonzero(everyone))
-    fit_pose(points, points + 1.0, everyone, np.ones(len(points)), np.ones(len(points)))
+    registration_kernels()
     seconds = time.perf_counter() - start
     counts = cached_kernels().values()
     return WarmUp(seconds, sum(m for m, _h in counts), sum(h for _m, h in counts))

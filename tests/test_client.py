@@ -198,3 +198,42 @@ def test_raw_frame_message_shape() -> None:
     with pytest.raises(ValueError, match="width\\*height"):
         asyncio.run(frames.send_raw_frame(8, left, right[:5], 3, 2))
     assert len(recorder.sent) == 2  # nothing sent for the refused frame
+
+
+def test_hold_back_keeps_frames_the_server_would_refuse() -> None:
+    """With ``hold_back`` no more frames are unanswered than the server's window (queue + the
+    frame in its worker); a held frame's IMU samples are still sent, and each answer read
+    makes room for one more frame."""
+    import asyncio
+
+    from swarmvo_client.stream import FrameStream
+
+    class Connection:
+        def __init__(self) -> None:
+            self.sent: list = []
+            self.answers = [json.dumps({"type": "rejected", "timestamp_ns": 1, "status": 429,
+                                        "detail": "session queue full"})]
+
+        async def send(self, message) -> None:
+            self.sent.append(message)
+
+        async def recv(self) -> str:
+            return self.answers.pop(0)
+
+    imu = ImuData(np.array([5], dtype=np.int64), np.zeros((1, 3)), np.zeros((1, 3)))
+
+    async def scenario(hold_back: bool) -> tuple[list[bool], FrameStream, Connection]:
+        connection = Connection()
+        frames = FrameStream(connection, {"queue_size": 1}, hold_back)  # type: ignore[arg-type]
+        sent = [await frames.send_frame(t, b"l", b"r", imu) for t in (1, 2, 3)]
+        await frames.recv()
+        sent.append(await frames.send_frame(4, b"l", b"r"))
+        return sent, frames, connection
+
+    sent, frames, connection = asyncio.run(scenario(True))
+    assert sent == [True, True, False, True]
+    assert frames.held_back == 1 and frames.unanswered == 2
+    kinds = [json.loads(m)["type"] for m in connection.sent if isinstance(m, str)]
+    assert kinds == ["frame", "frame", "imu", "frame"]
+    sent, frames, connection = asyncio.run(scenario(False))  # the default sends every frame
+    assert sent == [True] * 4 and frames.held_back == 0

@@ -570,6 +570,28 @@ def test_websocket_queue_policy_answers_every_frame(tmp_path: Path, policy: str)
     assert [p["index"] for p in poses] == list(range(len(poses)))
 
 
+def test_a_full_queue_refuses_a_frame_from_its_header(tmp_path: Path) -> None:
+    """With the queue full when a header arrives, the frame is refused at once: its images are
+    not needed for the answer (the server neither keeps nor copies them)."""
+    factory = FakeFactory(delay=2.0)
+    settings = settings_for(tmp_path, queue_size=1, queue_policy="reject")
+    with TestClient(create_app(settings, factory)) as c:
+        sid = new_session(c)
+        with c.websocket_connect(f"/v1/sessions/{sid}/stream", headers=A) as ws:
+            ws.receive_json()
+            _ws_frame(ws, 1)  # in the worker
+            _ws_frame(ws, 2)  # queued: the queue is full
+            left = png()
+            ws.send_text(json.dumps({"type": "frame", "timestamp_ns": 3,
+                                     "left_bytes": len(left), "right_bytes": len(left)}))
+            _ws_frame(ws, 4)  # its header ends frame 3, whose images never came
+            ws.send_text(json.dumps({"type": "close"}))
+            replies = [ws.receive_json() for _ in range(5)]
+    assert [(r["type"], r.get("timestamp_ns")) for r in replies] == [
+        ("pose", 1), ("pose", 2), ("rejected", 3), ("rejected", 4), ("smoothed", None)]
+    assert replies[2]["status"] == 429 and "queue full" in replies[2]["detail"]
+
+
 def test_concurrent_sessions_use_the_pool(tmp_path: Path) -> None:
     """Two sessions' frames are worked on at the same time (two pool threads), not in turn."""
     factory = FakeFactory(delay=0.5)

@@ -52,3 +52,25 @@ def test_expect_cached_refuses_a_warm_up_that_compiled(
     monkeypatch.setattr(warmup, "warm_up", lambda: warmup.WarmUp(1.0, compiled=0, loaded=18))
     assert warmup.main(["--expect-cached"]) == 0
     assert warmup.main([]) == 0
+
+
+WORKER_SCRIPT = """
+import json
+from service.estimator_adapter import EstimatorFactory
+from service.warmup import cached_kernels
+EstimatorFactory().warm_up()
+print(json.dumps(cached_kernels()))
+"""
+
+
+def test_a_worker_warm_up_reaches_the_registration_kernels_of_real_frames() -> None:
+    """A worker's own warm-up (not only the image build's) runs the ladder's refit kernel: with
+    an empty JIT cache it is compiled before the worker takes frames, never inside a frame's
+    CPU budget, which would interrupt the compile and refuse the frame."""
+    done = subprocess.run([sys.executable, "-c", WORKER_SCRIPT], cwd=PROJECT_ROOT,
+                          capture_output=True, text=True, timeout=1200)
+    assert done.returncode == 0, done.stderr[-3000:]
+    counts = json.loads(done.stdout.strip().splitlines()[-1])
+    for kernel in ("fit_pose", "degenerate_points"):
+        misses, hits = counts[f"estimator.registration.swarm_kernels.{kernel}"]
+        assert misses + hits > 0, (kernel, counts)

@@ -148,13 +148,7 @@ class LiveSession:
         job = FrameJob(timestamp_ns, left, right, future, raw)
         if self.queue.full():
             if self.settings.queue_policy == "reject":
-                self.metrics.dropped.labels("reject").inc()
-                raise FrameRejected(
-                    429,
-                    f"session queue full ({self.settings.queue_size} frames waiting): frame "
-                    f"{timestamp_ns} rejected; send slower or wait for answers",
-                    "queue_full",
-                )
+                raise self._queue_full(timestamp_ns)
             oldest = self.queue.get_nowait()
             self.metrics.dropped.labels("drop_oldest").inc()
             if not oldest.future.done():
@@ -169,6 +163,31 @@ class LiveSession:
         self.pending[timestamp_ns] = future
         future.add_done_callback(lambda _f: self.pending.pop(timestamp_ns, None))
         return future
+
+    def refusal_before_images(
+        self, timestamp_ns: int, imu: ImuSamples | None
+    ) -> FrameRejected | None:
+        """The refusal a frame announced now gets when the queue is full (policy ``reject``),
+        decided from its header: the server then neither keeps nor copies its images. Its IMU
+        samples join the buffer as they would in :meth:`submit`; a resent frame (answered from
+        its first copy or the store) and a closed session are left to :meth:`submit`."""
+        if self.closed or self.settings.queue_policy != "reject" or not self.queue.full():
+            return None
+        last = self.last_submitted_ns
+        if timestamp_ns in self.pending or (last is not None and timestamp_ns <= last):
+            return None
+        if imu is not None and len(imu):
+            self.add_imu(imu)
+        return self._queue_full(timestamp_ns)
+
+    def _queue_full(self, timestamp_ns: int) -> FrameRejected:
+        self.metrics.dropped.labels("reject").inc()
+        return FrameRejected(
+            429,
+            f"session queue full ({self.settings.queue_size} frames waiting): frame "
+            f"{timestamp_ns} rejected; send slower or wait for answers",
+            "queue_full",
+        )
 
     async def _stored_answer(self, timestamp_ns: int) -> Answered:
         """A frame already processed gets its stored pose; any other old timestamp a 409."""

@@ -36,17 +36,35 @@ def ws_url(url: str, session_id: str) -> str:
 
 
 class FrameStream:
-    """An open stream of one session."""
+    """An open stream of one session.
 
-    def __init__(self, connection: ClientConnection, hello: dict[str, Any]) -> None:
+    With ``hold_back`` a frame is not sent while more frames are unanswered than the server
+    holds for the session (its ``queue_size`` from the hello, plus the one being processed):
+    the server would refuse it for a full queue, after receiving its images all the same (a
+    few ms of its CPU per frame, docs/performance.md). Such a frame is counted in ``held_back``
+    and :meth:`send_frame` returns False. The count of unanswered frames includes answers
+    still on their way, so a frame is held back at most when the server could have taken it.
+    """
+
+    def __init__(self, connection: ClientConnection, hello: dict[str, Any],
+                 hold_back: bool = False) -> None:
         self.connection = connection
         self.hello = hello
+        self.hold_back = hold_back
+        self.unanswered = 0  # frames sent whose answer (pose, dropped, rejected) is not read yet
+        self.held_back = 0
+
+    @property
+    def server_window(self) -> int:
+        """Frames the server holds for the session: its queue and the frame in its worker."""
+        return int(self.hello.get("queue_size", 0)) + 1
 
     async def send_frame(
         self, timestamp_ns: int, left: bytes, right: bytes, imu: ImuData | None = None
-    ) -> None:
-        """Header as JSON, then both encoded images in one binary message."""
-        await self._send_frame({"timestamp_ns": int(timestamp_ns)}, left, right, imu)
+    ) -> bool:
+        """Header as JSON, then both encoded images in one binary message; False when the
+        frame was held back (``hold_back``) instead of sent."""
+        return await self._send_frame({"timestamp_ns": int(timestamp_ns)}, left, right, imu)
 
     async def send_raw_frame(
         self,
@@ -56,7 +74,7 @@ class FrameStream:
         width: int,
         height: int,
         imu: ImuData | None = None,
-    ) -> None:
+    ) -> bool:
         """Raw 8-bit grey pixels (row-major, width*height bytes each): the server skips decoding.
 
         Noisy camera images barely compress as PNG, so this costs little more bandwidth while
@@ -70,17 +88,24 @@ class FrameStream:
             "width": int(width),
             "height": int(height),
         }
-        await self._send_frame(header, left, right, imu)
+        return await self._send_frame(header, left, right, imu)
 
     async def _send_frame(
         self, header: dict[str, Any], left: bytes, right: bytes, imu: ImuData | None
-    ) -> None:
+    ) -> bool:
         """The JSON header (with the payload sizes and IMU), then both images in one message."""
+        if self.hold_back and self.unanswered >= self.server_window:
+            self.held_back += 1
+            if imu is not None and len(imu):  # the samples still reach the estimator
+                await self.send_imu(imu)
+            return False
         message = {"type": "frame", **header, "left_bytes": len(left), "right_bytes": len(right)}
         if imu is not None and len(imu):
             message["imu"] = imu.to_samples()
         await self.connection.send(json.dumps(message))
         await self.connection.send(left + right)
+        self.unanswered += 1
+        return True
 
     async def send_imu(self, imu: ImuData) -> None:
         await self.connection.send(json.dumps({"type": "imu", "samples": imu.to_samples()}))
@@ -90,6 +115,8 @@ class FrameStream:
         while True:
             message = json.loads(await self.connection.recv())
             kind = message.get("type")
+            if kind in ("pose", "dropped", "rejected"):
+                self.unanswered = max(0, self.unanswered - 1)
             if kind == "pose":
                 return Pose.from_json(message)
             if kind == "dropped":
@@ -131,8 +158,10 @@ async def stream(
     session_id: str,
     api_key: str | None = None,
     max_size: int = 16 * 1024 * 1024,
+    hold_back: bool = False,
 ) -> AsyncIterator[FrameStream]:
-    """Open the session's stream; HTTP-level refusals raise the matching ApiError."""
+    """Open the session's stream; HTTP-level refusals raise the matching ApiError.
+    ``hold_back``: see :class:`FrameStream`."""
     headers = {"Authorization": f"Bearer {api_key}"} if api_key else None
     try:
         # No permessage-deflate: encoded images do not compress, deflating them only costs CPU.
@@ -149,6 +178,6 @@ async def stream(
         raise error_for(response.status_code, detail or str(error)) from error
     try:
         hello = json.loads(await connection.recv())
-        yield FrameStream(connection, hello)
+        yield FrameStream(connection, hello, hold_back)
     finally:
         await connection.close()
