@@ -17,7 +17,7 @@ from estimator.geometry import (
     quat_to_matrix,
     rotation_vector_to_quat,
 )
-from estimator.registration import pso_support, rigidity, swarm_kernels
+from estimator.registration import pso_support, rigidity, support_pairs, swarm_kernels
 from estimator.registration.pso_support import weighted_horn
 from estimator.registration.registry import available_methods, register
 from estimator.registration.result import residual_norms
@@ -469,7 +469,7 @@ def test_swarm_objective_scores_match_explicit_rotations() -> None:
     anchor = np.array([2, 5, 11, 17, 23])
     seed_rotation, _ = kabsch(source[anchor], target[anchor])
     delta = 0.3
-    objective = pso_support._RotationObjective(
+    objective = support_pairs.RotationObjective(
         source, target, anchor, seed_rotation, delta, 1.0 / scales
     )
     positions = rng.normal(0.0, 0.2, size=(7, 3))
@@ -529,7 +529,7 @@ def test_compiled_refit_loop_matches_a_plain_reimplementation() -> None:
     for trial in range(4):
         pair = _stereo_like(trial)
         scales = pair.noise_sigmas / np.median(pair.noise_sigmas)
-        pairs = pso_support._Pairs.of(pair.source, pair.target, scales)
+        pairs = support_pairs.Pairs.of(pair.source, pair.target, scales)
         truth = residual_norms(pair.rotation, pair.translation, pair.source, pair.target)
         start = truth / scales < 0.01
         for residual, floor in ((None, None), (truth / scales, 0.004)):

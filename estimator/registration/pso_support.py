@@ -1,7 +1,9 @@
 """Rigid registration by a particle swarm over rotations with a support count.
 
-(About 670 lines: the estimator's steps read as one algorithm here; its compiled kernels live
-in ``rigidity.py`` (steps 1-2) and ``swarm_kernels.py`` (steps 3-4).)
+(The estimator's steps read as one algorithm here; its parts live beside it: the compiled
+kernels in ``rigidity.py`` (steps 1-2) and ``swarm_kernels.py`` (steps 3-4), the pairs, the
+rotation objective and the final fit in ``support_pairs.py``, the scale ladder (step 5) in
+``support_ladder.py`` and the Mahalanobis support (step 6) in ``stereo_support.py``.)
 
 ``pso`` follows the paper ("Robot Pose Estimation Based on Visual Information and Particle
 Swarm Optimization"): both point sets are centred on the centroids of *all* pairs, each
@@ -68,27 +70,18 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, fields
 
 import numpy as np
 
-from estimator.geometry import (
-    is_degenerate,
-    kabsch,
-    matrix_to_quat,
-    quat_to_rotation_vector,
-)
+from estimator.geometry import is_degenerate, kabsch, quat_to_rotation_vector
 from estimator.registration.methods import Estimator, EstimatorSpec, register_method
 from estimator.registration.pso import optimise
-from estimator.registration.refine import refine_pose_mahalanobis, squared_mahalanobis
 from estimator.registration.result import (
     RegistrationResult,
     check_positive,
     failed_result,
-    pose_result,
     relative_scales,
-    residual_norms,
 )
 from estimator.registration.rigidity import (
     graph_sample,
@@ -98,25 +91,25 @@ from estimator.registration.rigidity import (
     rigidity_weights,
     top_ranked,
 )
-from estimator.registration.swarm_kernels import (
-    MIN_SUPPORT,
-    degenerate_points,
-    degenerate_rows,
-    fit_pose,
-    horn_fit,
-    pair_forms,
-    refit_loop,
-    swarm_residuals,
-    swarm_scores,
+from estimator.registration.stereo_support import (
+    GATE_CHI2,
+    SECOND_CORE_SHARE,
+    checked_covariances,
+    mahalanobis_support,
 )
+from estimator.registration.support_ladder import climb_ladder
+from estimator.registration.support_pairs import (
+    Graph,
+    Pairs,
+    Pose,
+    RotationObjective,
+    arun_fit,
+    finish,
+    weighted_horn,
+)
+from estimator.registration.swarm_kernels import MIN_SUPPORT, degenerate_rows, refit_loop
 
 __all__ = ["PsoSupportEstimator", "weighted_horn"]
-
-GATE_CHI2 = 16.266  # chi-square quantile 0.999 with 3 degrees of freedom
-# Scale ladder: double the threshold while support grows by at least this fraction.
-LADDER_GAIN = 0.05
-# With covariances: below this share of the pairs supporting the pose, a second core is tried.
-SECOND_CORE_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -225,7 +218,7 @@ class PsoSupportEstimator:
     ) -> RegistrationResult:
         delta = 0.15 if self.delta is None else self.delta
         everyone = np.arange(len(source))
-        objective = _RotationObjective(source, target, everyone, np.eye(3), delta)
+        objective = RotationObjective(source, target, everyone, np.eye(3), delta)
         # Uniformly random rotations: normalised Gaussian 4-vectors, as rotation vectors.
         particles = self.particles or 48
         start = quat_to_rotation_vector(rng.normal(size=(particles, 4)))
@@ -243,7 +236,7 @@ class PsoSupportEstimator:
             initial_velocity=rng.uniform(-max_speed, max_speed, size=start.shape),
         )
         supporters = objective.supporters(swarm.position)
-        return _finish(source, target, supporters, delta, swarm.iterations, _arun)
+        return finish(source, target, supporters, delta, swarm.iterations, arun_fit)
 
     # ------------------------------------------------------------------ the improved method
 
@@ -262,15 +255,15 @@ class PsoSupportEstimator:
         scores = rigidity_scores(weights)
         # Only the top of the ranking is ever looked at: select it, do not sort all pairs.
         ranking = top_ranked(scores, 4 * self.core_size)
-        graph = _Graph(sample, weights)
-        pairs = _Pairs.of(source, target, scales)
+        graph = Graph(sample, weights)
+        pairs = Pairs.of(source, target, scales)
         found = self._from_core(pairs, graph, ranking, rng)
         if found is None:
             return failed_result(len(source), "no rigid, non-collinear core of pairs found")
         if self.source_cov is None or self.target_cov is None:
             supporters, delta, iterations, pose = found
-            return _finish(source, target, supporters, delta, iterations, pairs.fit, pose)
-        covariances = _covariances(self.source_cov, self.target_cov, len(source))
+            return finish(source, target, supporters, delta, iterations, pairs.fit, pose)
+        covariances = checked_covariances(self.source_cov, self.target_cov, len(source))
         supporters, pose = self._stereo_support(pairs, covariances, found)
         if np.count_nonzero(supporters) < SECOND_CORE_SHARE * len(source):
             # A core on one distant patch: the most connected pairs, but its depth error
@@ -285,12 +278,12 @@ class PsoSupportEstimator:
                 if np.count_nonzero(other) > np.count_nonzero(supporters):
                     found, supporters, pose = second, other, other_pose
         iterations = found[2]
-        return _finish(
+        return finish(
             source, target, supporters, math.sqrt(self.gate_chi2), iterations, pairs.fit, pose
         )
 
     def _from_core(
-        self, pairs: _Pairs, graph: _Graph, ranking: np.ndarray, rng: np.random.Generator
+        self, pairs: Pairs, graph: Graph, ranking: np.ndarray, rng: np.random.Generator
     ) -> tuple[np.ndarray, float, int, Pose | None] | None:
         """Core from ``ranking`` (positions in the graph), swarm, refits and ladder.
 
@@ -305,7 +298,7 @@ class PsoSupportEstimator:
 
         # Anchor on the core (not all pairs) and search rotations around its Kabsch fit.
         seed_rotation = np.ascontiguousarray(kabsch(source[core], target[core])[0])
-        objective = _RotationObjective(source, target, core, seed_rotation, delta, pairs.inverse)
+        objective = RotationObjective(source, target, core, seed_rotation, delta, pairs.inverse)
         particles = self.particles or 12
         # Particle 0 is the seed itself; the others scatter around it.
         start = rng.normal(0.0, math.radians(self.spread_deg), size=(particles, 3))
@@ -323,26 +316,28 @@ class PsoSupportEstimator:
         supporters = objective.supporters(swarm.position)
         supporters, delta, pose = self._refine(pairs, supporters, delta)
         if self.delta is None:
-            supporters, delta, pose = self._ladder(pairs, supporters, delta, pose, core)
+            supporters, delta, pose = climb_ladder(
+                pairs, supporters, delta, pose, core, self._refine, self.delta_max
+            )
         return supporters, delta, swarm.iterations, pose
 
     def _stereo_support(
         self,
-        pairs: _Pairs,
+        pairs: Pairs,
         covariances: tuple[np.ndarray, np.ndarray],
         found: tuple[np.ndarray, float, int, Pose | None],
     ) -> tuple[np.ndarray, Pose | None]:
         """The isotropic search has found the rigid majority and its pose; the stereo metric
         now decides, pair by pair, who supports it."""
         supporters, _, _, pose = found
-        return _mahalanobis_support(
+        return mahalanobis_support(
             pairs.source, pairs.target, *covariances, supporters, pose, self.gate_chi2,
             self.refits,
         )  # fmt: skip
 
     def _refine(
         self,
-        pairs: _Pairs,
+        pairs: Pairs,
         supporters: np.ndarray,
         delta: float,
         adapt: bool = True,
@@ -376,47 +371,6 @@ class PsoSupportEstimator:
         pose = (quaternion, rotation, translation, residual) if settled else None
         return supporters, delta, pose
 
-    def _ladder(
-        self,
-        pairs: _Pairs,
-        supporters: np.ndarray,
-        delta: float,
-        pose: Pose | None,
-        core: np.ndarray,
-    ) -> tuple[np.ndarray, float, Pose | None]:
-        """Double the adaptive threshold while that adds markedly more supporters.
-
-        At the converged pose one Gaussian scale puts ~0.1 % of the inliers between 4 and 8
-        sigma, and wrong matches rarely land that close to the model; a gain of
-        ``LADDER_GAIN`` (and at least ``MIN_SUPPORT`` pairs) therefore means that the
-        threshold fitted only the quietest pairs (heteroscedastic noise). (Homoscedastic
-        noise along one axis, e.g. stereo rays, settles the RMS rule at ~2.1 sigma with
-        ~96 % of the inliers; doubling gains ~4 %, below the bar, so it is left alone.)
-        Each accepted step refits with the doubled threshold held fixed (re-estimating it
-        from the RMS of mixed scales would shrink it again).
-
-        The threshold from the core can be so tight that fewer than ``MIN_SUPPORT`` pairs
-        pass it (a core of the quietest pairs, e.g. the nearest points of a scene that
-        reaches 200 m): there is then no supporters' pose to judge, and the ladder starts
-        from the fit of the ``core`` (row indices) itself.
-        """
-        base = delta
-        while True:
-            wider = min(2.0 * delta, self.delta_max)
-            if pose is None:  # the loop did not settle: judge the pose of its last set
-                pose = pairs.pose_of(supporters)
-            if pose is None:  # too few to fit: the core's own pose
-                pose = pairs.pose_of(_mask(core, len(supporters)))
-            if pose is None or wider <= delta:
-                return supporters, delta, pose
-            residual = pose[3]
-            support = int(np.count_nonzero(supporters))
-            widened = residual < wider
-            gained = int(np.count_nonzero(widened)) - support
-            if gained < max(MIN_SUPPORT, LADDER_GAIN * support):
-                return supporters, delta, pose
-            supporters, delta, pose = self._refine(pairs, widened, wider, False, residual, base)
-
     def _delta_from_core(self, core_weights: np.ndarray) -> float:
         """Noise scale from the rigidity errors inside the core (read back from the weights).
 
@@ -442,207 +396,6 @@ def _option_names(estimator: type) -> frozenset[str]:
 @functools.cache
 def _defaults(estimator: type[PsoSupportEstimator], robust: bool) -> PsoSupportEstimator:
     return estimator(robust=robust)
-
-
-# (quaternion, rotation, translation, normalised residuals of all pairs) of a fit.
-Pose = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
-# A least-squares pose of the pairs in a mask, with everyone's normalised residual.
-Fit = Callable[[np.ndarray, np.ndarray, np.ndarray], Pose]
-
-
-@dataclass(frozen=True)
-class _Graph:
-    """The rigidity graph: the pair rows it was built on and their (S, S) weights."""
-
-    sample: np.ndarray
-    weights: np.ndarray
-
-
-@dataclass(frozen=True)
-class _Pairs:
-    """The pairs and their per-pair noise, as the refits use it.
-
-    ``inverse`` = 1 / scale normalises residuals, ``weights`` = 1 / scale^2 weighs the
-    least squares; both are all ones without ``sigmas``.
-    """
-
-    source: np.ndarray
-    target: np.ndarray
-    inverse: np.ndarray
-    weights: np.ndarray
-
-    @classmethod
-    def of(cls, source: np.ndarray, target: np.ndarray, scales: np.ndarray | None) -> _Pairs:
-        if scales is None:
-            ones = np.ones(len(source))
-            return cls(source, target, ones, ones)
-        inverse = 1.0 / scales
-        return cls(source, target, inverse, inverse * inverse)
-
-    def fit(self, source: np.ndarray, target: np.ndarray, mask: np.ndarray) -> Pose:
-        """Horn's least squares on the pairs in ``mask``, weighted by 1 / scale^2."""
-        return fit_pose(source, target, mask, self.weights, self.inverse)
-
-    def pose_of(self, supporters: np.ndarray) -> Pose | None:
-        """The fit of the supporters and everyone's normalised residual; None if degenerate."""
-        rows = np.flatnonzero(supporters)
-        if len(rows) < MIN_SUPPORT or degenerate_points(self.source, rows):
-            return None
-        return self.fit(self.source, self.target, supporters)
-
-
-class _RotationObjective:
-    """Support and cost of rotation-vector particles against centred pairs, all at once.
-
-    The pairs are anchored as R (p - c) and p' - c', with c, c' the centroids of the
-    ``anchor`` rows, and divided by their scale (which divides the residual by it); each
-    then enters as its Horn form, compressed to the 10 distinct coefficients of the
-    symmetric 4x4 matrix (``pair_forms``).
-    """
-
-    def __init__(
-        self,
-        source: np.ndarray,
-        target: np.ndarray,
-        anchor: np.ndarray,
-        rotation: np.ndarray,
-        delta: float,
-        inverse_scales: np.ndarray | None = None,
-    ) -> None:
-        if inverse_scales is None:
-            inverse_scales = np.ones(len(source))
-        self.forms, self.norms = pair_forms(source, target, anchor, rotation, inverse_scales)
-        self.delta_squared = float(delta * delta)
-
-    def squared_residuals(self, positions: np.ndarray) -> np.ndarray:
-        """(P, M) ||t_j - q_p s_j q_p^-1||^2 via |t|^2 + |s|^2 - 2 q^T N_j q (normalised)."""
-        positions = np.ascontiguousarray(positions, dtype=float)
-        return swarm_residuals(positions, self.forms, self.norms)
-
-    def sum_of_squares(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The paper: support (eq. 15) and the plain sum of squared residuals (eq. 13)."""
-        return swarm_scores(positions, self.forms, self.norms, self.delta_squared, False)
-
-    def truncated(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Support and the MSAC cost sum min(r^2, delta^2), which outliers cannot dominate."""
-        return swarm_scores(positions, self.forms, self.norms, self.delta_squared, True)
-
-    def supporters(self, position: np.ndarray) -> np.ndarray:
-        return self.squared_residuals(position[None, :])[0] < self.delta_squared
-
-
-def _mask(rows: np.ndarray, count: int) -> np.ndarray:
-    mask = np.zeros(count, dtype=bool)
-    mask[rows] = True
-    return mask
-
-
-def weighted_horn(
-    source: np.ndarray, target: np.ndarray, weights: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Horn's closed form for min sum_j w_j ||t_j - (R s_j + t)||^2 (weighted centroids).
-
-    Returns (quaternion with w >= 0, R, t); the compiled fit every refit round uses.
-    """
-    source = np.ascontiguousarray(source, dtype=float)
-    target = np.ascontiguousarray(target, dtype=float)
-    weights = np.ascontiguousarray(weights, dtype=float)
-    return horn_fit(source, target, weights, np.ones(len(source), dtype=np.bool_))
-
-
-def _arun(source: np.ndarray, target: np.ndarray, mask: np.ndarray) -> Pose:
-    """The paper's final step: SVD (Arun, with the det guard), then eq. 8 for t."""
-    rotation, translation = kabsch(source[mask], target[mask])
-    residual = residual_norms(rotation, translation, source, target)
-    return matrix_to_quat(rotation), rotation, translation, residual
-
-
-def _finish(
-    source: np.ndarray,
-    target: np.ndarray,
-    supporters: np.ndarray,
-    delta: float,
-    iterations: int,
-    fit: Fit,
-    pose: Pose | None = None,
-) -> RegistrationResult:
-    """Least-squares pose of the supporters: t = mean(p') - R mean(p) over them (eq. 8).
-
-    ``pose`` is ``fit`` of the supporters when the caller has already computed it. The
-    cost sum_j min(u_j^2, delta^2) is over the pose's (normalised) residuals u_j.
-    """
-    count = len(source)
-    rows = np.flatnonzero(supporters)
-    if len(rows) < MIN_SUPPORT:
-        return failed_result(
-            count,
-            f"only {len(rows)} pair(s) support the best rotation (need {MIN_SUPPORT}); "
-            f"delta={delta:.3g} m may be too small for the noise",
-            iterations=iterations,
-        )
-    if degenerate_rows(source, target, rows):
-        return failed_result(count, "the supporting pairs are collinear", iterations=iterations)
-    quaternion, rotation, translation, residual = pose or fit(source, target, supporters)
-    cost = float(np.minimum(residual * residual, delta * delta).sum())
-    return pose_result(
-        rotation, translation, supporters, cost=cost, iterations=iterations, quaternion=quaternion
-    )
-
-
-def _covariances(
-    source_cov: object, target_cov: object, count: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Both (N, 3, 3) covariance arrays, checked: finite, one per pair."""
-    arrays = []
-    for name, value in (("source_cov", source_cov), ("target_cov", target_cov)):
-        array = np.asarray(value, dtype=float)
-        if array.shape != (count, 3, 3):
-            raise ValueError(f"{name} must have shape ({count}, 3, 3), got {array.shape}")
-        if not np.isfinite(array).all():
-            raise ValueError(f"{name} must be finite")
-        arrays.append(array)
-    return arrays[0], arrays[1]
-
-
-def _mahalanobis_support(
-    source: np.ndarray,
-    target: np.ndarray,
-    source_cov: np.ndarray,
-    target_cov: np.ndarray,
-    supporters: np.ndarray,
-    pose: Pose | None,
-    gate: float,
-    rounds: int,
-) -> tuple[np.ndarray, Pose | None]:
-    """Support as the Mahalanobis test of every pair, refitted by maximum likelihood.
-
-    Stereo noise lies along the viewing ray and grows with depth squared: one isotropic
-    threshold either rejects the near pairs' lateral error or accepts far wrong matches. Here a
-    pair supports the pose when r^T (R C_src R^T + C_tgt)^-1 r < gate; the pose is then fitted
-    to the supporters with those covariances (``refine.refine_pose_mahalanobis``), and the two
-    steps repeat until the set is stable. Starts from the isotropic fit ``pose``.
-    """
-    if pose is None:
-        return supporters, pose
-    rotation, translation = pose[1], pose[2]
-    squared = squared_mahalanobis(source, target, source_cov, target_cov, rotation, translation)
-    for _ in range(rounds):
-        chosen = squared < gate
-        if np.count_nonzero(chosen) < MIN_SUPPORT:
-            break
-        refined = refine_pose_mahalanobis(
-            source[chosen], target[chosen], source_cov[chosen], target_cov[chosen],
-            rotation, translation, iterations=3, robust="cauchy",
-        )  # fmt: skip
-        if refined.success:
-            rotation, translation = refined.rotation, refined.translation
-        squared = squared_mahalanobis(source, target, source_cov, target_cov, rotation, translation)
-        supporters = squared < gate
-        if np.array_equal(supporters, chosen):
-            break
-    if np.count_nonzero(supporters) < MIN_SUPPORT:
-        return supporters, None
-    return supporters, (matrix_to_quat(rotation), rotation, translation, np.sqrt(squared))
 
 
 _TUNING_OPTIONS = _option_names(PsoSupportEstimator) - {"sigmas", "source_cov", "target_cov"}
