@@ -28,7 +28,11 @@ from estimator.config import FRAME_INTERVAL_CONTEXT, SwarmvoConfig, explain_vali
 from estimator.evaluation.metrics import TrajectoryEvaluation, evaluate_trajectory
 from estimator.formats.datasets import GroundTruth, Sequence, UnreadableImageError
 from estimator.registration.methods import Estimator
-from estimator.rig_settings import DerivedSetting, apply_rig_settings
+from estimator.rig_settings import (
+    DerivedSetting,
+    apply_rig_settings,
+    backend_with_calibration_gains,
+)
 from estimator.types import FrameReport, FrameStatus
 
 if TYPE_CHECKING:
@@ -291,7 +295,8 @@ def odometry_messages(result: RunResult, calibrated: bool = True) -> list[Odomet
 
     first_ns = result.reports[0].timestamp_ns
     first_imu = result.sequence.imu_between(first_ns - FIRST_FRAME_IMU_WINDOW_NS, first_ns)
-    backend = result.config.backend
+    # A run without the rig settings applied still reports its rig's calibration error.
+    backend = backend_with_calibration_gains(result.config.backend, result.sequence.rig)
     gyro = backend.enabled and backend.use_imu and result.sequence.imu is not None
     builder = OdometryBuilder(
         result.sequence.rig.left.T_BS, backend, first_imu.accel, calibrated=calibrated,
