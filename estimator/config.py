@@ -249,12 +249,13 @@ class BackendConfig(_Section):
     covariance_scale_local_count: int = Field(10, ge=0)
     # Reported covariances without the gyro factor (no IMU, or the front end alone;
     # backend/systematic_noise.py): the fit's covariance, this floor instead of ``fit_min_*``,
-    # and a calibration error proportional to the measured motion (relative, per axis; 0 for
-    # an exactly calibrated rig such as a rendered one). The graph's noise does not change.
+    # and a calibration error proportional to the measured motion (relative, per axis). None:
+    # from the rig (estimator/rig_settings.py): 1 % and 2 %, 0 for a rig whose calibration is
+    # exact (a rendered one). The graph's noise does not change.
     report_min_rotation_sigma_rad: float = Field(5e-5, ge=0)
     report_min_translation_sigma_m: float = Field(2.5e-4, ge=0)
-    calibration_rotation_gain: float = Field(0.01, ge=0)
-    calibration_translation_gain: float = Field(0.02, ge=0)
+    calibration_rotation_gain: float | None = Field(None, ge=0)
+    calibration_translation_gain: float | None = Field(None, ge=0)
     # Constant-velocity prior between consecutive frames (per frame interval): on every frame
     # ("always": lets the robust kernel see a wrong relative pose) or only without vision.
     motion_prior: Literal["always", "gaps"] = "gaps"

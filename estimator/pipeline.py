@@ -28,7 +28,11 @@ from estimator.config import FRAME_INTERVAL_CONTEXT, SwarmvoConfig, explain_vali
 from estimator.evaluation.metrics import TrajectoryEvaluation, evaluate_trajectory
 from estimator.formats.datasets import GroundTruth, Sequence, UnreadableImageError
 from estimator.registration.methods import Estimator
-from estimator.rig_settings import DerivedSetting, apply_rig_settings
+from estimator.rig_settings import (
+    DerivedSetting,
+    apply_rig_settings,
+    backend_with_calibration_gains,
+)
 from estimator.types import FrameReport, FrameStatus
 
 if TYPE_CHECKING:
@@ -71,7 +75,7 @@ class RunResult:
     smoothed: dict[int, np.ndarray] = field(default_factory=dict)
     # Timestamps of the frames skipped because an image could not be read.
     skipped_ns: list[int] = field(default_factory=list)
-    # Frontend settings derived from the rig and frame rate (config holds the values used).
+    # Settings derived from the rig and frame rate (config holds the values used).
     derived: list[DerivedSetting] = field(default_factory=list)
     # The session's estimated stereo noise level and how well it fits (stereo_noise.py).
     noise: dict[str, Any] = field(default_factory=dict)
@@ -128,7 +132,7 @@ def run_sequence(
     The first frame gets the samples of ``FIRST_FRAME_IMU_WINDOW_NS`` before it, so that the
     back end can level its world with gravity. A frame whose image cannot be read is skipped
     with a warning (its IMU samples go to the next frame) unless ``strict``. With
-    ``rig_settings`` the frontend settings that follow from the rig and the frame rate are
+    ``rig_settings`` the settings that follow from the rig and the frame rate are
     derived first (explicitly set values win).
     """
     from estimator.odometry import Odometry  # the pipeline loads only when a run starts
@@ -239,7 +243,7 @@ def summarize(
         "wall_time_s": result.wall_time_s,
         "fps": len(reports) / result.wall_time_s if result.wall_time_s > 0 else None,
         "rig_settings": {
-            f"frontend.{s.name}": {"value": s.value, "configured": s.overridden}
+            f"{s.section}.{s.name}": {"value": s.value, "configured": s.overridden}
             for s in result.derived
         },
         "noise": result.noise or None,
@@ -291,7 +295,8 @@ def odometry_messages(result: RunResult, calibrated: bool = True) -> list[Odomet
 
     first_ns = result.reports[0].timestamp_ns
     first_imu = result.sequence.imu_between(first_ns - FIRST_FRAME_IMU_WINDOW_NS, first_ns)
-    backend = result.config.backend
+    # A run without the rig settings applied still reports its rig's calibration error.
+    backend = backend_with_calibration_gains(result.config.backend, result.sequence.rig)
     gyro = backend.enabled and backend.use_imu and result.sequence.imu is not None
     builder = OdometryBuilder(
         result.sequence.rig.left.T_BS, backend, first_imu.accel, calibrated=calibrated,

@@ -1,4 +1,4 @@
-"""Front-end settings that follow from the stereo rig and the frame rate.
+"""Settings that follow from the stereo rig and the frame rate.
 
 A depth limit in metres or a search window in pixels means something different on every rig:
 30 m is the edge of what a 11 cm EuRoC pair can triangulate, but a 54 cm KITTI pair still
@@ -23,18 +23,25 @@ interval, with constants chosen so that the real EuRoC rig (436 px after rectifi
   dozens of wrong candidates; each point then gets its own window from the prediction's
   uncertainty and its depth, no narrower than ``NARROW_SEARCH_RADIUS_PX``
   (estimator/frontend/temporal.py). Rigs with EuRoC-like windows keep one window for all.
+- ``backend.calibration_rotation_gain`` / ``calibration_translation_gain``: the calibration
+  error in the covariances reported without a gyro (``estimator.backend.systematic_noise``):
+  1 % and 2 % of the motion for a real rig, 0 for one whose calibration declares itself exact
+  (``StereoRig.calibration_exact``: a rendered rig), whose covariances they made ~100x too
+  large.
 
-Explicit configuration always wins: a field the user set (``model_fields_set`` of the frontend
-section) is never replaced.
+Explicit configuration always wins: a frontend field the user set (``model_fields_set`` of the
+frontend section) or a backend gain that is not None is never replaced.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
-from estimator.config import FrontendConfig, SwarmvoConfig
+from estimator.backend.systematic_noise import calibration_gains
+from estimator.config import BackendConfig, FrontendConfig, SwarmvoConfig
 from estimator.formats.calibration import StereoRig
 
 __all__ = [
@@ -47,6 +54,8 @@ __all__ = [
     "DerivedSetting",
     "FrameIntervalEstimate",
     "apply_rig_settings",
+    "backend_with_calibration_gains",
+    "derive_calibration_settings",
     "derive_rig_settings",
     "format_settings",
     "interval_dependent",
@@ -59,6 +68,8 @@ RIG_SETTINGS_KEY = "rig_settings"
 # Settings that need the frame interval (the others follow from the rig alone).
 # (min_search_radius_px follows the derived search_radius_px: a configured one leaves both.)
 _INTERVAL_SETTINGS = ("search_radius_px",)
+# Back-end fields whose None means "from the rig's calibration accuracy".
+_GAIN_FIELDS = ("calibration_rotation_gain", "calibration_translation_gain")
 
 # Depth error / depth at the farthest point kept (EuRoC: 30 m with sigma_d = 0.5 px).
 MAX_RELATIVE_DEPTH_ERROR = 0.3125  # d_min = 1.6 px at the default sigma_d of 0.5 px
@@ -78,12 +89,13 @@ NARROW_SEARCH_RADIUS_PX = 10.0
 
 @dataclass(frozen=True)
 class DerivedSetting:
-    """One rig-derived frontend setting, and whether the configuration's own value won."""
+    """One rig-derived setting, and whether the configuration's own value won."""
 
-    name: str  # field of FrontendConfig
+    name: str  # field of the section's config model
     value: float | None  # None: a configured "off" (min_search_radius_px)
     reason: str
     overridden: bool = False  # the user set the field explicitly: their value is used
+    section: Literal["frontend", "backend"] = "frontend"
 
 
 def derive_rig_settings(
@@ -145,6 +157,32 @@ def _configured(value: float | None) -> float | None:
     return None if value is None else float(value)
 
 
+def derive_calibration_settings(rig: StereoRig, backend: BackendConfig) -> list[DerivedSetting]:
+    """The back end's calibration gains: configured (not None), else from the rig."""
+    unset = backend.model_copy(update=dict.fromkeys(_GAIN_FIELDS))
+    suggested = calibration_gains(unset, rig.calibration_exact)
+    if rig.calibration_exact:
+        reason = "the rig's calibration is exact"
+    else:
+        reason = "the rig's calibration is not declared exact"
+    settings = []
+    for name, value in zip(_GAIN_FIELDS, suggested, strict=True):
+        configured = getattr(backend, name)
+        if configured is None:
+            settings.append(DerivedSetting(name, value, reason, section="backend"))
+        else:
+            settings.append(
+                DerivedSetting(
+                    name,
+                    float(configured),
+                    f"configured; the rig suggests {value:g}",
+                    overridden=True,
+                    section="backend",
+                )
+            )
+    return settings
+
+
 def apply_rig_settings(
     config: SwarmvoConfig, rig: StereoRig, frame_interval_s: float | None
 ) -> tuple[SwarmvoConfig, list[DerivedSetting]]:
@@ -155,7 +193,16 @@ def apply_rig_settings(
     user = config.frontend.model_fields_set
     frontend = FrontendConfig.model_validate({**config.frontend.model_dump(), **updates})
     frontend = FrontendConfig.model_construct(user, **frontend.model_dump())
-    return config.model_copy(update={"frontend": frontend}), settings
+    calibration = derive_calibration_settings(rig, config.backend)
+    backend = backend_with_calibration_gains(config.backend, rig)
+    updated = config.model_copy(update={"frontend": frontend, "backend": backend})
+    return updated, settings + calibration
+
+
+def backend_with_calibration_gains(backend: BackendConfig, rig: StereoRig) -> BackendConfig:
+    """``backend`` with the calibration gains it leaves unset (None) derived from the rig."""
+    derived = derive_calibration_settings(rig, backend)
+    return backend.model_copy(update={s.name: s.value for s in derived if not s.overridden})
 
 
 def format_settings(
@@ -169,7 +216,7 @@ def format_settings(
     ]
     for s in settings:
         shown = "none" if s.value is None else f"{s.value:g}"
-        lines.append(f"  frontend.{s.name} = {shown}  ({s.reason})")
+        lines.append(f"  {s.section}.{s.name} = {shown}  ({s.reason})")
     return "\n".join(lines)
 
 
@@ -185,7 +232,7 @@ def settings_record(
     return {
         "frame_rate_hz": None if not frame_interval_s else round(1.0 / frame_interval_s, 6),
         "settings": [
-            {"name": f"frontend.{s.name}", "value": s.value, "reason": s.reason,
+            {"name": f"{s.section}.{s.name}", "value": s.value, "reason": s.reason,
              "overridden": s.overridden}
             for s in settings
         ],

@@ -52,7 +52,9 @@ class SessionCreate(_Strict):
     # No NUL: database text types cannot store it (PostgreSQL refuses it outright).
     name: str = Field("", max_length=200, pattern=r"^[^\x00]*$")
     calibration: dict[str, Any] = Field(
-        description="{'left': camera, 'right': camera}; camera = width, height, fx, fy, cx, cy, "
+        description="{'left': camera, 'right': camera, optional 'calibration_exact': bool (the "
+        "calibration is the rig's true geometry, e.g. a rendered rig: no calibration error in the "
+        "covariances reported without an IMU)}; camera = width, height, fx, fy, cx, cy, "
         "distortion_model (radtan|equidistant|none), distortion, T_BS (4x4 camera->body)"
     )
     config: dict[str, Any] = Field(

@@ -43,7 +43,8 @@ def test_sessions_get_the_settings_of_their_rig(tmp_path: Path) -> None:
         assert record["frame_rate_hz"] == 10.0 and record["from_stamps"] is False
         assert {s["name"] for s in record["settings"]} == {
             "frontend.max_depth_m", "frontend.max_features", "frontend.search_radius_px",
-            "frontend.min_search_radius_px"}
+            "frontend.min_search_radius_px",
+            "backend.calibration_rotation_gain", "backend.calibration_translation_gain"}
         assert config["frontend"]["max_features"] == kitti["max_features"] > 1200
         # Explicit values win; the record says so.
         config = _create(client, "kitti", frame_rate_hz=10.0,

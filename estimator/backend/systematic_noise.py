@@ -17,8 +17,10 @@ the IMU; docs/robot-integration.md):
   error of a fraction g turns a rotation theta into (1 + g) theta, and depth = focal x baseline /
   disparity makes the translation's scale wrong by the focal and the baseline errors together.
   Per axis, sigma_rotation = ``calibration_rotation_gain`` x |theta| and sigma_translation =
-  ``calibration_translation_gain`` x |t| (defaults 1 % and 2 %: the accuracy a target-based
-  calibration of a small stereo rig achieves). A rendered rig is calibrated exactly: 0 there.
+  ``calibration_translation_gain`` x |t|. Unset, they follow from the rig
+  (``calibration_gains``): 1 % and 2 % (the accuracy a target-based calibration of a small
+  stereo rig achieves), 0 for a rig whose calibration is exact (a rendered one, which says so
+  in its calibration files).
 """
 
 from __future__ import annotations
@@ -28,7 +30,30 @@ import numpy as np
 
 from estimator.config import BackendConfig
 
-__all__ = ["calibration_covariance", "drift_growth", "reported_measurement_covariance"]
+__all__ = [
+    "CALIBRATION_ROTATION_GAIN",
+    "CALIBRATION_TRANSLATION_GAIN",
+    "calibration_covariance",
+    "calibration_gains",
+    "drift_growth",
+    "reported_measurement_covariance",
+]
+
+# Relative calibration errors of a real rig (module doc), rotation and translation.
+CALIBRATION_ROTATION_GAIN = 0.01
+CALIBRATION_TRANSLATION_GAIN = 0.02
+
+
+def calibration_gains(config: BackendConfig, calibration_exact: bool) -> tuple[float, float]:
+    """The (rotation, translation) gains: the configured ones, else the rig's (module doc)."""
+    rotation, translation = CALIBRATION_ROTATION_GAIN, CALIBRATION_TRANSLATION_GAIN
+    if calibration_exact:
+        rotation, translation = 0.0, 0.0
+    if config.calibration_rotation_gain is not None:
+        rotation = config.calibration_rotation_gain
+    if config.calibration_translation_gain is not None:
+        translation = config.calibration_translation_gain
+    return rotation, translation
 
 
 def calibration_covariance(
@@ -46,7 +71,8 @@ def reported_measurement_covariance(
 ) -> np.ndarray:
     """The reported covariance of T_ref_cur (left camera tangent) from the one the back end
     weighs (``floored``: the fit's plus the ``fit_min_*`` floor): the fit's, the reporting
-    floor and the calibration term (module doc)."""
+    floor and the calibration term (module doc; unset gains: a rig not known to be exact, as
+    ``estimator.rig_settings`` fills them in from the rig before a run)."""
     graph_floor = np.diag(
         [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
     )
@@ -54,9 +80,7 @@ def reported_measurement_covariance(
         [config.report_min_rotation_sigma_rad**2] * 3
         + [config.report_min_translation_sigma_m**2] * 3
     )
-    calibration = calibration_covariance(
-        relative_pose, config.calibration_rotation_gain, config.calibration_translation_gain
-    )
+    calibration = calibration_covariance(relative_pose, *calibration_gains(config, False))
     covariance = np.asarray(floored, dtype=float) - graph_floor + report_floor + calibration
     return 0.5 * (covariance + covariance.T)
 

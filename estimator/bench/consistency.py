@@ -26,7 +26,8 @@ alone), ``fused measurement`` the front end's measurements of that run with the 
 without the IMU have no gyro to measure the factor against: they report the fit's covariance
 with a smaller floor and a calibration error proportional to the motion
 (``estimator.backend.systematic_noise``), and their twist covariance is the growth of that
-drift; the rendered rigs are calibrated exactly, so their calibration gains are 0.
+drift. The calibration gains follow from each rig (``estimator.rig_settings``): the rendered
+rigs declare their calibration exact, so theirs are 0.
 """
 
 from __future__ import annotations
@@ -39,11 +40,11 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from estimator.config import BackendConfig, SwarmvoConfig
 from estimator.evaluation.consistency import measurement_nees, relative_nees
 from estimator.formats.datasets import open_sequence
 from estimator.pipeline import build_config, odometry_messages, run_sequence
-from estimator.rendered.synthetic import SynthOptions, synthesize
+from estimator.rendered.cache import rendered_once
+from estimator.rendered.synthetic import SynthOptions
 
 __all__ = ["add_arguments", "run"]
 
@@ -73,10 +74,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _sequences(args: argparse.Namespace) -> dict[str, Path]:
     paths: dict[str, Path] = {}
     for seed in args.seeds:
+        # Re-rendered when the renderer changed: the folder's files also carry the rig's
+        # calibration accuracy, which decides the covariances reported without the gyro.
+        options = SynthOptions(frames=args.frames, length_m=args.length_m, seed=seed)
         root = args.data / f"rendered_{args.frames}f_{args.length_m:g}m_seed{seed}"
-        if not (root / "mav0").is_dir():
-            synthesize(root, SynthOptions(frames=args.frames, length_m=args.length_m, seed=seed))
-        paths[f"rendered seed {seed}"] = root
+        paths[f"rendered seed {seed}"] = rendered_once(root, options)
     if (args.euroc / "mav0").is_dir():
         paths["euroc_mh01_moving"] = args.euroc
     else:
@@ -84,20 +86,15 @@ def _sequences(args: argparse.Namespace) -> dict[str, Path]:
     return paths
 
 
-def _evaluate(
-    path: Path, window_s: float, stride: int | None, exact_calibration: bool = False
-) -> dict[str, dict[str, Any]]:
-    """The rows of one sequence; ``exact_calibration``: a rendered rig, no calibration error
-    in the covariances reported without the gyro (``backend.systematic_noise``)."""
-    exact = {"calibration_rotation_gain": 0.0, "calibration_translation_gain": 0.0}
-    base = SwarmvoConfig(backend=BackendConfig(**exact)) if exact_calibration else None
+def _evaluate(path: Path, window_s: float, stride: int | None) -> dict[str, dict[str, Any]]:
+    """The rows of one sequence."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # unpaired camera rows are expected in EuRoC
         sequence = open_sequence(path)
     assert sequence.ground_truth is not None
     rows: dict[str, dict[str, Any]] = {}
     for mode, (backend, imu) in MODES.items():
-        config = build_config(backend=backend, imu=imu, base=base)
+        config = build_config(backend=backend, imu=imu)
         run = run_sequence(sequence, config, use_imu=imu)
         readings = {mode: odometry_messages(run)}
         if imu:
@@ -159,8 +156,7 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     results = {}
     for name, path in _sequences(args).items():
-        rendered = name.startswith("rendered")
-        results[name] = _evaluate(path, args.window_s, args.stride or None, rendered)
+        results[name] = _evaluate(path, args.window_s, args.stride or None)
         print(f"{name}: done", flush=True)
     table = _table(results, args.window_s)
     print("\n" + table)

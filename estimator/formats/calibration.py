@@ -217,12 +217,22 @@ class Rectification:
 
 @dataclass(frozen=True, eq=False)
 class StereoRig:
-    """A calibrated stereo pair; ``left`` is the reference camera of the odometry."""
+    """A calibrated stereo pair; ``left`` is the reference camera of the odometry.
+
+    ``calibration_exact``: the calibration is the rig's true geometry (a rendered rig), not an
+    estimate with errors of its own; the covariances reported without a gyro leave out the
+    calibration error for it (``estimator.rig_settings``). Real rigs: False.
+    """
 
     left: CameraModel
     right: CameraModel
+    calibration_exact: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.calibration_exact, bool):
+            raise ValueError(
+                f"calibration_exact must be true or false, got {self.calibration_exact!r}"
+            )
         if self.left.size != self.right.size:
             raise ValueError(
                 f"left and right resolutions differ: {self.left.size} vs {self.right.size}"
@@ -363,8 +373,12 @@ class StereoRig:
         )
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain JSON/YAML-serialisable form (what the service stores and ``load_rig`` reads)."""
-        return {"left": self.left.to_dict(), "right": self.right.to_dict()}
+        """Plain JSON/YAML-serialisable form (what the service stores and ``load_rig`` reads);
+        ``calibration_exact`` only when it is true."""
+        data: dict[str, Any] = {"left": self.left.to_dict(), "right": self.right.to_dict()}
+        if self.calibration_exact:
+            data["calibration_exact"] = True
+        return data
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> StereoRig:
@@ -378,4 +392,4 @@ class StereoRig:
             right = CameraModel.from_dict(data["right"])
         except ValueError as error:
             raise ValueError(f"right {error}") from error
-        return cls(left=left, right=right)
+        return cls(left=left, right=right, calibration_exact=data.get("calibration_exact", False))

@@ -2,6 +2,9 @@
 
 Each turns a file into a validated :class:`~estimator.formats.calibration.StereoRig`; a
 malformed file is a ``ValueError`` naming the file (a missing one ``FileNotFoundError``).
+A rig whose calibration is its true geometry (``swarmvo synth``) says so in its files
+(``calibration_exact: true`` in both EuRoC camera files, a ``calibration_exact: 1`` line in
+KITTI's ``calib.txt``); without it a rig is taken to carry calibration errors.
 """
 
 from __future__ import annotations
@@ -71,12 +74,16 @@ def pinhole_camera(entry: dict, coefficients_key: str, T_BS: np.ndarray) -> Came
     )
 
 
-def _euroc_camera(path: Path) -> CameraModel:
+def _euroc_camera(path: Path) -> tuple[CameraModel, bool]:
+    """The camera of a EuRoC ``sensor.yaml`` and whether it declares its calibration exact."""
     data = read_opencv_yaml(path)
+    exact = data.get("calibration_exact", False)
+    if not isinstance(exact, bool):
+        raise ValueError(f"{path}: calibration_exact must be true or false, got {exact!r}")
     try:
         transform = data["T_BS"]
         matrix = transform["data"] if isinstance(transform, dict) else transform
-        return pinhole_camera(data, "distortion_coefficients", matrix)
+        return pinhole_camera(data, "distortion_coefficients", matrix), exact
     except (KeyError, TypeError) as error:
         raise ValueError(f"{path}: malformed EuRoC camera description ({error!r})") from error
     except ValueError as error:
@@ -84,8 +91,10 @@ def _euroc_camera(path: Path) -> CameraModel:
 
 
 def load_euroc_rig(cam0_yaml: Path, cam1_yaml: Path) -> StereoRig:
-    """Stereo rig from EuRoC/ASL ``cam0/sensor.yaml`` (left) and ``cam1/sensor.yaml`` (right)."""
-    return StereoRig(left=_euroc_camera(cam0_yaml), right=_euroc_camera(cam1_yaml))
+    """Stereo rig from EuRoC/ASL ``cam0/sensor.yaml`` (left) and ``cam1/sensor.yaml`` (right);
+    its calibration is exact when both files say so."""
+    (left, left_exact), (right, right_exact) = _euroc_camera(cam0_yaml), _euroc_camera(cam1_yaml)
+    return StereoRig(left=left, right=right, calibration_exact=left_exact and right_exact)
 
 
 _KITTI_LEFT_LABELS = ("P0", "P_rect_00")
@@ -97,7 +106,8 @@ def load_kitti_rig(calib_txt: Path, image_size: tuple[int, int]) -> StereoRig:
 
     Accepts labelled lines (``P0: 12 numbers``) or bare 12-number lines, where the first is the
     left and the second the right camera. KITTI images are already rectified and undistorted;
-    P1[0, 3] = -fx * b gives the baseline. ``image_size`` is (width, height).
+    P1[0, 3] = -fx * b gives the baseline. ``image_size`` is (width, height). A line
+    ``calibration_exact: 1`` declares the calibration exact (0 or absent: not).
     """
     path = Path(calib_txt)
     if not path.is_file():
@@ -139,7 +149,10 @@ def load_kitti_rig(calib_txt: Path, image_size: tuple[int, int]) -> StereoRig:
         # Rectified and undistorted: a pinhole without distortion coefficients.
         entry = {"resolution": [width, height], "intrinsics": [fx, fy, cx, cy]}
         cameras.append(pinhole_camera(entry, "distortion_coefficients", body_from_camera))
-    return StereoRig(left=cameras[0], right=cameras[1])
+    exact = labelled.get("calibration_exact", np.zeros(1))
+    if exact.size != 1 or float(exact[0]) not in (0.0, 1.0):
+        raise ValueError(f"{path}: calibration_exact must be 0 or 1, got {exact.tolist()}")
+    return StereoRig(left=cameras[0], right=cameras[1], calibration_exact=bool(exact[0]))
 
 
 def load_rig(path: Path) -> StereoRig:

@@ -283,11 +283,12 @@ class OdometryBuilder:
         return chained
 
     def _forget(self, report: FrameReport) -> None:
-        """Keep this frame and those a later frame may still be measured against: none older
-        than the latest reference, since a front end's references only move forward."""
+        """Keep this frame, the previous one (its motion to this one is still to come) and
+        those a later frame may still be measured against: none older than the latest
+        reference, since a front end's references only move forward."""
         if report.reference_timestamp_ns is not None:
             self._latest_reference_ns = report.reference_timestamp_ns
-        keep = report.timestamp_ns
+        keep = report.timestamp_ns if self._previous_ns is None else self._previous_ns
         if self._latest_reference_ns is not None:
             keep = min(keep, self._latest_reference_ns)
         for stamp in [stamp for stamp in self._chain if stamp < keep]:

@@ -4,7 +4,8 @@ The pieces: the ideal stereo rig (``camera.py``), the flight loop and its IMU
 (``trajectory.py``), the textured hall (``world.py``), drawing a view with occlusion and
 motion blur (``render.py``), and the driving scene (``synthetic_driving.py``). This module
 chooses the scene from ``SynthOptions``, renders every frame (with optional broken frames) and
-writes the dataset files. ``standstill_s`` lets the body wait at its start pose first and then
+writes the dataset files, whose calibration says it is exact (``calibration_exact``: the rig
+is its calibration). ``standstill_s`` lets the body wait at its start pose first and then
 start the same flight from rest (a smooth time warp, ``start_after_rest``).
 """
 
@@ -169,7 +170,7 @@ def _write_camera_yaml(
         f"rate_hz: {rate_hz:g}\nresolution: [{camera.width}, {camera.height}]\n"
         "camera_model: pinhole\n"
         f"intrinsics: [{camera.f}, {camera.f}, {camera.cx}, {camera.cy}]\n"
-        "distortion_model: none\ndistortion_coefficients: []\n"
+        "distortion_model: none\ndistortion_coefficients: []\ncalibration_exact: true\n"
     )
 
 
@@ -425,6 +426,7 @@ def _kitti_writer(
     for label, offset in (("P0", 0.0), ("P1", -c.f * c.baseline)):
         values = [c.f, 0.0, c.cx, offset, 0.0, c.f, c.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
         rows.append(f"{label}: " + " ".join(f"{v:.12e}" for v in values))
+    rows.append("calibration_exact: 1")  # the rendered rig is its calibration (no error)
     (out_dir / "calib.txt").write_text("\n".join(rows) + "\n")
     relative_ns = frame_ns - frame_ns[0]
     (out_dir / "times.txt").write_text("".join(format_seconds(t) + "\n" for t in relative_ns))
