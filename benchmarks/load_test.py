@@ -35,6 +35,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from load_report import LevelResult, machine_before, print_table, runs_table, write_report
@@ -101,6 +102,23 @@ def _grey_pixels(encoded: bytes) -> bytes:
     return image.tobytes()
 
 
+def _record(event: Any, stats: RobotStats, sent_at: dict[int, float], now: float) -> None:
+    """Count one server message: a pose (its latency and server stages), a drop or a refusal."""
+    if isinstance(event, Pose):
+        stats.answered += 1
+        stats.latencies_s.append(now - sent_at[event.timestamp_ns])
+        stats.last_answer = now
+        for stage in ("queue_wait", "decode", "odometry", "transfer", "persist", "total"):
+            if stage in event.timings_s:
+                stats.stage_s.setdefault(stage, []).append(event.timings_s[stage])
+    elif isinstance(event, DroppedFrame):
+        stats.dropped += 1
+    else:
+        stats.rejected += 1
+        reason = event.detail.split(":")[0][:60]
+        stats.reject_reasons[reason] = stats.reject_reasons.get(reason, 0) + 1
+
+
 async def robot(url: str, session_id: str, frames: Frames, rate: float, duration: float,
                 drain: float, stats: RobotStats, start_at: float, hold_back: bool) -> None:
     sent_at: dict[int, float] = {}
@@ -143,21 +161,7 @@ async def robot(url: str, session_id: str, frames: Frames, rate: float, duration
                 except TimeoutError:
                     break
                 received += 1
-                now = time.perf_counter()
-                if isinstance(event, Pose):
-                    stats.answered += 1
-                    stats.latencies_s.append(now - sent_at[event.timestamp_ns])
-                    stats.last_answer = now
-                    for stage in ("queue_wait", "decode", "odometry", "transfer", "persist",
-                                  "total"):
-                        if stage in event.timings_s:
-                            stats.stage_s.setdefault(stage, []).append(event.timings_s[stage])
-                elif isinstance(event, DroppedFrame):
-                    stats.dropped += 1
-                else:
-                    stats.rejected += 1
-                    reason = event.detail.split(":")[0][:60]
-                    stats.reject_reasons[reason] = stats.reject_reasons.get(reason, 0) + 1
+                _record(event, stats, sent_at, time.perf_counter())
         finally:
             producer.cancel()
         await connection.close()
