@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import json
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -79,58 +80,77 @@ def _phases(robot: RobotRun, kill: dict[str, Any]) -> dict[str, float] | None:
     }
 
 
-def check(fleet: Fleet, robots: list[RobotRun], run: dict[str, Any]) -> dict[str, Any]:
-    """Compare what robots were answered with what the database holds."""
-    lost = mismatched = duplicates = unfenced = unanswered = 0
-    takeover_jumps: list[float] = []
-    accuracy: list[dict[str, Any]] = []
-    ordinary: list[float] = []
+@dataclass
+class _Tally:
+    """Counts and samples gathered robot by robot, turned into the verdict at the end."""
+
+    lost: int = 0
+    mismatched: int = 0
+    duplicates: int = 0
+    unfenced: int = 0
+    unanswered: int = 0
+    takeover_jumps: list[float] = field(default_factory=list)
+    ordinary: list[float] = field(default_factory=list)
+    accuracy: list[dict[str, Any]] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+
+
+def _check_answers(robot: RobotRun, rows: list, tally: _Tally) -> None:
+    """Every pose a robot was answered must be stored, with the same pose and index."""
+    stored = {int(r[0]): r for r in rows}
+    tally.duplicates += len(rows) - len(stored)
+    tally.unanswered += len(robot.sequence.frames) - len(robot.answers)
+    for stamp, (pose, _when) in robot.answers.items():
+        row = stored.get(stamp)
+        if row is None:
+            tally.lost += 1
+            tally.problems.append(f"{robot.name}: {stamp} answered, not stored")
+        elif json.loads(row[2]) != pose.pose.reshape(16).tolist() or row[1] != pose.index:
+            tally.mismatched += 1
+            tally.problems.append(f"{robot.name}: {stamp} stored differs from the answer "
+                                  f"(index {row[1]} vs {pose.index})")
+
+
+def _unfenced(rows: list) -> int:
+    """Fencing: tokens never go back along the trajectory and each has one writer."""
+    unfenced = 0
+    writers: dict[int, set[str]] = {}
+    highest = 0
+    for _stamp, _index, _pose, token, writer, _resumed in rows:
+        if token is None or token < highest:
+            unfenced += 1
+            continue
+        highest = token
+        writers.setdefault(token, set()).add(writer)
+    return unfenced + sum(len(w) - 1 for w in writers.values())
+
+
+def _check_accuracy(fleet: Fleet, robot: RobotRun, rows: list, calibration: dict[str, Any],
+                    run: dict[str, Any], tally: _Tally) -> None:
+    """ATE of the stored and smoothed trajectories, and the pose jump: the step into each
+    frame a new owner computed first, against the truth (ordinary steps for comparison)."""
+    body_from_camera = np.array(calibration["left"]["T_BS"], dtype=float)
+    truth = _camera_poses(robot.sequence, body_from_camera)
+    estimated = {int(r[0]): np.array(json.loads(r[2])).reshape(4, 4) for r in rows}
+    affected = any(robot.session_id in kill["sessions"] for kill in run["kills"])
+    smoothed = {int(stamp): np.array(json.loads(pose)).reshape(4, 4) for stamp, pose in
+                fleet.sql("SELECT timestamp_ns, pose::text FROM smoothed_poses "
+                          "WHERE session_id = %s", robot.session_id)}
+    tally.accuracy.append({"robot": robot.name, "affected": affected,
+                           "ate_m": _ate(estimated, truth),
+                           "smoothed_ate_m": _ate(smoothed, truth),
+                           "frames_without_smoothed": len(set(estimated) - set(smoothed))})
+    stamps = [int(r[0]) for r in rows]
+    for previous, current, row in zip(stamps, stamps[1:], rows[1:], strict=False):
+        error = _step_error(estimated, truth, previous, current)
+        if error is not None:
+            (tally.takeover_jumps if row[5] else tally.ordinary).append(error)
+
+
+def _failover(robots: list[RobotRun], run: dict[str, Any]
+              ) -> tuple[list[float], list[dict[str, float]]]:
+    """For each kill and each robot it hit: the gap to its next answer and the gap's phases."""
     gaps: list[float] = []
-    problems: list[str] = []
-    with Client(fleet.replicas[0].url, fleet.key, timeout=60) as client:
-        calibrations = {r.name: client.get_session(r.session_id).calibration for r in robots}
-    for robot in robots:
-        rows = fleet.sql(
-            "SELECT timestamp_ns, frame_index, pose::text, fence_token, writer, resumed "
-            "FROM poses WHERE session_id = %s ORDER BY frame_index", robot.session_id)
-        stored = {int(r[0]): r for r in rows}
-        duplicates += len(rows) - len(stored)
-        unanswered += len(robot.sequence.frames) - len(robot.answers)
-        for stamp, (pose, _when) in robot.answers.items():
-            row = stored.get(stamp)
-            if row is None:
-                lost += 1
-                problems.append(f"{robot.name}: {stamp} answered, not stored")
-            elif json.loads(row[2]) != pose.pose.reshape(16).tolist() or row[1] != pose.index:
-                mismatched += 1
-                problems.append(f"{robot.name}: {stamp} stored differs from the answer "
-                                f"(index {row[1]} vs {pose.index})")
-        # Fencing: tokens never go back along the trajectory and each has one writer.
-        writers: dict[int, set[str]] = {}
-        highest = 0
-        for _stamp, _index, _pose, token, writer, _resumed in rows:
-            if token is None or token < highest:
-                unfenced += 1
-                continue
-            highest = token
-            writers.setdefault(token, set()).add(writer)
-        unfenced += sum(len(w) - 1 for w in writers.values())
-        # Pose jump: the step into each frame a new owner computed first, against the truth.
-        body_from_camera = np.array(calibrations[robot.name]["left"]["T_BS"], dtype=float)
-        truth = _camera_poses(robot.sequence, body_from_camera)
-        estimated = {int(r[0]): np.array(json.loads(r[2])).reshape(4, 4) for r in rows}
-        affected = any(robot.session_id in kill["sessions"] for kill in run["kills"])
-        smoothed = {int(stamp): np.array(json.loads(pose)).reshape(4, 4) for stamp, pose in
-                    fleet.sql("SELECT timestamp_ns, pose::text FROM smoothed_poses "
-                              "WHERE session_id = %s", robot.session_id)}
-        accuracy.append({"robot": robot.name, "affected": affected,
-                         "ate_m": _ate(estimated, truth), "smoothed_ate_m": _ate(smoothed, truth),
-                         "frames_without_smoothed": len(set(estimated) - set(smoothed))})
-        stamps = [int(r[0]) for r in rows]
-        for previous, current, row in zip(stamps, stamps[1:], rows[1:], strict=False):
-            error = _step_error(estimated, truth, previous, current)
-            if error is not None:
-                (takeover_jumps if row[5] else ordinary).append(error)
     phases: list[dict[str, float]] = []
     for kill in run["kills"]:
         for robot in robots:
@@ -142,12 +162,35 @@ def check(fleet: Fleet, robots: list[RobotRun], run: dict[str, Any]) -> dict[str
             phase = _phases(robot, kill)
             if phase is not None:
                 phases.append({k: round(v, 3) for k, v in phase.items()})
+    return gaps, phases
+
+
+def check(fleet: Fleet, robots: list[RobotRun], run: dict[str, Any]) -> dict[str, Any]:
+    """Compare what robots were answered with what the database holds."""
+    tally = _Tally()
+    with Client(fleet.replicas[0].url, fleet.key, timeout=60) as client:
+        calibrations = {r.name: client.get_session(r.session_id).calibration for r in robots}
+    for robot in robots:
+        rows = fleet.sql(
+            "SELECT timestamp_ns, frame_index, pose::text, fence_token, writer, resumed "
+            "FROM poses WHERE session_id = %s ORDER BY frame_index", robot.session_id)
+        _check_answers(robot, rows, tally)
+        tally.unfenced += _unfenced(rows)
+        _check_accuracy(fleet, robot, rows, calibrations[robot.name], run, tally)
+    gaps, phases = _failover(robots, run)
+    return _verdict(tally, robots, gaps, phases)
+
+
+def _verdict(tally: _Tally, robots: list[RobotRun], gaps: list[float],
+             phases: list[dict[str, float]]) -> dict[str, Any]:
+    """The result's failover section, in the order the table and the JSON show it."""
+    takeover_jumps, ordinary, accuracy = tally.takeover_jumps, tally.ordinary, tally.accuracy
     return {
-        "acknowledged_poses_lost": lost + mismatched,
-        "duplicate_poses": duplicates,
-        "poses_without_lease": unfenced,
-        "frames_unanswered": unanswered,
-        "problems": problems[:10],
+        "acknowledged_poses_lost": tally.lost + tally.mismatched,
+        "duplicate_poses": tally.duplicates,
+        "poses_without_lease": tally.unfenced,
+        "frames_unanswered": tally.unanswered,
+        "problems": tally.problems[:10],
         "frames_rejected": sum(len(r.rejected) for r in robots),
         "rejections": [rej for r in robots for rej in r.rejected][:10],
         "answers_from_stored_pose": sum(r.duplicates for r in robots),

@@ -18,6 +18,7 @@ pages they share in each of them, and PSS, which shares them out). Loopback only
 With ``--runs N`` every level is run N times in a row against the same server; besides the JSON
 a Markdown table of all runs (not the best of them) is written next to it, with the machine's
 load average at the start and end of each run (other jobs on the machine inflate the numbers).
+The result type, the tables and the report files live in ``load_report.py``.
 """
 
 from __future__ import annotations
@@ -26,17 +27,18 @@ import argparse
 import asyncio
 import json
 import os
-import platform
 import signal
 import socket
 import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from load_report import LevelResult, machine_before, print_table, runs_table, write_report
 from server_wait import wait_healthy
 from swarmvo_client import Client, DroppedFrame, Pose, open_local_sequence, stream
 from swarmvo_client.models import ImuData
@@ -58,48 +60,6 @@ class RobotStats:
     last_answer: float | None = None
     stage_s: dict[str, list[float]] = field(default_factory=dict)
     reject_reasons: dict[str, int] = field(default_factory=dict)
-
-
-@dataclass
-class LevelResult:
-    robots: int
-    rate_hz: float
-    duration_s: float
-    sent: int
-    answered: int
-    dropped: int
-    rejected: int
-    unanswered: int
-    sustained_fps: float
-    offered_fps: float
-    latency_p50_ms: float | None
-    latency_p95_ms: float | None
-    latency_p99_ms: float | None
-    server_rss_mb_peak: float | None  # server and workers together
-    # Proportional set size, server and workers together: pages shared between processes
-    # (libraries, a fork's copy-on-write pages) are counted once in all instead of in each.
-    server_pss_mb_peak: float | None
-    # Peaks of the server process alone and of its workers together (sampled every 0.25 s).
-    rss_mb_peak_by_role: dict[str, float]
-    # CPU time of the server process itself and of its worker processes, per answered frame.
-    server_cpu_ms_per_frame: dict[str, float]
-    stage_median_ms: dict[str, float]
-    reject_reasons: dict[str, int]
-    run: int = 1
-    # Frames the robots did not send because the server would have refused them (--hold-back).
-    held_back: int = 0
-    # CPU of the server process per frame it received (answered or refused): what a frame
-    # costs it before any work is done on it.
-    server_cpu_ms_per_received: float | None = None
-    load_average_start: list[float] = field(default_factory=list)
-    load_average_end: list[float] = field(default_factory=list)
-
-    @property
-    def cpu_ms_per_frame(self) -> float | None:
-        """Server process plus worker processes, CPU per answered frame."""
-        if not self.server_cpu_ms_per_frame:
-            return None
-        return sum(self.server_cpu_ms_per_frame.values())
 
 
 class Frames:
@@ -140,6 +100,23 @@ def _grey_pixels(encoded: bytes) -> bytes:
     if image is None or image.dtype != np.uint8 or image.ndim != 2:
         raise SystemExit("--encoding raw8 needs 8-bit grey images")
     return image.tobytes()
+
+
+def _record(event: Any, stats: RobotStats, sent_at: dict[int, float], now: float) -> None:
+    """Count one server message: a pose (its latency and server stages), a drop or a refusal."""
+    if isinstance(event, Pose):
+        stats.answered += 1
+        stats.latencies_s.append(now - sent_at[event.timestamp_ns])
+        stats.last_answer = now
+        for stage in ("queue_wait", "decode", "odometry", "transfer", "persist", "total"):
+            if stage in event.timings_s:
+                stats.stage_s.setdefault(stage, []).append(event.timings_s[stage])
+    elif isinstance(event, DroppedFrame):
+        stats.dropped += 1
+    else:
+        stats.rejected += 1
+        reason = event.detail.split(":")[0][:60]
+        stats.reject_reasons[reason] = stats.reject_reasons.get(reason, 0) + 1
 
 
 async def robot(url: str, session_id: str, frames: Frames, rate: float, duration: float,
@@ -184,21 +161,7 @@ async def robot(url: str, session_id: str, frames: Frames, rate: float, duration
                 except TimeoutError:
                     break
                 received += 1
-                now = time.perf_counter()
-                if isinstance(event, Pose):
-                    stats.answered += 1
-                    stats.latencies_s.append(now - sent_at[event.timestamp_ns])
-                    stats.last_answer = now
-                    for stage in ("queue_wait", "decode", "odometry", "transfer", "persist",
-                                  "total"):
-                        if stage in event.timings_s:
-                            stats.stage_s.setdefault(stage, []).append(event.timings_s[stage])
-                elif isinstance(event, DroppedFrame):
-                    stats.dropped += 1
-                else:
-                    stats.rejected += 1
-                    reason = event.detail.split(":")[0][:60]
-                    stats.reject_reasons[reason] = stats.reject_reasons.get(reason, 0) + 1
+                _record(event, stats, sent_at, time.perf_counter())
         finally:
             producer.cancel()
         await connection.close()
@@ -260,36 +223,112 @@ def _cpu_s(pid: int | None) -> dict[int, float]:
     return times
 
 
-async def run_level(url: str, frames: Frames, robots: int, rate: float, duration: float,
-                    drain: float, config: dict, server_pid: int | None,
-                    hold_back: bool = False) -> LevelResult:
+def _create_sessions(url: str, frames: Frames, robots: int, config: dict) -> list:
+    """One session per robot, created before the clock starts."""
     with Client(url, API_KEY) as client:
         files = frames.sequence.calibration_files
-        sessions = [
+        return [
             client.create_session_euroc(files["cam0"], files["cam1"], files.get("imu0"),
                                         config=config, name=f"load-robot-{k}")
             for k in range(robots)
         ]
-    stats = [RobotStats() for _ in range(robots)]
-    peak_rss: list[float] = []
-    peak_pss: list[float] = []
-    peak_role = {"server_process": 0.0, "worker_processes": 0.0}
-    stop = asyncio.Event()
 
-    async def sample_memory() -> None:
+
+@dataclass
+class MemoryPeaks:
+    """RSS and PSS of the server's process tree, sampled every 0.25 s while a level runs."""
+
+    rss: list[float] = field(default_factory=list)
+    pss: list[float] = field(default_factory=list)
+    by_role: dict[str, float] = field(
+        default_factory=lambda: {"server_process": 0.0, "worker_processes": 0.0}
+    )
+
+    async def sample(self, server_pid: int | None, stop: asyncio.Event) -> None:
         while not stop.is_set() and server_pid is not None:
             by_pid = _rss_mb(server_pid)
             if by_pid:
-                peak_rss.append(sum(by_pid.values()))
-                peak_pss.append(_pss_mb(server_pid))
+                self.rss.append(sum(by_pid.values()))
+                self.pss.append(_pss_mb(server_pid))
                 server = by_pid.pop(server_pid, 0.0)
-                peak_role["server_process"] = max(peak_role["server_process"], server)
-                peak_role["worker_processes"] = max(
-                    peak_role["worker_processes"], sum(by_pid.values())
+                self.by_role["server_process"] = max(self.by_role["server_process"], server)
+                self.by_role["worker_processes"] = max(
+                    self.by_role["worker_processes"], sum(by_pid.values())
                 )
             await asyncio.sleep(0.25)
 
-    sampler = asyncio.create_task(sample_memory())
+
+def _server_cpu(cpu_before: dict[int, float], cpu_after: dict[int, float],
+                server_pid: int | None, answered: int,
+                sent: int) -> tuple[dict[str, float], float | None]:
+    """CPU ms of the server process and of its workers per answered frame, and of the server
+    process per received frame (what a frame costs it before any work is done on it)."""
+    cpu: dict[str, float] = {}
+    per_received = None
+    if cpu_after and answered:
+        used = {p: t - cpu_before.get(p, 0.0) for p, t in cpu_after.items()}
+        server_s = used.pop(server_pid, 0.0)
+        cpu["server_process"] = server_s * 1000 / answered
+        cpu["worker_processes"] = sum(used.values()) * 1000 / answered
+        per_received = server_s * 1000 / sent
+    return cpu, per_received
+
+
+def _merged(stats: list[RobotStats]) -> tuple[dict[str, list[float]], dict[str, int]]:
+    """The robots' per-stage server times and refusal reasons, pooled."""
+    stages: dict[str, list[float]] = {}
+    reasons: dict[str, int] = {}
+    for s in stats:
+        for stage, values in s.stage_s.items():
+            stages.setdefault(stage, []).extend(values)
+        for reason, count in s.reject_reasons.items():
+            reasons[reason] = reasons.get(reason, 0) + count
+    return stages, reasons
+
+
+def _level_result(stats: list[RobotStats], robots: int, rate: float, duration: float,
+                  peaks: MemoryPeaks, cpu: dict[str, float], per_received: float | None,
+                  load_start: list[float]) -> LevelResult:
+    """Totals, throughput over the answering window and latency percentiles of one level."""
+    latencies = np.array([v for s in stats for v in s.latencies_s])
+    sent = sum(s.sent for s in stats)
+    answered = sum(s.answered for s in stats)
+    dropped = sum(s.dropped for s in stats)
+    rejected = sum(s.rejected for s in stats)
+    firsts = [s.first_send for s in stats if s.first_send]
+    lasts = [s.last_answer for s in stats if s.last_answer]
+    window = (max(lasts) - min(firsts)) if firsts and lasts else 0.0
+    stages, reasons = _merged(stats)
+
+    def pct(q: float) -> float | None:
+        return float(np.percentile(latencies, q) * 1000) if len(latencies) else None
+
+    return LevelResult(
+        robots=robots, rate_hz=rate, duration_s=duration, sent=sent, answered=answered,
+        dropped=dropped, rejected=rejected, unanswered=sent - answered - dropped - rejected,
+        sustained_fps=answered / window if window > 0 else 0.0, offered_fps=robots * rate,
+        latency_p50_ms=pct(50), latency_p95_ms=pct(95), latency_p99_ms=pct(99),
+        server_rss_mb_peak=max(peaks.rss) if peaks.rss else None,
+        server_pss_mb_peak=max(peaks.pss) if peaks.pss else None,
+        rss_mb_peak_by_role=peaks.by_role if peaks.rss else {},
+        server_cpu_ms_per_frame=cpu,
+        stage_median_ms={k: float(np.median(v) * 1000) for k, v in sorted(stages.items())},
+        reject_reasons=reasons,
+        held_back=sum(s.held_back for s in stats), server_cpu_ms_per_received=per_received,
+        load_average_start=load_start,
+        load_average_end=list(os.getloadavg()),
+    )
+
+
+async def run_level(url: str, frames: Frames, robots: int, rate: float, duration: float,
+                    drain: float, config: dict, server_pid: int | None,
+                    hold_back: bool = False) -> LevelResult:
+    """K robots streaming at once against fresh sessions, deleted afterwards."""
+    sessions = _create_sessions(url, frames, robots, config)
+    stats = [RobotStats() for _ in range(robots)]
+    peaks = MemoryPeaks()
+    stop = asyncio.Event()
+    sampler = asyncio.create_task(peaks.sample(server_pid, stop))
     load_start = list(os.getloadavg())
     cpu_before = _cpu_s(server_pid)
     start_at = time.perf_counter() + 0.5
@@ -302,50 +341,11 @@ async def run_level(url: str, frames: Frames, robots: int, rate: float, duration
     with Client(url, API_KEY) as client:
         for session in sessions:
             client.delete_session(session.id)
-
-    latencies = np.array([v for s in stats for v in s.latencies_s])
-    sent = sum(s.sent for s in stats)
-    answered = sum(s.answered for s in stats)
-    dropped = sum(s.dropped for s in stats)
-    rejected = sum(s.rejected for s in stats)
-    firsts = [s.first_send for s in stats if s.first_send]
-    lasts = [s.last_answer for s in stats if s.last_answer]
-    window = (max(lasts) - min(firsts)) if firsts and lasts else 0.0
-    stages: dict[str, list[float]] = {}
-    reasons: dict[str, int] = {}
-    for s in stats:
-        for stage, values in s.stage_s.items():
-            stages.setdefault(stage, []).extend(values)
-        for reason, count in s.reject_reasons.items():
-            reasons[reason] = reasons.get(reason, 0) + count
-
-    cpu: dict[str, float] = {}
-    per_received = None
-    if cpu_after and answered:
-        used = {p: t - cpu_before.get(p, 0.0) for p, t in cpu_after.items()}
-        server_s = used.pop(server_pid, 0.0)
-        cpu["server_process"] = server_s * 1000 / answered
-        cpu["worker_processes"] = sum(used.values()) * 1000 / answered
-        per_received = server_s * 1000 / sent
-
-    def pct(q: float) -> float | None:
-        return float(np.percentile(latencies, q) * 1000) if len(latencies) else None
-
-    return LevelResult(
-        robots=robots, rate_hz=rate, duration_s=duration, sent=sent, answered=answered,
-        dropped=dropped, rejected=rejected, unanswered=sent - answered - dropped - rejected,
-        sustained_fps=answered / window if window > 0 else 0.0, offered_fps=robots * rate,
-        latency_p50_ms=pct(50), latency_p95_ms=pct(95), latency_p99_ms=pct(99),
-        server_rss_mb_peak=max(peak_rss) if peak_rss else None,
-        server_pss_mb_peak=max(peak_pss) if peak_pss else None,
-        rss_mb_peak_by_role=peak_role if peak_rss else {},
-        server_cpu_ms_per_frame=cpu,
-        stage_median_ms={k: float(np.median(v) * 1000) for k, v in sorted(stages.items())},
-        reject_reasons=reasons,
-        held_back=sum(s.held_back for s in stats), server_cpu_ms_per_received=per_received,
-        load_average_start=load_start,
-        load_average_end=list(os.getloadavg()),
+    cpu, per_received = _server_cpu(
+        cpu_before, cpu_after, server_pid,
+        sum(s.answered for s in stats), sum(s.sent for s in stats),
     )
+    return _level_result(stats, robots, rate, duration, peaks, cpu, per_received, load_start)
 
 
 def _free_port() -> int:
@@ -373,64 +373,7 @@ def start_server(workers: int | None, queue_size: int, policy: str, executor: st
     return process, url
 
 
-def _fmt(value: float | None, digits: int = 1) -> str:
-    return "-" if value is None else f"{value:.{digits}f}"
-
-
-def print_table(results: list[LevelResult]) -> None:
-    header = (f"{'robots':>6} {'offered/s':>9} {'answered/s':>10} {'sent':>6} {'answered':>8} "
-              f"{'dropped':>7} {'rejected':>8} {'lost':>5} {'p50 ms':>8} {'p95 ms':>8} "
-              f"{'p99 ms':>8} {'RSS MB':>7}")
-    print(header)
-    print("-" * len(header))
-    for r in results:
-        print(f"{r.robots:>6} {r.offered_fps:>9.1f} {r.sustained_fps:>10.1f} {r.sent:>6} "
-              f"{r.answered:>8} {r.dropped:>7} {r.rejected:>8} {r.unanswered:>5} "
-              f"{_fmt(r.latency_p50_ms):>8} {_fmt(r.latency_p95_ms):>8} "
-              f"{_fmt(r.latency_p99_ms):>8} {_fmt(r.server_rss_mb_peak, 0):>7}")
-    print("\nmedian per-frame server time (ms):")
-    for r in results:
-        stages = ", ".join(f"{k} {v:.1f}" for k, v in r.stage_median_ms.items())
-        print(f"  K={r.robots}: {stages}")
-        if r.server_cpu_ms_per_frame:
-            print("        server CPU per answered frame (ms): " + ", ".join(
-                f"{k} {v:.1f}" for k, v in r.server_cpu_ms_per_frame.items()))
-        if r.rss_mb_peak_by_role:
-            print("        peak RSS (MB): " + ", ".join(
-                f"{k} {v:.0f}" for k, v in r.rss_mb_peak_by_role.items())
-                + f"; peak PSS of all {_fmt(r.server_pss_mb_peak, 0)}")
-        if r.reject_reasons:
-            print(f"        rejected: {r.reject_reasons}")
-
-
-RUNS_HEADER = (
-    "| run | robots | offered/s | answered/s | sent | answered | dropped | rejected | lost "
-    "| p50 ms | p95 ms | p99 ms | CPU ms/frame server | CPU ms/frame workers | CPU ms/frame total "
-    "| server CPU ms/received | held back | RSS MB | PSS MB | load avg start -> end |"
-)
-
-
-def runs_table(results: list[LevelResult]) -> str:
-    """Markdown table with one row per run, in the order they ran."""
-    lines = [RUNS_HEADER, "|" + "---|" * RUNS_HEADER.count(" | ") + "---|"]
-    for r in results:
-        cpu = r.server_cpu_ms_per_frame
-        load = "-"
-        if r.load_average_start and r.load_average_end:
-            load = f"{r.load_average_start[0]:.1f} -> {r.load_average_end[0]:.1f}"
-        lines.append(
-            f"| {r.run} | {r.robots} | {r.offered_fps:.1f} | {r.sustained_fps:.1f} | {r.sent} "
-            f"| {r.answered} | {r.dropped} | {r.rejected} | {r.unanswered} "
-            f"| {_fmt(r.latency_p50_ms)} | {_fmt(r.latency_p95_ms)} | {_fmt(r.latency_p99_ms)} "
-            f"| {_fmt(cpu.get('server_process'))} | {_fmt(cpu.get('worker_processes'))} "
-            f"| {_fmt(r.cpu_ms_per_frame)} | {_fmt(r.server_cpu_ms_per_received, 2)} "
-            f"| {r.held_back} | {_fmt(r.server_rss_mb_peak, 0)} "
-            f"| {_fmt(r.server_pss_mb_peak, 0)} | {load} |"
-        )
-    return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> int:
+def _parse_args(argv: list[str] | None) -> tuple[argparse.ArgumentParser, argparse.Namespace]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--robots", default="1,2,4,8", help="comma-separated K values")
     parser.add_argument("--rate", type=float, default=20.0, help="frames/s per robot")
@@ -454,7 +397,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", default="{}", help="estimator config overrides (JSON)")
     parser.add_argument("--out", type=Path, default=PROJECT_ROOT / "benchmarks/results/load",
                         help="folder for the JSON report")
-    args = parser.parse_args(argv)
+    return parser, parser.parse_args(argv)
+
+
+def _levels(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list[int]:
+    """The K values to run; bounds keep a mistyped flag from flooding the machine."""
     levels = [int(k) for k in args.robots.split(",")]
     if any(k < 1 or k > 64 for k in levels) or not 0 < args.rate <= 100:
         parser.error("robots must be 1..64 and rate 0..100 Hz")
@@ -462,6 +409,48 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("duration must be 1..600 s")
     if not 1 <= args.runs <= 20:
         parser.error("runs must be 1..20")
+    return levels
+
+
+def _stop_server(process: subprocess.Popen | None) -> None:
+    if process is not None:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            process.kill()
+
+
+def _run_levels(url: str, pid: int | None, frames: Frames, levels: list[int],
+                args: argparse.Namespace, config: dict) -> list[LevelResult]:
+    """Every level ``args.runs`` times in a row, in the order given."""
+    results = []
+    for k in levels:
+        for run in range(1, args.runs + 1):
+            print(f"K={k}, run {run}/{args.runs}: {args.duration:.0f} s at {args.rate:g} "
+                  "Hz per robot ...", flush=True)
+            result = asyncio.run(run_level(
+                url, frames, k, args.rate, args.duration, args.drain, config, pid,
+                args.hold_back))
+            result.run = run
+            results.append(result)
+    return results
+
+
+def _settings(args: argparse.Namespace, config: dict, image_size: list[int]) -> dict:
+    """What the report needs to be reproduced; the executor only when this run chose it."""
+    return {"rate_hz": args.rate, "duration_s": args.duration,
+            "queue_size": args.queue_size, "policy": args.policy,
+            "workers": args.workers or os.cpu_count(), "config": config,
+            "runs": args.runs,
+            "executor": None if args.url else args.executor,
+            "encoding": args.encoding, "hold_back": args.hold_back,
+            "dataset": str(args.dataset), "image_size": image_size}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser, args = _parse_args(argv)
+    levels = _levels(parser, args)
     config = json.loads(args.config)
     frames = Frames(args.dataset, raw=args.encoding == "raw8")
     width, height = frames.sequence.image_size
@@ -479,59 +468,17 @@ def main(argv: list[str] | None = None) -> int:
             process, url = start_server(args.workers, args.queue_size, args.policy,
                                         args.executor, Path(folder))
             pid = process.pid
-        results = []
-        load_before = os.getloadavg()
+        machine = machine_before()
         try:
-            for k in levels:
-                for run in range(1, args.runs + 1):
-                    print(f"K={k}, run {run}/{args.runs}: {args.duration:.0f} s at {args.rate:g} "
-                          "Hz per robot ...", flush=True)
-                    result = asyncio.run(run_level(
-                        url, frames, k, args.rate, args.duration, args.drain, config, pid,
-                        args.hold_back))
-                    result.run = run
-                    results.append(result)
+            results = _run_levels(url, pid, frames, levels, args, config)
         finally:
-            if process is not None:
-                process.send_signal(signal.SIGTERM)
-                try:
-                    process.wait(timeout=30)
-                except subprocess.TimeoutExpired:
-                    process.kill()
+            _stop_server(process)
     print()
     print_table(results)
     table = runs_table(results)
     print()
     print(table)
-    args.out.mkdir(parents=True, exist_ok=True)
-    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    report = {
-        "created_utc": stamp,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                    "python": platform.python_version(), "load_average_before": load_before,
-                    "load_average_after": os.getloadavg()},
-        "settings": {"rate_hz": args.rate, "duration_s": args.duration,
-                     "queue_size": args.queue_size, "policy": args.policy,
-                     "workers": args.workers or os.cpu_count(), "config": config,
-                     "runs": args.runs,
-                     "executor": None if args.url else args.executor,
-                     "encoding": args.encoding, "hold_back": args.hold_back,
-                     "dataset": str(args.dataset), "image_size": [width, height]},
-        "levels": [{**asdict(r), "cpu_ms_per_frame": r.cpu_ms_per_frame} for r in results],
-    }
-    path = args.out / f"load_{stamp}.json"
-    path.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"\nwrote {path}")
-    if args.runs > 1:
-        settings = report["settings"]
-        markdown = args.out / f"load_{stamp}.md"
-        markdown.write_text(
-            f"{args.runs} consecutive runs of {args.duration:g} s per level at {args.rate:g} Hz "
-            f"per robot, {settings['encoding']} frames, executor {settings['executor']}, "
-            f"{settings['workers']} workers, {os.cpu_count()} CPUs ({stamp}; JSON "
-            f"{path.name}).\n\n{table}\n"
-        )
-        print(f"wrote {markdown}")
+    write_report(args.out, machine, _settings(args, config, [width, height]), results, table)
     return 0
 
 

@@ -13,6 +13,9 @@ otherwise the constant-velocity motion prior. ``pose`` is the newest frame's est
 arrives; the final, smoothed estimate of a frame is handed out once when it leaves the window
 (``FusedEstimate.final_poses``, then ``flush()``). World: the first body pose, levelled (z up,
 yaw 0) from the first frame's accelerometer samples when the IMU is used.
+
+Over 500 lines on purpose: the steps of a frame share the smoother, the window and the last
+estimates held by ``FusionBackend``; splitting the class would only pass that state around.
 """
 
 from __future__ import annotations
@@ -319,35 +322,66 @@ class FusionBackend:
         Returns the initial guess of the body motion (the measurement when accepted, else the
         prediction); clears ``step.still`` when vision disagrees with a standstill.
         """
-        reference = None
-        if relative_pose is not None and covariance is not None:
-            reference = self._window.reference_index(reference_ns, self._index)
-            if reference is None:
-                step.notes.append(
-                    f"relative pose not used (reference frame {reference_ns} is unknown or "
-                    "older than the latest reference)"
-                )
+        reference = self._vision_reference(step, relative_pose, covariance, reference_ns)
         if reference is None:
             return prediction
         assert relative_pose is not None and covariance is not None
-        previous = step.previous
         body_measured = nearest_rigid(self.body_from_camera @ relative_pose @ self.camera_from_body)
-        # The measurement seen as a motion from the previous frame, through the current
-        # estimates: for the gate and the initial guess (and as the factor itself when the
-        # reference has already left the window).
-        body_motion = body_measured
-        live = reference == previous or self._window.in_window(reference, step.cutoff)
-        if reference != previous:
+        live = reference == step.previous or self._window.in_window(reference, step.cutoff)
+        reference_pose = None
+        if reference != step.previous:
             reference_pose = (
                 self._smoother.pose(reference)
                 if live
                 else self._window.references[int(reference_ns)][1]  # type: ignore[arg-type]
             )
-            body_motion = nearest_rigid(
-                invert_pose(self._body_pose) @ reference_pose @ body_measured
-            )
+        body_motion = self._motion_from_previous(body_measured, reference_pose)
         if step.still:  # vision must agree with the standstill too
             step.still = agrees_with_standstill(body_motion, covariance)
+        if not self._passes_gate(step, body_motion, prediction, covariance):
+            return prediction
+        step.accepted = True
+        self._add_accepted_vision(
+            step, reference, reference_pose, live, body_measured, body_motion, covariance
+        )
+        self._window.oldest_reference = max(self._window.oldest_reference, reference)
+        return body_motion
+
+    def _vision_reference(
+        self,
+        step: Step,
+        relative_pose: np.ndarray | None,
+        covariance: np.ndarray | None,
+        reference_ns: int | None,
+    ) -> int | None:
+        """Index of the frame the measurement was taken against; None (with a note when a
+        measurement is lost) when there is nothing usable to add."""
+        if relative_pose is None or covariance is None:
+            return None
+        reference = self._window.reference_index(reference_ns, self._index)
+        if reference is None:
+            step.notes.append(
+                f"relative pose not used (reference frame {reference_ns} is unknown or "
+                "older than the latest reference)"
+            )
+        return reference
+
+    def _motion_from_previous(
+        self, body_measured: np.ndarray, reference_pose: np.ndarray | None
+    ) -> np.ndarray:
+        """The measurement seen as a motion from the previous frame, through the current
+        estimates: for the gate and the initial guess (and as the factor itself when the
+        reference has already left the window). ``reference_pose`` is None when the
+        reference is the previous frame."""
+        if reference_pose is None:
+            return body_measured
+        return nearest_rigid(invert_pose(self._body_pose) @ reference_pose @ body_measured)
+
+    def _passes_gate(
+        self, step: Step, body_motion: np.ndarray, prediction: np.ndarray, covariance: np.ndarray
+    ) -> bool:
+        """The outlier gate: a measurement too far from the prediction is noted and dropped,
+        so one bad front-end frame cannot pull the graph."""
         distance = gate_distance(
             body_motion,
             prediction,
@@ -360,16 +394,30 @@ class FusionBackend:
             self.config,
         )
         gate = self.config.outlier_gate_chi2
-        if not (gate is None or distance <= gate):
-            step.notes.append(
-                f"relative pose rejected (squared Mahalanobis distance {distance:.0f} "
-                f"> {gate:g} from the prediction)"
-            )
-            step.rejected = True
-            return prediction
-        step.accepted = True
+        if gate is None or distance <= gate:
+            return True
+        step.notes.append(
+            f"relative pose rejected (squared Mahalanobis distance {distance:.0f} "
+            f"> {gate:g} from the prediction)"
+        )
+        step.rejected = True
+        return False
+
+    def _add_accepted_vision(
+        self,
+        step: Step,
+        reference: int,
+        reference_pose: np.ndarray | None,
+        live: bool,
+        body_measured: np.ndarray,
+        body_motion: np.ndarray,
+        covariance: np.ndarray,
+    ) -> None:
+        """The factor for an accepted measurement: between the reference and this frame while
+        the reference is in the window, else a prior or a chain (``old_reference``)."""
         base = gtsam.noiseModel.Gaussian.Covariance(covariance)
         noise = robust(base, self.config.robust_kernel, self.config.robust_parameter)
+        previous = step.previous
         after_gap = self._last_fix_index != previous
         mode = self.config.old_reference
         if not live and (mode == "prior" or (mode == "prior-after-gap" and after_gap)):
@@ -377,12 +425,11 @@ class FusionBackend:
             # frame in the world directly (as the front end's chain does), instead of through
             # recent frames whose estimates the smoother still moves (after a gap, frames
             # carried by the IMU alone).
-            placed = reference_pose @ body_measured
+            placed = reference_pose @ body_measured  # type: ignore[operator]
             step.factors.add(
                 gtsam.PriorFactorPose3(pose_key(step.current), gtsam.Pose3(placed), noise)
             )
-            self._window.oldest_reference = max(self._window.oldest_reference, reference)
-            return body_motion
+            return
         source, measured = (reference, body_measured) if live else (previous, body_motion)
         if not live and after_gap:
             source, measured = self._chained(step, measured, body_motion)
@@ -394,8 +441,6 @@ class FusionBackend:
                 noise,
             )
         )
-        self._window.oldest_reference = max(self._window.oldest_reference, reference)
-        return body_motion
 
     def _chained(
         self, step: Step, measured: np.ndarray, body_motion: np.ndarray

@@ -17,7 +17,9 @@ import json
 import os
 import platform
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -139,15 +141,19 @@ def _against_images(sequence, reports, covered: np.ndarray, truth: np.ndarray) -
     return result
 
 
-def run(args: argparse.Namespace) -> int:
-    from estimator.formats.datasets import open_sequence
-
+def _check_args(args: argparse.Namespace) -> None:
+    """Refuse counts the timing loop cannot use, before any frame is read."""
     if args.repeat < 1:
         raise ValueError(f"--repeat must be >= 1, got {args.repeat}")
     if args.target_fps is not None and args.target_fps <= 0:
         raise ValueError(f"--target-fps must be > 0, got {args.target_fps}")
-    cv2.setNumThreads(1)
-    config = _config(args)
+
+
+def _load_clip(args: argparse.Namespace) -> tuple[Any, list, list, float]:
+    """The sequence, its frames and each frame's IMU samples, all in memory, and the load
+    time: the timed loop then measures the pipeline and not the disk."""
+    from estimator.formats.datasets import open_sequence
+
     sequence = open_sequence(args.data)
     count = len(sequence) if args.frames is None else min(args.frames, len(sequence))
     if count < 2:
@@ -162,17 +168,30 @@ def run(args: argparse.Namespace) -> int:
         )
         for i in range(count)
     ]
+    return sequence, frames, imu, load_s
 
+
+@dataclass
+class _TimedRuns:
+    """What the timed passes measured; ``reports`` are the last pass's."""
+
+    timings: list[dict[str, float]] = field(default_factory=list)
+    cpu_ms: list[float] = field(default_factory=list)
+    walls: list[float] = field(default_factory=list)
+    reports: list = field(default_factory=list)
+
+
+def _timed_runs(
+    sequence, config: SwarmvoConfig, frames: list, imu: list, repeat: int
+) -> _TimedRuns:
+    """``repeat`` passes of a fresh odometry over the frames, after a short warm-up."""
     # Warm-up: JIT compilation and first-call allocations are not the steady state.
     warmup = Odometry(sequence.rig, config, imu_noise=sequence.imu_noise)
     for frame, batch in zip(frames[:3], imu[:3], strict=True):
         warmup.process(frame, batch)
 
-    timings: list[dict[str, float]] = []
-    cpu_ms: list[float] = []
-    walls = []
-    reports = []
-    for _ in range(args.repeat):
+    runs = _TimedRuns()
+    for _ in range(repeat):
         odometry = Odometry(sequence.rig, config, imu_noise=sequence.imu_noise)
         reports = []
         wall = time.perf_counter()
@@ -180,16 +199,60 @@ def run(args: argparse.Namespace) -> int:
             cpu = time.process_time()
             reports.append(odometry.process(frame, batch))
             if index:  # frame 0 has no estimate
-                cpu_ms.append((time.process_time() - cpu) * 1e3)
-        walls.append(time.perf_counter() - wall)
-        timings.extend(report.timings_s for report in reports[1:])
-    table = summarise(timings)
-    target = args.target_fps or CLIP_TARGET_FPS.get(Path(args.data).resolve().name, TARGET_FPS)
+                runs.cpu_ms.append((time.process_time() - cpu) * 1e3)
+        runs.walls.append(time.perf_counter() - wall)
+        runs.timings.extend(report.timings_s for report in reports[1:])
+        runs.reports = reports
+    return runs
+
+
+def _speed(runs: _TimedRuns, count: int, target: float) -> dict[str, Any]:
+    """Per-stage table and frames/s by three measures, against the clip's target."""
+    table = summarise(runs.timings)
     fps_median = 1e3 / table["total"]["median_ms"]
-    fps_wall = count / float(np.median(walls))
+    fps_wall = count / float(np.median(runs.walls))
     # CPU time is what one quiet core would need; wall time also counts waiting for a core
     # on a shared machine.
-    fps_cpu = 1e3 / float(np.median(cpu_ms))
+    fps_cpu = 1e3 / float(np.median(runs.cpu_ms))
+    return {
+        "stages": table,
+        "fps_from_median_total": fps_median,
+        "fps_wall_clock": fps_wall,
+        "cpu_ms_per_frame": {
+            "median": float(np.median(runs.cpu_ms)),
+            "p95": float(np.percentile(runs.cpu_ms, 95)),
+        },
+        "fps_from_cpu_time": fps_cpu,
+        "target_fps": target,
+        "meets_target_wall": bool(fps_median >= target),
+        "meets_target_cpu": bool(fps_cpu >= target),
+    }
+
+
+def _environment() -> dict[str, Any]:
+    """Threads, versions and load: what a reader needs to compare two result files."""
+    return {
+        "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS"),
+        "opencv_threads": cv2.getNumThreads(),
+        "opencv": cv2.__version__,
+        "numpy": np.__version__,
+        "machine": platform.machine(),
+        "processor": platform.processor(),
+        "cpu_count": os.cpu_count(),
+        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    """Time the odometry per stage on a clip held in memory; write frontend.json and .md."""
+    _check_args(args)
+    cv2.setNumThreads(1)
+    config = _config(args)
+    sequence, frames, imu, load_s = _load_clip(args)
+    count = len(frames)
+    runs = _timed_runs(sequence, config, frames, imu, args.repeat)
+    reports = runs.reports
+    target = args.target_fps or CLIP_TARGET_FPS.get(Path(args.data).resolve().name, TARGET_FPS)
     statuses = {str(s): sum(r.status == s for r in reports) for s in {r.status for r in reports}}
     result = {
         "data": str(args.data),
@@ -197,32 +260,13 @@ def run(args: argparse.Namespace) -> int:
         "image_size": list(sequence.rig.size),
         "repeat": args.repeat,
         "config": config.model_dump(),
-        "stages": table,
-        "fps_from_median_total": fps_median,
-        "fps_wall_clock": fps_wall,
-        "cpu_ms_per_frame": {
-            "median": float(np.median(cpu_ms)),
-            "p95": float(np.percentile(cpu_ms, 95)),
-        },
-        "fps_from_cpu_time": fps_cpu,
-        "target_fps": target,
-        "meets_target_wall": bool(fps_median >= target),
-        "meets_target_cpu": bool(fps_cpu >= target),
+        **_speed(runs, count, target),
         "median_matches": float(np.median([r.matches for r in reports[1:]])),
         "median_inliers": float(np.median([r.inliers for r in reports[1:]])),
         "status_counts": statuses,
         "drift": _drift(sequence, reports),
         "image_load_s": load_s,
-        "environment": {
-            "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS"),
-            "opencv_threads": cv2.getNumThreads(),
-            "opencv": cv2.__version__,
-            "numpy": np.__version__,
-            "machine": platform.machine(),
-            "processor": platform.processor(),
-            "cpu_count": os.cpu_count(),
-            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-        },
+        "environment": _environment(),
     }
     text = _markdown(result)
     print(text)

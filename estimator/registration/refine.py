@@ -166,6 +166,97 @@ def _checked(array: np.ndarray, shape: tuple[int, ...], name: str) -> np.ndarray
     return array
 
 
+def _source_frame_jacobian(source: np.ndarray) -> np.ndarray:
+    """(N, 3, 6) Jacobian of the source-frame residual; built once since it ignores the pose.
+
+    r' = R^T (target - t) - Exp(omega) (s + v)  =>  dr'/domega = [s]x, dr'/dv = -I.
+    """
+    jacobian = np.empty((len(source), 3, 6))
+    jacobian[:, :, :3] = skew(source)
+    jacobian[:, :, 3:] = -np.eye(3)
+    return jacobian
+
+
+def _solve_damped(linearisation: _Linearisation, damping: float) -> np.ndarray:
+    """The Levenberg-Marquardt step; all NaN when the damped system is singular, so the
+    caller treats it as a rejected step rather than an error."""
+    hessian = linearisation.hessian
+    damped = hessian + damping * np.diag(np.diag(hessian))
+    try:
+        return np.linalg.solve(damped, -linearisation.gradient)
+    except np.linalg.LinAlgError:
+        return np.full(6, np.nan)
+
+
+def _try_step(
+    data: tuple[np.ndarray, ...],
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    step: np.ndarray,
+    robust: Robust,
+    robust_scale: float,
+) -> tuple[_Linearisation | None, np.ndarray, np.ndarray]:
+    """Apply ``step`` on the right and linearise there; None when the step or the moved
+    covariances are not usable."""
+    if not np.isfinite(step).all():
+        return None, rotation, translation
+    candidate_r = rotation @ quat_to_matrix(rotation_vector_to_quat(step[:3]))
+    candidate_t = translation + rotation @ step[3:]
+    try:
+        candidate = _linearise(*data, candidate_r, candidate_t, robust, robust_scale)
+    except np.linalg.LinAlgError:
+        return None, candidate_r, candidate_t
+    return candidate, candidate_r, candidate_t
+
+
+def _levenberg_marquardt(
+    data: tuple[np.ndarray, ...],
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    current: _Linearisation,
+    iterations: int,
+    robust: Robust,
+    robust_scale: float,
+) -> tuple[np.ndarray, np.ndarray, _Linearisation, int]:
+    """Accept only steps that do not raise the cost; damp harder after each rejection.
+
+    Returns the estimate, its linearisation and the number of accepted steps.
+    """
+    estimate_r, estimate_t = rotation, translation
+    damping, steps, rejected = 1e-4, 0, 0
+    while steps < iterations and rejected < _MAX_DAMPING_TRIES:
+        step = _solve_damped(current, damping)
+        if np.linalg.norm(step) < _STEP_TOLERANCE:
+            break  # converged; evaluating a smaller step would only compare rounding errors
+        candidate, candidate_r, candidate_t = _try_step(
+            data, estimate_r, estimate_t, step, robust, robust_scale
+        )
+        if candidate is not None and candidate.cost <= current.cost:  # False for NaN
+            estimate_r, estimate_t, current = candidate_r, candidate_t, candidate
+            damping = max(damping * 0.1, 1e-9)
+            steps += 1
+        elif candidate is not None and np.linalg.norm(step) < _SETTLED_STEP:
+            break
+        else:
+            damping *= 10.0
+            rejected += 1
+    return estimate_r, estimate_t, current, steps
+
+
+def _scaled_covariance(linearisation: _Linearisation) -> tuple[np.ndarray, float]:
+    """The inverse Hessian scaled by the a posteriori variance factor.
+
+    The point covariances come from nominal pixel and disparity sigmas; the residuals say how
+    large the noise really was. Scaling by the robust variance factor (median squared
+    distance over the median of chi-square with 3 degrees of freedom) makes the covariance
+    match this frame's data, so a consumer weighs it neither too much nor too little.
+    """
+    variance_factor = float(np.median(linearisation.squared) / CHI2_3_MEDIAN)
+    variance_factor = min(max(variance_factor, _MIN_VARIANCE_FACTOR), _MAX_VARIANCE_FACTOR)
+    covariance = variance_factor * np.linalg.inv(linearisation.hessian)
+    return 0.5 * (covariance + covariance.T), variance_factor
+
+
 def refine_pose_mahalanobis(
     source: np.ndarray,
     target: np.ndarray,
@@ -201,12 +292,7 @@ def refine_pose_mahalanobis(
     arrays = (source, target, source_cov, target_cov, rotation, translation)
     if not all(np.isfinite(a).all() for a in arrays):
         return unchanged("non-finite input")
-    # r' = R^T (target - t) - Exp(omega) (s + v)  =>  dr'/domega = [s]x, dr'/dv = -I: the
-    # Jacobian in the source frame does not depend on the pose.
-    jacobian = np.empty((n, 3, 6))
-    jacobian[:, :, :3] = skew(source)
-    jacobian[:, :, 3:] = -np.eye(3)
-    data = (source, target, source_cov, target_cov, jacobian)
+    data = (source, target, source_cov, target_cov, _source_frame_jacobian(source))
     try:
         current = _linearise(*data, rotation, translation, robust, robust_scale)
     except np.linalg.LinAlgError:
@@ -215,46 +301,14 @@ def refine_pose_mahalanobis(
     if not np.isfinite(initial_cost):
         return unchanged("non-finite cost", initial_cost)
 
-    estimate_r, estimate_t = rotation, translation
-    damping, steps, rejected = 1e-4, 0, 0
-    while steps < iterations and rejected < _MAX_DAMPING_TRIES:
-        damped = current.hessian + damping * np.diag(np.diag(current.hessian))
-        try:
-            step = np.linalg.solve(damped, -current.gradient)
-        except np.linalg.LinAlgError:
-            step = np.full(6, np.nan)
-        if np.linalg.norm(step) < _STEP_TOLERANCE:
-            break  # converged; evaluating a smaller step would only compare rounding errors
-        candidate = None
-        if np.isfinite(step).all():
-            candidate_r = estimate_r @ quat_to_matrix(rotation_vector_to_quat(step[:3]))
-            candidate_t = estimate_t + estimate_r @ step[3:]
-            try:
-                candidate = _linearise(*data, candidate_r, candidate_t, robust, robust_scale)
-            except np.linalg.LinAlgError:
-                candidate = None
-        if candidate is not None and candidate.cost <= current.cost:  # False for NaN
-            estimate_r, estimate_t, current = candidate_r, candidate_t, candidate
-            damping = max(damping * 0.1, 1e-9)
-            steps += 1
-        elif candidate is not None and np.linalg.norm(step) < _SETTLED_STEP:
-            break
-        else:
-            damping *= 10.0
-            rejected += 1
-
+    estimate_r, estimate_t, current, steps = _levenberg_marquardt(
+        data, rotation, translation, current, iterations, robust, robust_scale
+    )
     if not current.cost <= initial_cost:  # also catches NaN
         return unchanged("the cost rose", initial_cost)
     if _condition(current.hessian) > _MAX_CONDITION:
         return unchanged("ill-conditioned: the pairs do not fix all six degrees", initial_cost)
-    # The point covariances come from nominal pixel and disparity sigmas; the residuals say how
-    # large the noise really was. Scaling by the robust variance factor (median squared
-    # distance over the median of chi-square with 3 degrees of freedom) makes the covariance
-    # match this frame's data, so a consumer weighs it neither too much nor too little.
-    variance_factor = float(np.median(current.squared) / CHI2_3_MEDIAN)
-    variance_factor = min(max(variance_factor, _MIN_VARIANCE_FACTOR), _MAX_VARIANCE_FACTOR)
-    covariance = variance_factor * np.linalg.inv(current.hessian)
-    covariance = 0.5 * (covariance + covariance.T)
+    covariance, variance_factor = _scaled_covariance(current)
     return RefinementResult(
         estimate_r, estimate_t, covariance, True, steps, initial_cost, current.cost,
         variance_factor=variance_factor,

@@ -194,75 +194,113 @@ def _footprint(center: np.ndarray, heading: float, length: float, depth: float) 
     return center + edges[:, :1] * length * along + edges[:, 1:] * depth * across
 
 
-def build_street(trajectory: DrivingTrajectory, rng: np.random.Generator, px_per_m: float) -> World:
-    """Ground tiles, building blocks, parked cars, poles and far towers along the road."""
-    s_end = trajectory.path_length() + 60.0
-    samples = np.arange(-40.0, s_end, 1.0)
-    road = trajectory.road(samples)
-    headings, _ = trajectory.heading(samples)
-    tree = cKDTree(road)
-    planes: list[Plane] = []
+@dataclass
+class _Street:
+    """The road sampled every metre, for placing things beside it and keeping them off it."""
 
-    def clear(points: np.ndarray, distance: float) -> bool:
-        return bool(np.all(tree.query(points)[0] >= distance))
+    samples: np.ndarray  # arc length (m)
+    road: np.ndarray  # (N, 2) centre line
+    headings: np.ndarray  # (N,) rad
+    tree: cKDTree
+    s_end: float
 
-    # Ground: 16 m tiles within 40 m of the road.
+    def clear(self, points: np.ndarray, distance: float) -> bool:
+        """True when every point is at least ``distance`` from the centre line."""
+        return bool(np.all(self.tree.query(points)[0] >= distance))
+
+    def at(self, s: float) -> tuple[int, float, np.ndarray]:
+        """Sample index, heading and left normal of the road at arc length ``s``."""
+        index = min(int(np.searchsorted(self.samples, s)), len(self.samples) - 1)
+        heading = float(self.headings[index])
+        return index, heading, np.array([-math.sin(heading), math.cos(heading)])
+
+
+def _add_ground(
+    planes: list[Plane], street: _Street, rng: np.random.Generator, px_per_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """16 m ground tiles within 40 m of the road; returns the corners of the area."""
     tile = 16.0
-    lo, hi = road.min(axis=0) - 40.0, road.max(axis=0) + 40.0
+    lo, hi = street.road.min(axis=0) - 40.0, street.road.max(axis=0) + 40.0
     gx, gy = np.meshgrid(np.arange(lo[0], hi[0], tile), np.arange(lo[1], hi[1], tile))
     corners = np.column_stack([gx.ravel(), gy.ravel()])
-    near = tree.query(corners + 0.5 * tile)[0] < 40.0
+    near = street.tree.query(corners + 0.5 * tile)[0] < 40.0
     ex, ey = np.eye(3)[0], np.eye(3)[1]
     for x, y in corners[near]:
         add_plane(planes, (x, y, 0.0), ex, ey, tile, tile, px_per_m, rng)
+    return lo, hi
 
-    # Building blocks on both sides, with the odd side street.
+
+def _add_buildings(
+    planes: list[Plane], street: _Street, rng: np.random.Generator, px_per_m: float
+) -> None:
+    """Building blocks on both sides, with the odd side street."""
     for side in (-1.0, 1.0):
         s = float(rng.uniform(-30.0, -10.0))
-        while s < s_end:
+        while s < street.s_end:
             length = rng.uniform(8.0, 25.0)
             depth, height = rng.uniform(8.0, 15.0), rng.uniform(5.0, 18.0)
             offset = rng.uniform(6.0, 12.0) + 0.5 * depth
-            index = min(int(np.searchsorted(samples, s + 0.5 * length)), len(samples) - 1)
-            heading = float(headings[index])
-            normal = np.array([-math.sin(heading), math.cos(heading)])
-            center = road[index] + side * offset * normal
-            if clear(_footprint(center, heading, length, depth), ROAD_CLEARANCE_M):
+            index, heading, normal = street.at(s + 0.5 * length)
+            center = street.road[index] + side * offset * normal
+            if street.clear(_footprint(center, heading, length, depth), ROAD_CLEARANCE_M):
                 _add_upright_box(planes, center, heading, (length, depth, height), px_per_m, rng)
             gap = rng.uniform(15.0, 25.0) if rng.random() < 0.15 else rng.uniform(1.0, 6.0)
             s += length + gap
 
-    # Parked cars and poles by the kerb.
+
+def _add_kerbside(
+    planes: list[Plane], street: _Street, rng: np.random.Generator, px_per_m: float
+) -> None:
+    """Parked cars and poles by the kerb."""
     s = float(rng.uniform(0.0, 10.0))
-    while s < s_end:
-        index = min(int(np.searchsorted(samples, s)), len(samples) - 1)
-        heading = float(headings[index])
-        normal = np.array([-math.sin(heading), math.cos(heading)])
+    while s < street.s_end:
+        index, heading, normal = street.at(s)
         side = rng.choice([-1.0, 1.0])
         if rng.random() < 0.6:
             size = (rng.uniform(3.8, 4.8), rng.uniform(1.7, 1.9), rng.uniform(1.4, 1.7))
         else:
             size = (0.3, 0.3, rng.uniform(3.0, 5.0))
         offset = rng.uniform(3.0, 4.5) + 0.5 * size[1]
-        center = road[index] + side * offset * normal
-        if clear(_footprint(center, heading, size[0], size[1]), KERB_CLEARANCE_M):
+        center = street.road[index] + side * offset * normal
+        if street.clear(_footprint(center, heading, size[0], size[1]), KERB_CLEARANCE_M):
             _add_upright_box(planes, center, heading, size, 2.0 * px_per_m, rng)
         s += rng.uniform(8.0, 30.0)
 
-    # Towers far from the road: what the view ahead ends on.
-    wanted = max(6, int(s_end / 40.0))
+
+def _add_towers(
+    planes: list[Plane], street: _Street, rng: np.random.Generator, px_per_m: float
+) -> None:
+    """Towers far from the road: what the view ahead ends on."""
+    wanted = max(6, int(street.s_end / 40.0))
     for _ in range(wanted * 20):
         if wanted == 0:
             break
-        index = int(rng.integers(len(samples)))
+        index = int(rng.integers(len(street.samples)))
         angle = rng.uniform(0.0, 2.0 * np.pi)
-        center = road[index] + rng.uniform(60.0, 250.0) * np.array(
+        center = street.road[index] + rng.uniform(60.0, 250.0) * np.array(
             [math.cos(angle), math.sin(angle)]
         )
         width, height = rng.uniform(20.0, 40.0), rng.uniform(20.0, 60.0)
-        if not clear(_footprint(center, angle, width, width), 50.0):
+        if not street.clear(_footprint(center, angle, width, width), 50.0):
             continue
         _add_upright_box(planes, center, angle, (width, width, height), 0.25 * px_per_m, rng)
         wanted -= 1
+
+
+def build_street(trajectory: DrivingTrajectory, rng: np.random.Generator, px_per_m: float) -> World:
+    """Ground tiles, building blocks, parked cars, poles and far towers along the road.
+
+    The steps draw from ``rng`` in this order; changing it changes every rendered street.
+    """
+    s_end = trajectory.path_length() + 60.0
+    samples = np.arange(-40.0, s_end, 1.0)
+    road = trajectory.road(samples)
+    headings, _ = trajectory.heading(samples)
+    street = _Street(samples, road, headings, cKDTree(road), s_end)
+    planes: list[Plane] = []
+    lo, hi = _add_ground(planes, street, rng, px_per_m)
+    _add_buildings(planes, street, rng, px_per_m)
+    _add_kerbside(planes, street, rng, px_per_m)
+    _add_towers(planes, street, rng, px_per_m)
     extent = float(np.abs(np.concatenate([lo, hi])).max()) + 250.0
     return World(planes, (extent, extent, 60.0), DRIVING_CAMERA)

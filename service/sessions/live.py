@@ -4,6 +4,9 @@ Each live session has one consumer task that takes frames from its queue one at 
 them to its worker (see :mod:`service.workers`: a pinned process, or a thread), so frames of one
 session never overlap while different sessions use all workers. The pose is committed to the
 database (in an I/O thread) before its future resolves, i.e. before any client can see it.
+
+Over 500 lines on purpose: the steps of a frame (lease, worker, answer, store) and the flush
+all read and move the one session's state; splitting the class would only pass it around.
 """
 
 from __future__ import annotations
@@ -14,12 +17,14 @@ import logging
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any, NoReturn
 
 import numpy as np
 from sqlalchemy.exc import DBAPIError
 
 from estimator.types import TimestampOrderError, check_timestamp_order
-from service.answer import flat_of
+from service.answer import FrameAnswer, flat_of
 from service.estimator_adapter import PreparedSession
 from service.images import ImageLimits
 from service.lease import Held, LeaseBook, LeaseHeld
@@ -32,7 +37,7 @@ from service.sessions.frames import (
     FrameRejected,
     SessionGone,
 )
-from service.sessions.imu_buffer import ImuBuffer, ImuSamples
+from service.sessions.imu_buffer import ImuBuffer, ImuSamples, ImuTake
 from service.settings import ServiceSettings
 from service.storage import Fence, LeaseLost, PendingPose, SessionRecord, SmoothedPose, Store
 from service.workers import (
@@ -44,6 +49,17 @@ from service.workers import (
 )
 
 logger = logging.getLogger("swarmvo.service")
+
+
+@dataclass(frozen=True)
+class _WorkerRun:
+    """What the worker answered for one frame, and the pipeline spec it was sent with."""
+
+    outcome: FrameProcessed | FrameFailure
+    spec: PipelineSpec | None
+    resume_message: str
+    sent: float  # perf_counter when the request left
+    answered: float  # perf_counter when the answer came back
 
 
 class LiveSession:
@@ -338,15 +354,34 @@ class LiveSession:
 
     async def _process(self, job: FrameJob) -> Answered:
         """Decode + odometry in the session's worker, then persist in an I/O thread."""
-        loop = asyncio.get_running_loop()
         started = time.perf_counter()
         timings = {"queue_wait": started - job.received}
         await self._hold_lease()
         if self.last_processed_ns is not None and job.timestamp_ns <= self.last_processed_ns:
             return await self._stored_answer(job.timestamp_ns)  # stored by another replica
         take = self.imu.peek(job.timestamp_ns, self.last_processed_ns)
+        run = await self._run_in_worker(job, take)
+        outcome = run.outcome
+        if isinstance(outcome, FrameFailure):
+            self._refuse_failed(job, outcome, take)
+        self.imu.consume(take)
+        answer = self._answer_of(run, outcome, timings)
+        stored = time.perf_counter()
+        await self._persist(answer, outcome.state)
+        done = time.perf_counter()
+        timings["persist"] = done - stored
+        timings["total"] = done - job.received
+        self._note_stored(job.timestamp_ns, timings, answer.status)
+        return Answered(answer.model_copy(update={"timings_s": timings}))
+
+    async def _run_in_worker(self, job: FrameJob, take: ImuTake) -> _WorkerRun:
+        """Send the frame to the worker, building the pipeline first when it is not there.
+
+        A worker that lost the pipeline (it was restarted) answers ``pipeline_missing``: the
+        pipeline is built again from the store and the frame retried once.
+        """
+        loop = asyncio.get_running_loop()
         resume_message = ""
-        outcome: FrameProcessed | FrameFailure | None = None
         for _attempt in range(2):
             spec = None
             if not self.pipeline_ready:
@@ -369,35 +404,48 @@ class LiveSession:
                     )
             if isinstance(outcome, FrameFailure) and outcome.pipeline_lost:
                 self.pipeline_ready = False
-            # The worker lost the pipeline (it was restarted): build it again and retry once.
             if not (isinstance(outcome, FrameFailure) and outcome.kind == "pipeline_missing"):
                 break
-        assert outcome is not None
-        if isinstance(outcome, FrameFailure):
-            if outcome.kind not in ("bad_image", "worker_died", "worker_timeout",
-                                    "pipeline_missing", "cpu_budget"):
-                self.imu.consume(take)  # the estimator saw these samples
-            if outcome.trace:
-                logger.error("frame %s of session %s failed in its worker:\n%s",
-                             job.timestamp_ns, self.session_id, outcome.trace.rstrip())
-            kind = "internal" if outcome.kind == "pipeline_missing" else outcome.kind
-            raise FrameRejected(outcome.status_code, outcome.detail, kind)
-        self.imu.consume(take)
+        return _WorkerRun(outcome, spec, resume_message, sent, answered)
+
+    def _refuse_failed(self, job: FrameJob, outcome: FrameFailure, take: ImuTake) -> NoReturn:
+        """Turn a worker's failure into the client's refusal; the IMU samples count as used
+        when the estimator saw them, so they are not fed twice."""
+        if outcome.kind not in ("bad_image", "worker_died", "worker_timeout",
+                                "pipeline_missing", "cpu_budget"):
+            self.imu.consume(take)  # the estimator saw these samples
+        if outcome.trace:
+            logger.error("frame %s of session %s failed in its worker:\n%s",
+                         job.timestamp_ns, self.session_id, outcome.trace.rstrip())
+        kind = "internal" if outcome.kind == "pipeline_missing" else outcome.kind
+        raise FrameRejected(outcome.status_code, outcome.detail, kind)
+
+    @staticmethod
+    def _answer_of(
+        run: _WorkerRun, outcome: FrameProcessed, timings: dict[str, float]
+    ) -> FrameAnswer:
+        """The worker's answer with the session's timings and the resume note added;
+        ``timings`` gains the worker's stages and the transfer time."""
         worked = outcome.answer.timings_s
         timings.update(worked)
-        timings["transfer"] = max(0.0, answered - sent - worked["decode"] - worked["odometry"])
-        resumed = outcome.created and spec is not None and spec.initial_pose is not None
-        message = "; ".join(
-            m for m in (resume_message if resumed else "", outcome.answer.message) if m
+        timings["transfer"] = max(
+            0.0, run.answered - run.sent - worked["decode"] - worked["odometry"]
         )
-        answer = outcome.answer.model_copy(
+        resumed = outcome.created and run.spec is not None and run.spec.initial_pose is not None
+        message = "; ".join(
+            m for m in (run.resume_message if resumed else "", outcome.answer.message) if m
+        )
+        return outcome.answer.model_copy(
             update={"timings_s": dict(timings), "message": message, "resumed": resumed}
         )
-        stored = time.perf_counter()
+
+    async def _persist(self, answer: FrameAnswer, state: dict[str, Any] | None) -> None:
+        """Store the pose (and the estimator state) before anyone sees it; a failed write
+        marks the pipeline stale so the stored trajectory stays the source of truth."""
         fence = self.lease.fence if self.lease is not None else None
         try:
             await self.pose_writer.add(PendingPose(
-                answer, fence, outcome.state,
+                answer, fence, state,
                 [(p.timestamp_ns, flat_of(p.pose)) for p in answer.smoothed],
             ))
         except LeaseLost as error:
@@ -418,18 +466,17 @@ class LiveSession:
                          str(error).splitlines()[0] if str(error) else repr(error))
             raise FrameRejected(503, "the pose could not be stored (database error); retry "
                                 "the frame", "storage", 1.0) from error
-        done = time.perf_counter()
-        timings["persist"] = done - stored
-        timings["total"] = done - job.received
+
+    def _note_stored(self, timestamp_ns: int, timings: dict[str, float], status: str) -> None:
+        """Advance the session past a stored frame and record its latency metrics."""
         self.next_index += 1
-        self.last_processed_ns = job.timestamp_ns
+        self.last_processed_ns = timestamp_ns
         if self.lease is not None and self.leases is not None:
             self.lease = self.leases.held(self.lease.fence)  # the write renewed it
         self.stored_at.append(time.time())
         for stage, seconds in timings.items():
             self.metrics.stage_latency.labels(stage).observe(seconds)
-        self.metrics.frames.labels(answer.status).inc()
-        return Answered(answer.model_copy(update={"timings_s": timings}))
+        self.metrics.frames.labels(status).inc()
 
     def start_flush(self) -> asyncio.Future[list[SmoothedPose]]:
         """Ask the worker to finalise the back end's window; call only between frames.
