@@ -81,39 +81,39 @@ class SessionManager:
         """The session's live state, created on first use; SessionGone once it was deleted."""
         if record.id in self.deleted:
             raise SessionGone()
-        worker = self.live.get(record.id)
-        if worker is not None:
+        live = self.live.get(record.id)
+        if live is not None:
             self.live.move_to_end(record.id)
-            return worker
+            return live
         self._evict_idle()
         slot = self.runner.assign(record.id)
-        worker = LiveSession(
+        live = LiveSession(
             record, self.settings, self.store, self.runner, slot, self.io_pool, self.metrics,
             self.leases, self.pose_writer,
         )
-        self.live[record.id] = worker
+        self.live[record.id] = live
         self._on_change()
-        return worker
+        return live
 
     def _evict_idle(self) -> None:
         while len(self.live) >= self.settings.max_active_sessions:
             victim = next((sid for sid, w in self.live.items() if w.idle), None)
             if victim is None:
                 return  # all busy: exceed the soft cap rather than refuse work
-            worker = self.live.pop(victim)
+            live = self.live.pop(victim)
             # Flushed and freed now, not when the close task runs: the session may come back
             # before that, and its new pipeline must not be dropped by this late release.
-            flushed = worker.start_flush()
-            self.runner.release(worker.slot, victim)
-            asyncio.get_running_loop().create_task(self._unload(worker, flushed))
+            flushed = live.start_flush()
+            self.runner.release(live.slot, victim)
+            asyncio.get_running_loop().create_task(self._unload(live, flushed))
 
     @staticmethod
     async def _unload(
-        worker: LiveSession, flushed: asyncio.Future[list[SmoothedPose]]
+        live: LiveSession, flushed: asyncio.Future[list[SmoothedPose]]
     ) -> None:
         """An evicted session: its back end's last poses are stored, its consumer stopped."""
-        await worker.close("session unloaded")
-        await worker.finish_flush(flushed)
+        await live.close("session unloaded")
+        await live.finish_flush(flushed)
 
     def attach(self, session_id: str, stream: StreamHandle) -> None:
         """Register an open stream; SessionGone when the session was deleted meanwhile."""
@@ -128,9 +128,9 @@ class SessionManager:
             streams.discard(stream)
             if not streams:
                 del self.streams[session_id]
-        worker = self.live.get(session_id)
-        if finished and worker is not None and session_id not in self.streams:
-            self._release_later(worker)
+        live = self.live.get(session_id)
+        if finished and live is not None and session_id not in self.streams:
+            self._release_later(live)
 
     async def finish(self, session_id: str) -> list[SmoothedPose]:
         """The robot's end of stream over REST, as a WebSocket's close message: once the frames
@@ -138,31 +138,31 @@ class SessionManager:
         stream open, the lease is given up. A later frame resumes from the last stored pose."""
         if session_id in self.deleted:
             raise SessionGone()
-        worker = self.live.get(session_id)
-        if worker is None:  # nothing live here: nothing held back
+        live = self.live.get(session_id)
+        if live is None:  # nothing live here: nothing held back
             return []
-        flushed = await worker.flush_after_queued()
+        flushed = await live.flush_after_queued()
         if session_id not in self.streams:
-            self._release_later(worker)
+            self._release_later(live)
         return flushed
 
-    def _release_later(self, worker: LiveSession) -> None:
-        task = asyncio.get_running_loop().create_task(self._release_when_idle(worker))
+    def _release_later(self, live: LiveSession) -> None:
+        task = asyncio.get_running_loop().create_task(self._release_when_idle(live))
         self._background.add(task)  # referenced until done (the loop keeps weak ones)
         task.add_done_callback(self._background.discard)
 
-    async def _release_when_idle(self, worker: LiveSession, wait_s: float = 30.0) -> None:
+    async def _release_when_idle(self, live: LiveSession, wait_s: float = 30.0) -> None:
         deadline = time.monotonic() + wait_s
 
         def drained() -> bool:
-            return not worker.busy and worker.queue.empty()
+            return not live.busy and live.queue.empty()
 
         while not drained() and time.monotonic() < deadline:
             await asyncio.sleep(0.05)
-        if drained() and worker.session_id not in self.streams:
+        if drained() and live.session_id not in self.streams:
             with contextlib.suppress(Exception):  # best effort: the lease expires anyway
                 await asyncio.get_running_loop().run_in_executor(
-                    self.io_pool, worker.release_lease)
+                    self.io_pool, live.release_lease)
 
     async def remove(self, session_id: str) -> None:
         """Delete the live state: queued frames are refused with 404, the back end's window is
@@ -170,27 +170,27 @@ class SessionManager:
         self.deleted[session_id] = None
         while len(self.deleted) > MAX_REMEMBERED_DELETIONS:
             self.deleted.popitem(last=False)
-        worker = self.live.pop(session_id, None)
+        live = self.live.pop(session_id, None)
         last: list[SmoothedPose] = []
-        if worker is not None:
+        if live is not None:
             self._on_change()
-            last = await worker.close("session was deleted", deleted=True)
-            self.runner.release(worker.slot, session_id)
+            last = await live.close("session was deleted", deleted=True)
+            self.runner.release(live.slot, session_id)
         for stream in self.streams.pop(session_id, set()):
             stream.terminate(STREAM_CLOSE_DELETED, "session deleted", last)
 
     async def shutdown(self, drain_seconds: float = 10.0) -> None:
-        workers = list(self.live.values())
+        sessions = list(self.live.values())
         self.live.clear()
         self._on_change()
         await asyncio.gather(
-            *(w.close("server shutting down", drain_seconds) for w in workers),
+            *(w.close("server shutting down", drain_seconds) for w in sessions),
             return_exceptions=True,
         )
         # Leases given back: other replicas take these sessions over at once, not on expiry.
-        for worker in workers:
+        for live in sessions:
             with contextlib.suppress(Exception):
                 await asyncio.get_running_loop().run_in_executor(self.io_pool,
-                                                                 worker.release_lease)
+                                                                 live.release_lease)
         await self.runner.shutdown()
         self.io_pool.shutdown(wait=True, cancel_futures=False)
