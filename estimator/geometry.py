@@ -1,4 +1,4 @@
-"""Shared rigid-body math: quaternions, SE(3) and the Kabsch/Arun fit.
+"""Shared rigid-body math: quaternions, SE(3) (poses and their adjoint) and the Kabsch/Arun fit.
 
 Every other module uses these functions; there is exactly one implementation of each
 operation. Quaternions are scalar-first ``(w, x, y, z)`` and unit norm. All quaternion
@@ -30,8 +30,10 @@ __all__ = [
     "rotation_angle_deg",
     "rotation_vector_to_quat",
     "scale_motion",
+    "se3_adjoint",
     "skew",
     "transform_points",
+    "transport_covariance",
     "wahba",
 ]
 
@@ -194,6 +196,43 @@ def compose(*poses: np.ndarray) -> np.ndarray:
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 rigid transform to points (N, 3)."""
     return points @ pose[:3, :3].T + pose[:3, 3]
+
+
+def se3_adjoint(pose: np.ndarray, *, inverse: bool = False) -> np.ndarray:
+    """Adjoint Ad(T) (6x6) of a 4x4 pose T; with ``inverse``, Ad(T^-1) without forming T^-1.
+
+    Tangent vectors are GTSAM's Pose3 ones, rotation first: xi = (omega, v), with the
+    perturbation on the right, T exp(xi) ~ (R Exp(omega), t + R v) (the refinement's and the
+    back end's convention). The adjoint moves a perturbation from the right of T to its left:
+    T exp(xi) = exp(Ad(T) xi) T, i.e. Ad(T) xi = log(T exp(xi) T^-1), with
+
+        Ad(T) = [[R, 0], [[t]x R, R]],   Ad(T^-1) = [[R^T, 0], [-R^T [t]x, R^T]].
+
+    Translation-first conventions (e.g. ROS covariances) swap the blocks: [[R, [t]x R], [0, R]].
+    """
+    rotation = pose[:3, :3]
+    if inverse:
+        rotation = rotation.T
+        coupling = -rotation @ skew(pose[:3, 3])
+    else:
+        coupling = skew(pose[:3, 3]) @ rotation
+    adjoint = np.zeros((6, 6))
+    adjoint[:3, :3] = rotation
+    adjoint[3:, :3] = coupling
+    adjoint[3:, 3:] = rotation
+    return adjoint
+
+
+def transport_covariance(covariance: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Covariance (6x6, right perturbation, rotation first) of X moved on to X @ ``pose``.
+
+    X exp(xi) pose = X pose exp(Ad(pose^-1) xi), so a perturbation of X is one of X @ pose
+    seen through Ad(pose^-1): C -> Ad(pose^-1) C Ad(pose^-1)^T (:func:`se3_adjoint`). This is
+    how a chained pose inherits the covariance of its first factor, and how a covariance
+    held at one frame is compared with one held at the next.
+    """
+    adjoint = se3_adjoint(pose, inverse=True)
+    return adjoint @ covariance @ adjoint.T
 
 
 def rotation_angle_deg(rotation: np.ndarray) -> np.ndarray:

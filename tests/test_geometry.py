@@ -139,3 +139,58 @@ def test_scale_motion_keeps_the_velocity() -> None:
     np.testing.assert_allclose(half @ half, rotation, atol=1e-12)
     np.testing.assert_allclose(g.scale_motion(motion, 0.0), np.eye(4), atol=1e-12)
     np.testing.assert_array_equal(g.scale_motion(motion, 1.0), motion)
+
+
+def _twist_hat(xi: np.ndarray) -> np.ndarray:
+    """4x4 Lie-algebra matrix of xi = (omega, v), rotation first (GTSAM's Pose3 order)."""
+    hat = np.zeros((4, 4))
+    hat[:3, :3] = g.skew(xi[:3])
+    hat[:3, 3] = xi[3:]
+    return hat
+
+
+def _twist_vee(hat: np.ndarray) -> np.ndarray:
+    return np.array([hat[2, 1], hat[0, 2], hat[1, 0], *hat[:3, 3]])
+
+
+@given(rotvecs, rotvecs)
+@settings(max_examples=40, deadline=None)
+def test_se3_adjoint_moves_a_right_perturbation_to_the_left(
+    rotvec: np.ndarray, translation: np.ndarray
+) -> None:
+    """Ad(T) xi = log(T exp(xi) T^-1), with the matrix exponential and logarithm (scipy)."""
+    from scipy.linalg import expm, logm
+
+    pose = g.make_pose(g.quat_to_matrix(g.rotation_vector_to_quat(rotvec)), translation)
+    xi = np.array([0.004, -0.011, 0.007, 0.02, 0.013, -0.009])
+    conjugated = pose @ expm(_twist_hat(xi)) @ g.invert_pose(pose)
+    expected = _twist_vee(np.real(logm(conjugated)))
+    np.testing.assert_allclose(g.se3_adjoint(pose) @ xi, expected, atol=1e-10)
+    inverse = g.se3_adjoint(pose, inverse=True)
+    np.testing.assert_allclose(inverse, g.se3_adjoint(g.invert_pose(pose)), atol=1e-12)
+    np.testing.assert_allclose(inverse @ g.se3_adjoint(pose), np.eye(6), atol=1e-12)
+
+
+def test_transport_covariance_follows_a_perturbation_through_the_chain() -> None:
+    """X exp(xi) T = X T exp(J xi): J measured column by column with expm/logm (scipy), then
+    the transported covariance must be J C J^T."""
+    from scipy.linalg import expm, logm
+
+    rng = np.random.default_rng(4)
+    pose = g.make_pose(
+        g.quat_to_matrix(g.rotation_vector_to_quat(np.array([0.3, -0.5, 0.2]))),
+        np.array([0.4, -0.2, 1.1]),
+    )
+    step = 1e-4
+    jacobian = np.column_stack(
+        [
+            _twist_vee(np.real(logm(g.invert_pose(pose) @ expm(_twist_hat(step * unit)) @ pose)))
+            / step
+            for unit in np.eye(6)
+        ]
+    )
+    factor = rng.normal(size=(6, 6)) * 1e-3
+    covariance = factor @ factor.T
+    np.testing.assert_allclose(
+        g.transport_covariance(covariance, pose), jacobian @ covariance @ jacobian.T, atol=1e-12
+    )

@@ -29,6 +29,7 @@ import gtsam
 import numpy as np
 
 from estimator.config import BackendConfig
+from estimator.geometry import transport_covariance
 
 __all__ = [
     "CALIBRATION_ROTATION_GAIN",
@@ -97,7 +98,6 @@ def drift_growth(
     over a window, is the drift the pose covariance reports for it: a filter integrating the
     twist gets the same uncertainty as the poses say.
     """
-    adjoint = np.asarray(gtsam.Pose3(np.linalg.inv(motion)).AdjointMap())
-    change = current - adjoint @ previous @ adjoint.T
+    change = current - transport_covariance(previous, motion)
     values, vectors = np.linalg.eigh(0.5 * (change + change.T))
     return (vectors * np.clip(values, 0.0, None)) @ vectors.T

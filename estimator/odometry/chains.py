@@ -24,7 +24,8 @@ from estimator.geometry import (
     quat_to_matrix,
     quat_to_rotation_vector,
     rotation_vector_to_quat,
-    skew,
+    se3_adjoint,
+    transport_covariance,
 )
 
 __all__ = ["chain_covariance", "fuse_poses", "inverse_covariance", "pose_difference"]
@@ -48,29 +49,21 @@ def chain_covariance(
 ) -> np.ndarray:
     """Covariance (6x6, right perturbation) of A @ B from those of A and B (independent).
 
-    Perturbing A on the right moves A @ B by R_B^T omega in rotation and by
-    R_B^T (v - [t_B]x omega) in translation; perturbing B passes through unchanged.
+    Perturbing A on the right moves A @ B by Ad(B^-1) (``transport_covariance``): by
+    R_B^T omega in rotation and by R_B^T (v - [t_B]x omega) in translation; perturbing B
+    passes through unchanged.
     """
-    rotation_t = second[:3, :3].T
-    jacobian = np.zeros((6, 6))
-    jacobian[:3, :3] = rotation_t
-    jacobian[3:, :3] = -rotation_t @ skew(second[:3, 3])
-    jacobian[3:, 3:] = rotation_t
-    return jacobian @ first_covariance @ jacobian.T + second_covariance
+    return transport_covariance(first_covariance, second) + second_covariance
 
 
 def inverse_covariance(pose: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     """Covariance (6x6, right perturbation) of the inverse of ``pose``.
 
-    Perturbing the pose by (omega, v) moves its inverse by -R omega in rotation and by
-    -[t]x R omega - R v in translation.
+    Perturbing the pose by (omega, v) moves its inverse by -Ad(pose) (omega, v): by -R omega
+    in rotation and by -[t]x R omega - R v in translation; the sign cancels in the covariance.
     """
-    rotation = pose[:3, :3]
-    jacobian = np.zeros((6, 6))
-    jacobian[:3, :3] = -rotation
-    jacobian[3:, :3] = -skew(pose[:3, 3]) @ rotation
-    jacobian[3:, 3:] = -rotation
-    return jacobian @ covariance @ jacobian.T
+    adjoint = se3_adjoint(pose)
+    return adjoint @ covariance @ adjoint.T
 
 
 def fuse_poses(
