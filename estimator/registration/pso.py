@@ -70,57 +70,105 @@ def optimise(
     The bookkeeping between objective calls is compiled: a swarm of a dozen particles costs
     microseconds per update, which numpy's per-call overhead would multiply several times.
     """
-    positions = np.array(initial, dtype=float, order="C")
-    if positions.ndim != 2 or len(positions) == 0:
-        raise ValueError(f"initial must be a non-empty (P, D) array, got shape {positions.shape}")
-    if max_iterations < 0 or stagnation < 1:
-        raise ValueError("max_iterations must be >= 0 and stagnation >= 1")
-    velocity = np.zeros_like(positions)
-    if initial_velocity is not None:
-        velocity[:] = initial_velocity
-    clamp = max_speed is not None
-    speed = np.empty(positions.shape[1])
-    speed[:] = np.inf if max_speed is None else max_speed
-    support, fitness = _score(objective, positions)
-    # A non-finite fitness never wins a comparison: it counts as +inf.
-    best_positions, best_support = positions.copy(), support.copy()
-    best_fitness = np.where(np.isfinite(fitness), fitness, np.inf)
-    leader = _leader(best_support, best_fitness)
+    flight = _Flight.start(initial, initial_velocity, max_speed, max_iterations, stagnation)
+    bests = _Bests.first(flight.positions, *_score(objective, flight.positions))
     evaluations, quiet = 1, 0
     for _ in range(max_iterations):
         if quiet >= stagnation:
             break
+        flight.move(bests, rng.random((2, *flight.positions.shape)), inertia, acceleration)
+        support, fitness = _score(objective, flight.positions)
+        evaluations += 1
+        improved = bests.remember(flight.positions, support, fitness, float(tolerance))
+        quiet = 0 if improved else quiet + 1
+    return bests.result(evaluations)
+
+
+@dataclass
+class _Flight:
+    """The particles' current positions (P, D), velocities and per-axis speed limit."""
+
+    positions: np.ndarray
+    velocity: np.ndarray
+    speed: np.ndarray
+    clamp: bool
+
+    @classmethod
+    def start(
+        cls,
+        initial: np.ndarray,
+        initial_velocity: np.ndarray | None,
+        max_speed: float | np.ndarray | None,
+        max_iterations: int,
+        stagnation: int,
+    ) -> _Flight:
+        """Checked starting positions and velocities (``optimise``'s arguments)."""
+        positions = np.array(initial, dtype=float, order="C")
+        if positions.ndim != 2 or len(positions) == 0:
+            shape = positions.shape
+            raise ValueError(f"initial must be a non-empty (P, D) array, got shape {shape}")
+        if max_iterations < 0 or stagnation < 1:
+            raise ValueError("max_iterations must be >= 0 and stagnation >= 1")
+        velocity = np.zeros_like(positions)
+        if initial_velocity is not None:
+            velocity[:] = initial_velocity
+        speed = np.empty(positions.shape[1])
+        speed[:] = np.inf if max_speed is None else max_speed
+        return cls(positions, velocity, speed, max_speed is not None)
+
+    def move(self, bests: _Bests, phi: np.ndarray, inertia: float, acceleration: float) -> None:
+        """One velocity and position update towards the personal bests and the leader's."""
         _move(
-            positions,
-            velocity,
-            best_positions,
-            leader,
-            rng.random((2, *positions.shape)),
+            self.positions,
+            self.velocity,
+            bests.positions,
+            bests.leader,
+            phi,
             float(inertia),
             float(acceleration),
-            clamp,
-            speed,
+            self.clamp,
+            self.speed,
         )
-        support, fitness = _score(objective, positions)
-        evaluations += 1
-        new_leader, gained = _remember(
+
+
+@dataclass
+class _Bests:
+    """Each particle's best position so far, its (support, fitness), and the swarm's leader."""
+
+    positions: np.ndarray  # (P, D)
+    support: np.ndarray  # (P,) int64
+    fitness: np.ndarray  # (P,)
+    leader: int
+
+    @classmethod
+    def first(cls, positions: np.ndarray, support: np.ndarray, fitness: np.ndarray) -> _Bests:
+        # A non-finite fitness never wins a comparison: it counts as +inf.
+        finite = np.where(np.isfinite(fitness), fitness, np.inf)
+        return cls(positions.copy(), support.copy(), finite, _leader(support, finite))
+
+    def remember(
+        self, positions: np.ndarray, support: np.ndarray, fitness: np.ndarray, tolerance: float
+    ) -> bool:
+        """Take this round's improvements; True when the leader improved (``optimise``)."""
+        self.leader, gained = _remember(
             support,
             fitness,
             positions,
-            best_positions,
-            best_support,
-            best_fitness,
-            leader,
-            float(tolerance),
+            self.positions,
+            self.support,
+            self.fitness,
+            self.leader,
+            tolerance,
         )
-        quiet = 0 if gained else quiet + 1
-        leader = new_leader
-    return SwarmResult(
-        best_positions[leader].copy(),
-        int(best_support[leader]),
-        float(best_fitness[leader]),
-        evaluations,
-    )
+        return bool(gained)
+
+    def result(self, evaluations: int) -> SwarmResult:
+        return SwarmResult(
+            self.positions[self.leader].copy(),
+            int(self.support[self.leader]),
+            float(self.fitness[self.leader]),
+            evaluations,
+        )
 
 
 def _score(objective: Objective, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
