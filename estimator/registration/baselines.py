@@ -90,24 +90,80 @@ def msac(
     if is_degenerate(source) or is_degenerate(target):
         return failed_result(count, "points are coincident or collinear: rotation undetermined")
     rng = np.random.default_rng(seed)
+    rotation, translation, drawn = _best_hypothesis(
+        source, target, scales, rng, threshold, confidence, max_iterations, batch_size
+    )
+    rotation, translation, inliers = _refit_inliers(
+        source, target, scales, rotation, translation, threshold, refits
+    )
+    squared = (residual_norms(rotation, translation, source, target) / scales) ** 2
+    cost = float(np.minimum(squared, threshold * threshold).sum())
+    if np.count_nonzero(inliers) < 3:
+        return failed_result(count, "msac found fewer than 3 inliers", iterations=drawn)
+    return pose_result(rotation, translation, inliers, cost=cost, iterations=drawn)
+
+
+def _best_hypothesis(
+    source: np.ndarray,
+    target: np.ndarray,
+    scales: np.ndarray,
+    rng: np.random.Generator,
+    threshold: float,
+    confidence: float,
+    max_iterations: int,
+    batch_size: int,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The 3-point hypothesis of least truncated cost, drawn in batches until the stopping
+    rule (``msac``) is met: (R, t, hypotheses drawn)."""
     squared_cap = threshold * threshold
     best_cost, best_pose = math.inf, (np.eye(3), np.zeros(3))
     needed, drawn = max_iterations, 0
     while drawn < min(needed, max_iterations):
         batch = min(batch_size, max_iterations - drawn)
-        samples = _triplets(rng, count, batch)
-        rotations, translations = kabsch_batched(source[samples], target[samples])
-        predicted = source @ rotations.transpose(0, 2, 1) + translations[:, None, :]
-        squared = np.sum((target - predicted) ** 2, axis=2) / scales**2  # (B, N)
+        rotations, translations = _hypotheses(rng, source, target, batch)
+        squared = _scaled_squared_residuals(rotations, translations, source, target, scales)
         costs = np.minimum(squared, squared_cap).sum(axis=1)
         drawn += batch
         winner = int(np.argmin(costs))
         if costs[winner] < best_cost:
             best_cost = float(costs[winner])
             best_pose = (rotations[winner], translations[winner])
-            ratio = np.count_nonzero(squared[winner] < squared_cap) / count
+            ratio = np.count_nonzero(squared[winner] < squared_cap) / len(source)
             needed = _hypotheses_needed(ratio, confidence, max_iterations)
-    rotation, translation = best_pose
+    return *best_pose, drawn
+
+
+def _hypotheses(
+    rng: np.random.Generator, source: np.ndarray, target: np.ndarray, batch: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``batch`` Kabsch fits of random triplets: rotations (B, 3, 3), translations (B, 3)."""
+    samples = _triplets(rng, len(source), batch)
+    return kabsch_batched(source[samples], target[samples])
+
+
+def _scaled_squared_residuals(
+    rotations: np.ndarray,
+    translations: np.ndarray,
+    source: np.ndarray,
+    target: np.ndarray,
+    scales: np.ndarray,
+) -> np.ndarray:
+    """(B, N) squared residual of every pair under every hypothesis, over its relative scale."""
+    predicted = source @ rotations.transpose(0, 2, 1) + translations[:, None, :]
+    return np.sum((target - predicted) ** 2, axis=2) / scales**2
+
+
+def _refit_inliers(
+    source: np.ndarray,
+    target: np.ndarray,
+    scales: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    threshold: float,
+    refits: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Kabsch on the inliers, at most ``refits`` times or until the inlier set repeats:
+    (R, t, inlier mask)."""
     inliers = residual_norms(rotation, translation, source, target) / scales < threshold
     for _ in range(refits):
         if np.count_nonzero(inliers) < 3 or is_degenerate(source[inliers]):
@@ -118,11 +174,7 @@ def msac(
         if np.array_equal(refitted, inliers):
             break
         inliers = refitted
-    squared = (residual_norms(rotation, translation, source, target) / scales) ** 2
-    cost = float(np.minimum(squared, squared_cap).sum())
-    if np.count_nonzero(inliers) < 3:
-        return failed_result(count, "msac found fewer than 3 inliers", iterations=drawn)
-    return pose_result(rotation, translation, inliers, cost=cost, iterations=drawn)
+    return rotation, translation, inliers
 
 
 def _triplets(rng: np.random.Generator, count: int, batch: int) -> np.ndarray:
