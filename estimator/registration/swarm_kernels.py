@@ -244,6 +244,20 @@ def horn_fit(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     # Weighted Horn on the pairs in mask: centroids, correlation, top eigenvector of the
     # 4x4 Horn matrix as the quaternion (w >= 0), its rotation, t = c' - R c.
+    total, source_mean, target_mean = _weighted_centroids(source, target, weights, mask)
+    correlation = _weighted_correlation(
+        source, target, weights, mask, total, source_mean, target_mean
+    )
+    quaternion = _top_quaternion(_horn_matrix(correlation))
+    rotation = _quaternion_rotation(quaternion)
+    return quaternion, rotation, _translation(rotation, source_mean, target_mean)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _weighted_centroids(
+    source: np.ndarray, target: np.ndarray, weights: np.ndarray, mask: np.ndarray
+) -> tuple[float, np.ndarray, np.ndarray]:
+    # The total weight of the pairs in mask and their weighted means.
     total = 0.0
     for j in range(len(source)):
         if mask[j]:
@@ -258,6 +272,20 @@ def horn_fit(
     for a in range(3):
         source_mean[a] /= total
         target_mean[a] /= total
+    return total, source_mean, target_mean
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _weighted_correlation(
+    source: np.ndarray,
+    target: np.ndarray,
+    weights: np.ndarray,
+    mask: np.ndarray,
+    total: float,
+    source_mean: np.ndarray,
+    target_mean: np.ndarray,
+) -> np.ndarray:
+    # c[a, b] = sum_j (w_j / total) (s_j - s_mean)_a (t_j - t_mean)_b over the pairs in mask.
     c = np.zeros((3, 3))
     for j in range(len(source)):
         if mask[j]:
@@ -266,6 +294,12 @@ def horn_fit(
                 offset = share * (source[j, a] - source_mean[a])
                 for b in range(3):
                     c[a, b] += offset * (target[j, b] - target_mean[b])
+    return c
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _horn_matrix(c: np.ndarray) -> np.ndarray:
+    # Horn's symmetric 4x4 matrix of the correlation (``estimator.geometry.horn``).
     horn_matrix = np.empty((4, 4))
     horn_matrix[0, 0] = c[0, 0] + c[1, 1] + c[2, 2]
     horn_matrix[1, 1] = c[0, 0] - c[1, 1] - c[2, 2]
@@ -277,6 +311,12 @@ def horn_fit(
     horn_matrix[1, 2] = horn_matrix[2, 1] = c[0, 1] + c[1, 0]
     horn_matrix[1, 3] = horn_matrix[3, 1] = c[2, 0] + c[0, 2]
     horn_matrix[2, 3] = horn_matrix[3, 2] = c[1, 2] + c[2, 1]
+    return horn_matrix
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _top_quaternion(horn_matrix: np.ndarray) -> np.ndarray:
+    # The eigenvector of the largest eigenvalue, normalised, with w >= 0.
     vectors = symmetric_eigen(horn_matrix)[1]
     top = vectors[:, 3]
     length = math.sqrt(top[0] ** 2 + top[1] ** 2 + top[2] ** 2 + top[3] ** 2)
@@ -284,6 +324,12 @@ def horn_fit(
     quaternion = np.empty(4)
     for k in range(4):
         quaternion[k] = sign * top[k] / length
+    return quaternion
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _quaternion_rotation(quaternion: np.ndarray) -> np.ndarray:
+    # The rotation matrix of a unit quaternion (w, x, y, z).
     w, x, y, z = quaternion[0], quaternion[1], quaternion[2], quaternion[3]
     rotation = np.empty((3, 3))
     rotation[0, 0], rotation[0, 1], rotation[0, 2] = (
@@ -301,6 +347,14 @@ def horn_fit(
         2 * (y * z + w * x),
         1 - 2 * (x * x + y * y),
     )
+    return rotation
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _translation(
+    rotation: np.ndarray, source_mean: np.ndarray, target_mean: np.ndarray
+) -> np.ndarray:
+    # t = c' - R c: the translation that maps the source centroid onto the target's.
     translation = np.empty(3)
     for a in range(3):
         translation[a] = target_mean[a] - (
@@ -308,7 +362,7 @@ def horn_fit(
             + rotation[a, 1] * source_mean[1]
             + rotation[a, 2] * source_mean[2]
         )
-    return quaternion, rotation, translation
+    return translation
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
