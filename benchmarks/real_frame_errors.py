@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import sys
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -43,8 +44,8 @@ def record(path: Path) -> tuple[list[tuple], object]:
     problems: list[tuple] = []
     original = odometry_module.Odometry._estimate_against
 
-    def recording(self, reference, prediction, points, image, timings):
-        estimate = original(self, reference, prediction, points, image, timings)
+    def recording(self, reference, prediction, points, image, timings, uncertainty=None):
+        estimate = original(self, reference, prediction, points, image, timings, uncertainty)
         pairs = estimate.pairs
         if pairs is not None and len(pairs) >= self.config.frontend.min_matches:
             depth_sigma = np.hypot(
@@ -67,6 +68,18 @@ def record(path: Path) -> tuple[list[tuple], object]:
     return problems, sequence
 
 
+VARIANTS = {
+    "pso-robust + depth sigmas (former default)": ("pso-robust", lambda p: {"sigmas": p[4]}),
+    "pso-robust isotropic": ("pso-robust", lambda p: {}),
+    "pso-robust + covariances (default)": (
+        "pso-robust",
+        lambda p: {"source_cov": p[5][0], "target_cov": p[5][1], "gate_chi2": p[6]},
+    ),
+    "msac": ("msac", lambda p: {}),
+    "pso": ("pso", lambda p: {}),
+}  # fmt: skip
+
+
 def main() -> int:
     path = Path(sys.argv[1]) if len(sys.argv) > 1 else DEFAULT
     problems, sequence = record(path)
@@ -74,46 +87,70 @@ def main() -> int:
     stamps = np.array(sorted({p[0] for p in problems} | {p[1] for p in problems}))
     poses = camera_ground_truth(sequence.ground_truth, stamps, sequence.rig.left.T_BS)
     truth = dict(zip(stamps, poses, strict=True))
-    variants = {
-        "pso-robust + depth sigmas (former default)": ("pso-robust", lambda p: {"sigmas": p[4]}),
-        "pso-robust isotropic": ("pso-robust", lambda p: {}),
-        "pso-robust + covariances (default)": (
-            "pso-robust",
-            lambda p: {"source_cov": p[5][0], "target_cov": p[5][1], "gate_chi2": p[6]},
-        ),
-        "msac": ("msac", lambda p: {}),
-        "pso": ("pso", lambda p: {}),
-    }  # fmt: skip
     results: dict[str, dict] = {}
-    for name, (method, options) in variants.items():
+    for name, (method, options) in VARIANTS.items():
         for refine in (False, True):
-            rotations, translations = [], []
-            for problem in problems:
-                relative = np.linalg.inv(truth[problem[0]]) @ truth[problem[1]]
-                true_r = rectify @ relative[:3, :3] @ rectify.T
-                true_t = rectify @ relative[:3, 3]
-                source, target = problem[2], problem[3]
-                result = register(source, target, method=method, seed=0, **options(problem))
-                rotation, translation = result.rotation, result.translation
-                if refine and result.success:
-                    mask = result.inliers
-                    cov = problem[5]
-                    refined = refine_pose_mahalanobis(
-                        source[mask], target[mask], cov[0][mask], cov[1][mask], rotation,
-                        translation,
-                    )  # fmt: skip
-                    if refined.success:
-                        rotation, translation = refined.rotation, refined.translation
-                rotations.append(rotation_angle_deg(rotation.T @ true_r))
-                translations.append(float(np.linalg.norm(translation - true_t)))
-            rot, trans = np.array(rotations), np.array(translations)
-            results[f"{name} | refine {'on' if refine else 'off'}"] = {
-                "rotation_rms_deg": float(np.sqrt(np.mean(rot**2))),
-                "rotation_median_deg": float(np.median(rot)),
-                "translation_rms_mm": float(1000 * np.sqrt(np.mean(trans**2))),
-            }
+            results[f"{name} | refine {'on' if refine else 'off'}"] = variant_errors(
+                problems, truth, rectify, method, options, refine
+            )
+    text = table(sequence.name, len(problems), results)
+    print(text)
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "frame_errors.md").write_text(text)
+    (OUT / "frame_errors.json").write_text(
+        json.dumps({"sequence": sequence.name, "problems": len(problems), **results}, indent=2)
+        + "\n"
+    )
+    return 0
+
+
+def variant_errors(
+    problems: list[tuple],
+    truth: dict,
+    rectify: np.ndarray,
+    method: str,
+    options: Callable[[tuple], dict],
+    refine: bool,
+) -> dict[str, float]:
+    """Rotation and translation errors of one variant over every recorded problem."""
+    rotations, translations = [], []
+    for problem in problems:
+        relative = np.linalg.inv(truth[problem[0]]) @ truth[problem[1]]
+        true_r = rectify @ relative[:3, :3] @ rectify.T
+        true_t = rectify @ relative[:3, 3]
+        rotation, translation = solve(problem, method, options(problem), refine)
+        rotations.append(rotation_angle_deg(rotation.T @ true_r))
+        translations.append(float(np.linalg.norm(translation - true_t)))
+    rot, trans = np.array(rotations), np.array(translations)
+    return {
+        "rotation_rms_deg": float(np.sqrt(np.mean(rot**2))),
+        "rotation_median_deg": float(np.median(rot)),
+        "translation_rms_mm": float(1000 * np.sqrt(np.mean(trans**2))),
+    }
+
+
+def solve(
+    problem: tuple, method: str, options: dict, refine: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """The variant's (R, t) for one problem, refined on its inliers when asked and possible."""
+    source, target = problem[2], problem[3]
+    result = register(source, target, method=method, seed=0, **options)
+    rotation, translation = result.rotation, result.translation
+    if refine and result.success:
+        mask = result.inliers
+        cov = problem[5]
+        refined = refine_pose_mahalanobis(
+            source[mask], target[mask], cov[0][mask], cov[1][mask], rotation, translation
+        )
+        if refined.success:
+            rotation, translation = refined.rotation, refined.translation
+    return rotation, translation
+
+
+def table(sequence_name: str, problems: int, results: dict[str, dict]) -> str:
+    """The markdown table of frame_errors.md."""
     lines = [
-        f"{sequence.name}: {len(problems)} estimator problems of a default vision-alone run, "
+        f"{sequence_name}: {problems} estimator problems of a default vision-alone run, "
         "relative pose vs ground truth (which has its own error)",
         "",
         "| estimator | refinement | rotation RMS deg | rotation median deg | translation RMS mm |",
@@ -125,15 +162,7 @@ def main() -> int:
             f"| {name} | {refine.split()[-1]} | {row['rotation_rms_deg']:.4f} | "
             f"{row['rotation_median_deg']:.4f} | {row['translation_rms_mm']:.2f} |"
         )
-    text = "\n".join(lines) + "\n"
-    print(text)
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "frame_errors.md").write_text(text)
-    (OUT / "frame_errors.json").write_text(
-        json.dumps({"sequence": sequence.name, "problems": len(problems), **results}, indent=2)
-        + "\n"
-    )
-    return 0
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":
