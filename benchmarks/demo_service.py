@@ -36,6 +36,21 @@ def _free_port() -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    args = _parse_args(argv)
+    started = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="swarmvo-demo-") as folder:
+        dataset = args.dataset if args.dataset is not None else _render(Path(folder), args)
+        result = _serve_and_replay(Path(folder) / "data", dataset, args)
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_tum(args.out / "trajectory.tum", result.timestamps_ns, result.matrices)
+    summary = _summary(result)
+    (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    _print_summary(summary, result)
+    print(f"wrote {args.out / 'trajectory.tum'}; demo took {time.perf_counter() - started:.0f} s")
+    return 0 if result.poses and not result.rejected else 1
+
+
+def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", type=Path, help="EuRoC/KITTI folder (default: render one)")
     parser.add_argument("--frames", type=int, default=60, help="frames to render / replay")
@@ -43,42 +58,47 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=PROJECT_ROOT / "demo-output" / "service")
     parser.add_argument("--timeout", type=float, default=600, help="bound for the replay [s]")
-    args = parser.parse_args(argv)
+    return parser.parse_args(argv)
 
-    started = time.perf_counter()
+
+def _render(folder: Path, args: argparse.Namespace) -> Path:
+    """Step 3: a rendered sequence in ``folder`` (``swarmvo synth``)."""
+    dataset = folder / "synthetic"
+    print(f"rendering {args.frames} frames ({args.length_m} m) with swarmvo synth ...")
+    subprocess.run(
+        [sys.executable, "-m", "estimator.cli.main", "synth", str(dataset), "--frames",
+         str(args.frames), "--length-m", str(args.length_m), "--seed", str(args.seed),
+         "--quiet"],
+        cwd=PROJECT_ROOT, check=True, timeout=300,
+    )
+    return dataset
+
+
+def _serve_and_replay(data: Path, dataset: Path, args: argparse.Namespace):
+    """Steps 1, 2 and 4: a server on a free port, healthy, replayed into; always stopped."""
     key = secrets.token_hex(16)
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
-    with tempfile.TemporaryDirectory(prefix="swarmvo-demo-") as folder:
-        dataset = args.dataset
-        if dataset is None:
-            dataset = Path(folder) / "synthetic"
-            print(f"rendering {args.frames} frames ({args.length_m} m) with swarmvo synth ...")
-            subprocess.run(
-                [sys.executable, "-m", "estimator.cli.main", "synth", str(dataset), "--frames",
-                 str(args.frames), "--length-m", str(args.length_m), "--seed", str(args.seed),
-                 "--quiet"],
-                cwd=PROJECT_ROOT, check=True, timeout=300,
-            )
-        env = {**os.environ, "SWARMVO_API_KEYS": key}
-        server = subprocess.Popen(
-            [sys.executable, "-m", "estimator.cli.main", "serve", "--host", "127.0.0.1", "--port",
-             str(port), "--data-dir", str(Path(folder) / "data"), "--log-level", "warning"],
-            cwd=PROJECT_ROOT, env=env,
-        )
+    env = {**os.environ, "SWARMVO_API_KEYS": key}
+    server = subprocess.Popen(
+        [sys.executable, "-m", "estimator.cli.main", "serve", "--host", "127.0.0.1", "--port",
+         str(port), "--data-dir", str(data), "--log-level", "warning"],
+        cwd=PROJECT_ROOT, env=env,
+    )
+    try:
+        wait_healthy(url, server, 90, poll_s=0.25)
+        print(f"server healthy at {url} (pid {server.pid}); replaying over WebSocket ...")
+        return _bounded_replay(url, dataset, key, args, timeout=args.timeout)
+    finally:
+        server.send_signal(signal.SIGTERM)
         try:
-            wait_healthy(url, server, 90, poll_s=0.25)
-            print(f"server healthy at {url} (pid {server.pid}); replaying over WebSocket ...")
-            result = _bounded_replay(url, dataset, key, args, timeout=args.timeout)
-        finally:
-            server.send_signal(signal.SIGTERM)
-            try:
-                server.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                server.kill()
-                server.wait()
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_tum(args.out / "trajectory.tum", result.timestamps_ns, result.matrices)
+            server.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            server.wait()
+
+
+def _summary(result) -> dict:
     summary = {
         "frames_acknowledged": len(result.poses),
         "frames_dropped": len(result.dropped),
@@ -93,7 +113,11 @@ def main(argv: list[str] | None = None) -> int:
             ate_max_m=round(result.error.ate_max_m, 4),
             path_length_m=round(result.error.path_length_m, 3),
         )
-    (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _print_summary(summary: dict, result) -> None:
+    """Step 5: the summary and the trajectory error."""
     print()
     for name, value in summary.items():
         print(f"{name:>20}: {value}")
@@ -101,8 +125,6 @@ def main(argv: list[str] | None = None) -> int:
         relative = 100 * result.error.ate_rmse_m / max(result.error.path_length_m, 1e-9)
         print(f"trajectory error: ATE RMSE {result.error.ate_rmse_m:.4f} m over "
               f"{result.error.path_length_m:.2f} m ({relative:.2f} % of the path)")
-    print(f"wrote {args.out / 'trajectory.tum'}; demo took {time.perf_counter() - started:.0f} s")
-    return 0 if result.poses and not result.rejected else 1
 
 
 def _median_ms(poses: list, stage: str) -> float | None:

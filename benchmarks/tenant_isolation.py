@@ -23,6 +23,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -123,63 +124,91 @@ def run(frames: int, matcher: str, rounds: int) -> dict:
     """Alternate blocks of B alone and B with A, so that a drifting machine load hits both."""
     folder = Path(tempfile.mkdtemp(prefix="swarmvo-isolation-"))
     process, url = start_server(folder)
-    block = max(1, frames // rounds)
-    alone: list[float] = []
-    shared: list[float] = []
-    resumed: list[bool] = []
-    a_answers: list[str] = []
-    a_latency: list[float] = []
-    active, stop = threading.Event(), threading.Event()
+    flood: Flood | None = None
     try:
         b = Tenant(url, KEY_B, {})
         a = Tenant(url, KEY_A, heaviest_config(matcher))
         stream_b(b, 5, 20.0)  # first frames (pipeline build) out of the measurement
         a.send_next()
-
-        def flood() -> None:
-            while not stop.is_set():
-                if not active.wait(0.1):
-                    continue
-                try:
-                    seconds, pose = a.send_next()
-                    a_latency.append(seconds)
-                    a_answers.append(str(pose.status))
-                except Exception as error:  # an answered refusal counts as an answer here
-                    a_answers.append(type(error).__name__)
-
-        thread = threading.Thread(target=flood)
-        thread.start()
-        shared_time = 0.0
-        for _ in range(rounds):
-            latencies, flags = stream_b(b, block, 20.0)
-            alone += latencies
-            resumed += flags
-            active.set()
-            time.sleep(0.5)
-            started = time.perf_counter()
-            answered_before = len(a_latency)
-            latencies, flags = stream_b(b, block, 20.0)
-            shared_time += time.perf_counter() - started
-            a_during = len(a_latency) - answered_before
-            active.clear()
-            shared += latencies
-            resumed += flags
-            time.sleep(0.5)
-        stop.set()
-        thread.join(timeout=120)
+        flood = Flood(a)
+        flood.thread.start()
+        blocks = alternate_blocks(b, flood, max(1, frames // rounds), rounds)
+        flood.stop.set()
+        flood.thread.join(timeout=120)
     finally:
-        stop.set()
+        if flood is not None:
+            flood.stop.set()
         process.terminate()
         process.wait(timeout=60)
+    return summary(matcher, blocks, flood)
+
+
+class Flood:
+    """Key A sending its frames back to back from a thread whenever ``active`` is set."""
+
+    def __init__(self, tenant: Tenant) -> None:
+        self.tenant = tenant
+        self.latency: list[float] = []
+        self.answers: list[str] = []
+        self.active, self.stop = threading.Event(), threading.Event()
+        self.thread = threading.Thread(target=self._send)
+
+    def _send(self) -> None:
+        while not self.stop.is_set():
+            if not self.active.wait(0.1):
+                continue
+            try:
+                seconds, pose = self.tenant.send_next()
+                self.latency.append(seconds)
+                self.answers.append(str(pose.status))
+            except Exception as error:  # an answered refusal counts as an answer here
+                self.answers.append(type(error).__name__)
+
+
+@dataclass
+class Blocks:
+    """B's latencies alone and with A, whether its frames were resumed, and A's share."""
+
+    alone: list[float] = field(default_factory=list)
+    shared: list[float] = field(default_factory=list)
+    resumed: list[bool] = field(default_factory=list)
+    shared_time: float = 0.0
+    a_during_last: int = 0
+
+
+def alternate_blocks(b: Tenant, flood: Flood, block: int, rounds: int) -> Blocks:
+    """``rounds`` times: ``block`` frames of B alone, then ``block`` frames with A flooding."""
+    blocks = Blocks()
+    for _ in range(rounds):
+        latencies, flags = stream_b(b, block, 20.0)
+        blocks.alone += latencies
+        blocks.resumed += flags
+        flood.active.set()
+        time.sleep(0.5)
+        started = time.perf_counter()
+        answered_before = len(flood.latency)
+        latencies, flags = stream_b(b, block, 20.0)
+        blocks.shared_time += time.perf_counter() - started
+        blocks.a_during_last = len(flood.latency) - answered_before
+        flood.active.clear()
+        blocks.shared += latencies
+        blocks.resumed += flags
+        time.sleep(0.5)
+    return blocks
+
+
+def summary(matcher: str, blocks: Blocks, flood: Flood) -> dict:
+    alone, shared, shared_time = blocks.alone, blocks.shared, blocks.shared_time
+    a_latency, a_answers = flood.latency, flood.answers
     return {
         "a_config": heaviest_config(matcher),
         "b_frames_each": len(alone),
         "b_alone": _percentiles(alone),
         "b_with_a": _percentiles(shared),
         "b_p95_ratio": float(np.percentile(shared, 95) / np.percentile(alone, 95)),
-        "b_resumed_frames": int(sum(resumed)),
+        "b_resumed_frames": int(sum(blocks.resumed)),
         "a_frames_answered": len(a_latency),
-        "a_frames_in_last_block": a_during,
+        "a_frames_in_last_block": blocks.a_during_last,
         "a_latency": _percentiles(a_latency) if a_latency else {},
         "a_answers": {k: a_answers.count(k) for k in sorted(set(a_answers))},
         "shared_window_s": shared_time,

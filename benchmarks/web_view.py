@@ -28,6 +28,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from server_wait import wait_healthy
@@ -131,30 +132,68 @@ def bench(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="swarmvo-webbench-") as folder:
         data = Path(folder) / "data"
         store = Store.open(f"sqlite:///{data / 'swarmvo.sqlite3'}")
-        record = store.create_session(hash_key(key), "10k-pose spiral", {}, {}, None, (752, 480))
-        began = time.perf_counter()
-        for index in range(args.poses):
-            store.add_pose(spiral_pose(record.id, index, args.rate))
-        print(f"wrote {args.poses} poses in {time.perf_counter() - began:.1f} s")
-        with Service(data, key) as service, Browser(chromium) as browser:
-            open_page(browser, service.url, key, record.id)
-            first = browser.wait_for(
-                f"window.swarmvoView?.stats.drawn === {args.poses} && "
-                "window.swarmvoView.stats.firstDrawMs", timeout=60, what="the first draw")
-            start = stats(browser)
-            browser.screenshot(RESULTS / "web_view_10k.png")
-            heap_start = browser.heap_used()
-            samples = follow(browser, store, record.id, args)
-            end = stats(browser)
-            heap_end = browser.heap_used()
-            errors = browser.exceptions()
+        session_id = write_backlog(store, key, args)
+        page = measure_page(data, key, chromium, store, session_id, args)
         store.close()
-    duration = samples[-1]["t"] - samples[0]["t"]
-    added = samples[-1]["poses"] - samples[0]["poses"]
-    updates = samples[-1]["updates"] - samples[0]["updates"]
     summary = {
+        **first_draw_summary(args, page),
+        **following_summary(args, page),
+        **environment(chromium),
+    }
+    (RESULTS / "web_view.json").write_text(json.dumps(summary, indent=2) + "\n")
+    print_table(summary)
+    ok = page.first < 1000 and summary["page_updates_per_s"] >= 0.9 * args.rate and not page.errors
+    return 0 if ok else 1
+
+
+@dataclass
+class PageRun:
+    """What the page reported: the first draw, its stats before and after following, the heap
+    after a garbage collection at both ends, the per-second samples and any page errors."""
+
+    first: float
+    start: dict
+    end: dict
+    heap_start: int
+    heap_end: int
+    samples: list
+    errors: list
+
+
+def write_backlog(store: Store, key: str, args: argparse.Namespace) -> str:
+    """Step 1: the ``--poses`` spiral session, written straight into the store; its id."""
+    record = store.create_session(hash_key(key), "10k-pose spiral", {}, {}, None, (752, 480))
+    began = time.perf_counter()
+    for index in range(args.poses):
+        store.add_pose(spiral_pose(record.id, index, args.rate))
+    print(f"wrote {args.poses} poses in {time.perf_counter() - began:.1f} s")
+    return record.id
+
+
+def measure_page(
+    data: Path, key: str, chromium: str, store: Store, session_id: str, args: argparse.Namespace
+) -> PageRun:
+    """Steps 2 and 3: a server on ``data``, the page's first draw, then following new poses."""
+    with Service(data, key) as service, Browser(chromium) as browser:
+        open_page(browser, service.url, key, session_id)
+        first = browser.wait_for(
+            f"window.swarmvoView?.stats.drawn === {args.poses} && "
+            "window.swarmvoView.stats.firstDrawMs", timeout=60, what="the first draw")
+        start = stats(browser)
+        browser.screenshot(RESULTS / "web_view_10k.png")
+        heap_start = browser.heap_used()
+        samples = follow(browser, store, session_id, args)
+        end = stats(browser)
+        heap_end = browser.heap_used()
+        errors = browser.exceptions()
+    return PageRun(first, start, end, heap_start, heap_end, samples, errors)
+
+
+def first_draw_summary(args: argparse.Namespace, page: PageRun) -> dict:
+    start = page.start
+    return {
         "poses_at_start": args.poses,
-        "first_draw_ms": round(first, 1),
+        "first_draw_ms": round(page.first, 1),
         "first_path_on_screen_ms": round(start["firstPathMs"], 1),
         "watcher_hello_ms": round(start["helloMs"], 1),
         "backlog_received_ms": round(start["syncedMs"], 1),
@@ -162,6 +201,15 @@ def bench(args: argparse.Namespace) -> int:
         "page_message_handling_ms": round(start["messageMs"], 1),
         "page_drawing_until_first_draw_ms": round(start["drawMsTotal"], 1),
         "vertices_drawn_at_start": start["vertices"],
+    }
+
+
+def following_summary(args: argparse.Namespace, page: PageRun) -> dict:
+    start, end, samples = page.start, page.end, page.samples
+    duration = samples[-1]["t"] - samples[0]["t"]
+    added = samples[-1]["poses"] - samples[0]["poses"]
+    updates = samples[-1]["updates"] - samples[0]["updates"]
+    return {
         "rate_hz_sent": args.rate,
         "seconds": round(duration, 1),
         "poses_added": end["poses"] - start["poses"],
@@ -172,21 +220,22 @@ def bench(args: argparse.Namespace) -> int:
             2),
         "max_update_draw_ms": round(end["drawMsMax"], 1),
         "full_redraws_during_updates": end["redraws"] - start["redraws"],
-        "heap_after_gc_start_mb": round(heap_start / 2**20, 2),
-        "heap_after_gc_end_mb": round(heap_end / 2**20, 2),
-        "heap_growth_kb": round((heap_end - heap_start) / 1024, 1),
+        "heap_after_gc_start_mb": round(page.heap_start / 2**20, 2),
+        "heap_after_gc_end_mb": round(page.heap_end / 2**20, 2),
+        "heap_growth_kb": round((page.heap_end - page.heap_start) / 1024, 1),
         "heap_after_gc_every_10_s_mb": [round(s["heap"] / 2**20, 2) for s in samples if s["gc"]],
         "heap_samples_mb": [round(s["heap"] / 2**20, 2) for s in samples],
-        "page_errors": errors,
+        "page_errors": page.errors,
+    }
+
+
+def environment(chromium: str) -> dict:
+    return {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, shared with other work",
         "load_average_1min": round(os.getloadavg()[0], 1),
         "browser": subprocess.run([chromium, "--version"], capture_output=True, text=True,
                                   check=False).stdout.strip(),
     }
-    (RESULTS / "web_view.json").write_text(json.dumps(summary, indent=2) + "\n")
-    print_table(summary)
-    ok = first < 1000 and summary["page_updates_per_s"] >= 0.9 * args.rate and not errors
-    return 0 if ok else 1
 
 
 def follow(browser: Browser, store: Store, session_id: str, args: argparse.Namespace) -> list:
