@@ -50,7 +50,8 @@ the all-pairs centroids are wrong, every residual is shifted, and the support co
    by a degree and shifts its anchor, and the search around it keeps only that patch. When
    fewer than ``SECOND_CORE_SHARE`` of the pairs support the pose, steps 2-5 run again from a
    core of the most precise well-ranked pairs (``precise_ranking``), and the pose with more
-   stereo support wins.
+   stereo support wins. Where the isotropic refits did not settle (before the ladder), their
+   own set is kept instead when it holds most of the stereo set (``keeps_isotropic_set``).
 
 Per-pair noise. ``sigmas`` (N,) gives each pair's residual std; only their ratios matter:
 residuals are divided by sigma_j / median(sigma), so ``delta`` (given or adaptive) is the
