@@ -50,7 +50,8 @@ the all-pairs centroids are wrong, every residual is shifted, and the support co
    by a degree and shifts its anchor, and the search around it keeps only that patch. When
    fewer than ``SECOND_CORE_SHARE`` of the pairs support the pose, steps 2-5 run again from a
    core of the most precise well-ranked pairs (``precise_ranking``), and the pose with more
-   stereo support wins.
+   stereo support wins. Where the isotropic refits did not settle (before the ladder), their
+   own set is kept instead when it holds most of the stereo set (``keeps_isotropic_set``).
 
 Per-pair noise. ``sigmas`` (N,) gives each pair's residual std; only their ratios matter:
 residuals are divided by sigma_j / median(sigma), so ``delta`` (given or adaptive) is the
@@ -71,6 +72,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, fields
+from typing import NamedTuple
 
 import numpy as np
 
@@ -95,6 +97,7 @@ from estimator.registration.stereo_support import (
     GATE_CHI2,
     SECOND_CORE_SHARE,
     checked_covariances,
+    keeps_isotropic_set,
     mahalanobis_support,
 )
 from estimator.registration.support_ladder import climb_ladder
@@ -110,6 +113,17 @@ from estimator.registration.support_pairs import (
 from estimator.registration.swarm_kernels import MIN_SUPPORT, degenerate_rows, refit_loop
 
 __all__ = ["PsoSupportEstimator", "weighted_horn"]
+
+
+class Search(NamedTuple):
+    """What steps 2-5 found from one core."""
+
+    supporters: np.ndarray
+    delta: float
+    iterations: int  # swarm evaluations
+    pose: Pose | None
+    # The refits' last set when they did not settle (before the ladder), else None.
+    unsettled: np.ndarray | None
 
 
 @dataclass(frozen=True)
@@ -261,7 +275,7 @@ class PsoSupportEstimator:
         if found is None:
             return failed_result(len(source), "no rigid, non-collinear core of pairs found")
         if self.source_cov is None or self.target_cov is None:
-            supporters, delta, iterations, pose = found
+            supporters, delta, iterations, pose, _ = found
             return finish(source, target, supporters, delta, iterations, pairs.fit, pose)
         covariances = checked_covariances(self.source_cov, self.target_cov, len(source))
         supporters, pose = self._stereo_support(pairs, covariances, found)
@@ -277,18 +291,16 @@ class PsoSupportEstimator:
                 other, other_pose = self._stereo_support(pairs, covariances, second)
                 if np.count_nonzero(other) > np.count_nonzero(supporters):
                     found, supporters, pose = second, other, other_pose
-        iterations = found[2]
+        iterations = found.iterations
         return finish(
             source, target, supporters, math.sqrt(self.gate_chi2), iterations, pairs.fit, pose
         )
 
     def _from_core(
         self, pairs: Pairs, graph: Graph, ranking: np.ndarray, rng: np.random.Generator
-    ) -> tuple[np.ndarray, float, int, Pose | None] | None:
-        """Core from ``ranking`` (positions in the graph), swarm, refits and ladder.
-
-        Returns (supporters, threshold, swarm evaluations, pose), None for a degenerate core.
-        """
+    ) -> Search | None:
+        """Core from ``ranking`` (positions in the graph), swarm, refits and ladder; None for
+        a degenerate core."""
         source, target = pairs.source, pairs.target
         local_core = rigid_core(graph.weights, ranking, self.core_size)
         core = graph.sample[local_core]
@@ -315,25 +327,30 @@ class PsoSupportEstimator:
         )
         supporters = objective.supporters(swarm.position)
         supporters, delta, pose = self._refine(pairs, supporters, delta)
+        unsettled = supporters if pose is None else None
         if self.delta is None:
             supporters, delta, pose = climb_ladder(
                 pairs, supporters, delta, pose, core, self._refine, self.delta_max
             )
-        return supporters, delta, swarm.iterations, pose
+        return Search(supporters, delta, swarm.iterations, pose, unsettled)
 
     def _stereo_support(
         self,
         pairs: Pairs,
         covariances: tuple[np.ndarray, np.ndarray],
-        found: tuple[np.ndarray, float, int, Pose | None],
+        found: Search,
     ) -> tuple[np.ndarray, Pose | None]:
         """The isotropic search has found the rigid majority and its pose; the stereo metric
-        now decides, pair by pair, who supports it."""
-        supporters, _, _, pose = found
-        return mahalanobis_support(
-            pairs.source, pairs.target, *covariances, supporters, pose, self.gate_chi2,
-            self.refits,
+        now decides, pair by pair, who supports it. Where the isotropic refits did not settle,
+        their own set is kept instead when it holds most of the stereo set
+        (``keeps_isotropic_set``); it is then fitted by ``finish``."""
+        supporters, pose = mahalanobis_support(
+            pairs.source, pairs.target, *covariances, found.supporters, found.pose,
+            self.gate_chi2, self.refits,
         )  # fmt: skip
+        if found.unsettled is not None and keeps_isotropic_set(found.unsettled, supporters):
+            return found.unsettled, None
+        return supporters, pose
 
     def _refine(
         self,
