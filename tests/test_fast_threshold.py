@@ -132,7 +132,8 @@ def test_right_image_at_the_left_threshold_keeps_the_base_thresholds_corners(
         reused = adaptive.detect(right, same_scene=True)
         base = plain.detect(right)
         for ours, theirs in zip(
-            _sorted(reused.points, reused.descriptors), _sorted(base.points, base.descriptors),
+            _sorted(reused.points, reused.descriptors),
+            _sorted(base.points, base.descriptors),
             strict=True,
         ):
             np.testing.assert_array_equal(ours, theirs)
