@@ -85,9 +85,15 @@ class Odometry:
         self._estimation = PoseEstimation(self.config, self.rectification, self.noise)
 
     def _gyro_prediction(self) -> GyroPrediction | None:
-        """The gyro's rotation for the search windows (``frontend.gyro_prediction``)."""
+        """The gyro's rotation for the per-point search windows (``frontend.gyro_prediction``).
+
+        Only where the windows are per point (``min_search_radius_px`` set, the drives): with
+        one wide window for every point (EuRoC-like rigs) the constant-velocity centre is what
+        the window was sized for, and the gyro's centre changed the rendered flights' noisy
+        run by a few per cent either way (docs/performance.md, "Driving rig").
+        """
         frontend = self.config.frontend
-        if not frontend.gyro_prediction:
+        if not frontend.gyro_prediction or frontend.min_search_radius_px is None:
             return None
         rect_from_body = self.rectification.R_left @ self.rig.left.T_BS[:3, :3].T
         return GyroPrediction(rect_from_body, np.radians(frontend.prediction_gyro_error_deg_s))
