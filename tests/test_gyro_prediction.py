@@ -123,3 +123,25 @@ def test_no_samples_leave_the_constant_velocity_prediction() -> None:
     uncertainty = references.prediction_uncertainty(DT_NS)
     assert uncertainty is not None
     assert uncertainty.rotation_rad == pytest.approx(references.angular_accel * 0.01)
+
+
+def test_odometry_uses_the_gyro_only_with_per_point_windows() -> None:
+    from estimator.config import SwarmvoConfig
+    from estimator.formats.calibration import CameraModel, StereoRig
+    from estimator.odometry import Odometry
+
+    def camera(x: float) -> CameraModel:
+        return CameraModel(
+            width=1241, height=376, fx=FOCAL, fy=FOCAL, cx=CX, cy=CY, distortion_model="none",
+            distortion=(), T_BS=make_pose(RECT_FROM_BODY.T, x * RECT_FROM_BODY[0]),
+        )  # fmt: skip
+
+    rig = StereoRig(left=camera(0.0), right=camera(0.54))  # baseline along the camera x
+    one_window = Odometry(rig, SwarmvoConfig())
+    assert one_window._references.gyro is None
+    per_point = Odometry(rig, SwarmvoConfig(frontend=WINDOWS))
+    gyro = per_point._references.gyro
+    assert gyro is not None
+    np.testing.assert_allclose(gyro.rect_from_body, RECT_FROM_BODY, atol=1e-9)
+    off = WINDOWS.model_copy(update={"gyro_prediction": False})
+    assert Odometry(rig, SwarmvoConfig(frontend=off))._references.gyro is None
