@@ -89,8 +89,8 @@ class Odometry:
 
         Only where the windows are per point (``min_search_radius_px`` set, the drives): with
         one wide window for every point (EuRoC-like rigs) the constant-velocity centre is what
-        the window was sized for, and the gyro's centre changed the rendered flights' noisy
-        run by a few per cent either way (docs/performance.md, "Driving rig").
+        the window was sized for, and the gyro's centre moved the noisy rendered flight's fused
+        trajectory by a few per cent either way (docs/performance.md, "Driving rig").
         """
         frontend = self.config.frontend
         if not frontend.gyro_prediction or frontend.min_search_radius_px is None:
