@@ -116,6 +116,11 @@ class FrontendConfig(_Section):
     # acceleration times T^2 (one sigma).
     prediction_angular_accel_deg_s2: float = Field(200.0, ge=0)
     prediction_linear_accel_m_s2: float = Field(5.0, ge=0)
+    # With IMU samples and per-point windows (min_search_radius_px set) the predicted
+    # rotation is the gyro's (estimator/odometry/gyro_prediction.py); its rate error (one
+    # sigma) starts here and is then learned against vision.
+    gyro_prediction: bool = True
+    prediction_gyro_error_deg_s: float = Field(2.0, gt=0)
     # "descriptor": ratio + mutual descriptor matching; "klt": Lucas-Kanade tracking.
     temporal_matcher: Literal["descriptor", "klt"] = "descriptor"
     klt_window: int = Field(10, ge=2, le=30)  # half size of the KLT window

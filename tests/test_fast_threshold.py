@@ -115,3 +115,26 @@ def test_an_overestimate_falls_back_to_the_configured_threshold(street_images, m
 def test_several_orb_levels_keep_the_fixed_threshold() -> None:
     assert FeatureDetector(FrontendConfig(orb_levels=3)).fast_threshold is None
     assert FeatureDetector(FrontendConfig(detector="sift")).fast_threshold is None
+
+
+def test_right_image_at_the_left_threshold_keeps_the_base_thresholds_corners(
+    street_images,
+) -> None:
+    """The right image, detected at the threshold the left one chose (no sampling), keeps
+    exactly the corners and descriptors of a detection at the configured threshold."""
+    config = FrontendConfig(max_features=1551)
+    adaptive = FeatureDetector(config)
+    plain = FeatureDetector(config.model_copy(update={"adaptive_fast_threshold": False}))
+    raised = 0
+    for left, right in zip(street_images[0::2], street_images[1::2], strict=True):
+        adaptive.detect(left)
+        raised += adaptive.fast_threshold.last > config.fast_threshold
+        reused = adaptive.detect(right, same_scene=True)
+        base = plain.detect(right)
+        for ours, theirs in zip(
+            _sorted(reused.points, reused.descriptors),
+            _sorted(base.points, base.descriptors),
+            strict=True,
+        ):
+            np.testing.assert_array_equal(ours, theirs)
+    assert raised == len(street_images) // 2  # the street is dense: the threshold did rise

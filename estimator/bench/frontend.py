@@ -26,8 +26,10 @@ import numpy as np
 
 from estimator.config import SwarmvoConfig
 from estimator.odometry import Odometry
+from estimator.pipeline import frame_interval_s
+from estimator.rig_settings import DerivedSetting, apply_rig_settings, format_settings
 
-__all__ = ["add_arguments", "run", "summarise"]
+__all__ = ["add_arguments", "bench_config", "run", "summarise"]
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "euroc_v101_micro"
 STAGES = ("rectify", "detect", "stereo", "temporal", "estimate", "fuse", "total")
@@ -55,20 +57,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--target-fps", type=float, default=None,
         help="frames/s to reach (default: 120 on V1_01, 100 on MH_01, 30 otherwise)",
     )  # fmt: skip
+    parser.add_argument(
+        "--no-rig-settings", dest="rig_settings", action="store_false",
+        help="keep the configuration's defaults instead of deriving settings from the rig",
+    )  # fmt: skip
 
 
 def _config(args: argparse.Namespace) -> SwarmvoConfig:
-    config = SwarmvoConfig()
+    """The defaults with the command line's overrides, only those marked as set by the user:
+    the rig-derived settings (``bench_config``) then fill the rest, as in ``swarmvo run``."""
+    frontend = {
+        name: value
+        for name, value in (
+            ("tracking", args.tracking),
+            ("temporal_matcher", args.temporal_matcher),
+            ("mode", args.mode),
+        )
+        if value is not None
+    }
+    data: dict[str, Any] = {"backend": {"enabled": bool(args.backend)}}
+    if frontend:
+        data["frontend"] = frontend
     if args.method is not None:
-        config.registration.method = args.method
-    if args.tracking is not None:
-        config.frontend.tracking = args.tracking
-    if args.temporal_matcher is not None:
-        config.frontend.temporal_matcher = args.temporal_matcher
-    if args.mode is not None:
-        config.frontend.mode = args.mode
-    config.backend.enabled = bool(args.backend)
-    return SwarmvoConfig.model_validate(config.model_dump())  # re-validate the overrides
+        data["registration"] = {"method": args.method}
+    return SwarmvoConfig.model_validate(data)
+
+
+def bench_config(
+    config: SwarmvoConfig, sequence: Any, rig_settings: bool = True
+) -> tuple[SwarmvoConfig, list[DerivedSetting]]:
+    """The configuration ``swarmvo run`` would use on ``sequence``: the rig-derived settings
+    (estimator/rig_settings.py) where the user left the default."""
+    if not rig_settings:
+        return config, []
+    return apply_rig_settings(config, sequence.rig, frame_interval_s(sequence))
 
 
 def summarise(timings: list[dict[str, float]]) -> dict[str, dict[str, float]]:
@@ -247,8 +269,10 @@ def run(args: argparse.Namespace) -> int:
     """Time the odometry per stage on a clip held in memory; write frontend.json and .md."""
     _check_args(args)
     cv2.setNumThreads(1)
-    config = _config(args)
     sequence, frames, imu, load_s = _load_clip(args)
+    config, derived = bench_config(_config(args), sequence, args.rig_settings)
+    if derived:
+        print(format_settings(sequence.rig, frame_interval_s(sequence), derived))
     count = len(frames)
     runs = _timed_runs(sequence, config, frames, imu, args.repeat)
     reports = runs.reports
@@ -260,6 +284,10 @@ def run(args: argparse.Namespace) -> int:
         "image_size": list(sequence.rig.size),
         "repeat": args.repeat,
         "config": config.model_dump(),
+        "derived_settings": [
+            {"name": f"{d.section}.{d.name}", "value": d.value, "overridden": d.overridden}
+            for d in derived
+        ],
         **_speed(runs, count, target),
         "median_matches": float(np.median([r.matches for r in reports[1:]])),
         "median_inliers": float(np.median([r.inliers for r in reports[1:]])),

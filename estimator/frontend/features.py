@@ -131,17 +131,18 @@ class FeatureDetector:
                 config.fast_threshold, 2 * candidates, self._detector.getEdgeThreshold()
             )
 
-    def detect(self, image: np.ndarray) -> Features:
+    def detect(self, image: np.ndarray, same_scene: bool = False) -> Features:
         """Keypoints and descriptors of one 8-bit grey image.
 
         ORB corners are detected first and bucketed, and descriptors are computed only for
         the kept ones: describing the over-sampled candidates that the grid drops is work
         thrown away (docs/performance.md). Points and descriptors are identical to those of a
-        joint detect-and-compute call.
+        joint detect-and-compute call. ``same_scene``: the other image of the pair just
+        detected, whose adaptive FAST threshold is reused (fast_threshold.py).
         """
         if not self.binary:  # SIFT's compute rebuilds its scale space: one call is cheaper
             return self._detect_and_compute(image)
-        keypoints = self._orb_corners(image)
+        keypoints = self._orb_corners(image, same_scene)
         if not keypoints:
             return self._empty()
         points = cv2.KeyPoint_convert(keypoints).astype(float)
@@ -152,7 +153,7 @@ class FeatureDetector:
             points, response = points[keep], response[keep]
         return self._describe(image, keypoints, points, response)
 
-    def _orb_corners(self, image: np.ndarray) -> list:
+    def _orb_corners(self, image: np.ndarray, same_scene: bool = False) -> list:
         """ORB's corners, found at the adaptive FAST threshold when there is one.
 
         Fewer corners than ORB asks for at a raised threshold mean the estimate was wrong
@@ -160,7 +161,8 @@ class FeatureDetector:
         """
         if self.fast_threshold is None:
             return self._detector.detect(image, None)
-        threshold = self.fast_threshold.choose(image)
+        adaptive = self.fast_threshold
+        threshold = adaptive.reuse() if same_scene else adaptive.choose(image)
         self._detector.setFastThreshold(threshold)
         keypoints = self._detector.detect(image, None)
         if threshold > self.fast_threshold.base and len(keypoints) < self._candidates:

@@ -25,6 +25,7 @@ from estimator.odometry.frames import (
     stage,
     to_grey8,
 )
+from estimator.odometry.gyro_prediction import GyroPrediction
 from estimator.odometry.measurements import CameraFrames, Measurement
 from estimator.odometry.references import References
 from estimator.types import (
@@ -68,7 +69,7 @@ class Odometry:
         self._count = 0
         self._last_timestamp_ns: int | None = None
         self._pose = self._initial_pose if self._initial_pose is not None else np.eye(4)
-        self._references = References(self.config.frontend)
+        self._references = References(self.config.frontend, self._gyro_prediction())
         self._frame_interval_ns = 0  # time since the previous frame
         self._final_poses: tuple[tuple[int, np.ndarray], ...] = ()  # from the back end
         self._restored = False  # continued from state(): the first frame is predicted
@@ -82,6 +83,20 @@ class Odometry:
             ),
         )
         self._estimation = PoseEstimation(self.config, self.rectification, self.noise)
+
+    def _gyro_prediction(self) -> GyroPrediction | None:
+        """The gyro's rotation for the per-point search windows (``frontend.gyro_prediction``).
+
+        Only where the windows are per point (``min_search_radius_px`` set, the drives): with
+        one wide window for every point (EuRoC-like rigs) the constant-velocity centre is what
+        the window was sized for, and the gyro's centre moved the noisy rendered flight's fused
+        trajectory by a few per cent either way (docs/performance.md, "Driving rig").
+        """
+        frontend = self.config.frontend
+        if not frontend.gyro_prediction or frontend.min_search_radius_px is None:
+            return None
+        rect_from_body = self.rectification.R_left @ self.rig.left.T_BS[:3, :3].T
+        return GyroPrediction(rect_from_body, np.radians(frontend.prediction_gyro_error_deg_s))
 
     def _make_backend(self, imu_noise: ImuNoise | None):
         from estimator.backend import FusionBackend  # GTSAM loads only when the back end runs
@@ -151,6 +166,7 @@ class Odometry:
             with stage(timings, "rectify"):
                 left, right = self.rectification.rectify(left, right)
                 left, right = self._normalised(left), self._normalised(right)
+            self._references.advance_gyro(imu, frame.timestamp_ns)
             points = self._stereo_points(left, right, timings)
             if self._references.reference is None:
                 estimate = Estimate(None, None, "")
@@ -222,7 +238,7 @@ class Odometry:
                 return self._tracker.stereo(right)
         with stage(timings, "detect"):
             left_features = self.detector.detect(left)
-            right_features = self.detector.detect(right)
+            right_features = self.detector.detect(right, same_scene=True)
         with stage(timings, "stereo"):
             return self.stereo.match(left_features, right_features, left, right)
 

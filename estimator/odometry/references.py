@@ -1,5 +1,5 @@
 """The reference policy: which frames the next one is matched against, and the measured motion
-(constant velocity) that predicts where it is."""
+(constant velocity, its rotation from the gyro when there is one) that predicts where it is."""
 
 from __future__ import annotations
 
@@ -10,6 +10,8 @@ from estimator.frontend.stereo import StereoPoints
 from estimator.frontend.temporal import PredictionUncertainty
 from estimator.geometry import invert_pose, rotation_angle_deg, scale_motion
 from estimator.odometry.frames import Estimate, Reference
+from estimator.odometry.gyro_prediction import GyroPrediction
+from estimator.types import ImuBatch
 
 __all__ = ["References"]
 
@@ -28,8 +30,9 @@ class References:
     All relative poses here are in the rectified left camera frame.
     """
 
-    def __init__(self, frontend: FrontendConfig) -> None:
+    def __init__(self, frontend: FrontendConfig, gyro: GyroPrediction | None = None) -> None:
         self.frontend = frontend
+        self.gyro = gyro  # the rotation between frames from the IMU (None: not used)
         self.reference: Reference | None = None  # keyframe (or previous frame)
         self.previous: Reference | None = None  # the last frame with an estimate
         self.fallback: Reference | None = None  # a later failed frame with enough points
@@ -53,20 +56,37 @@ class References:
         self.linear_accel = float(frontend.prediction_linear_accel_m_s2)
         self.last_fix_ns = 0  # timestamp of the last frame with a vision estimate
 
+    def advance_gyro(self, imu: ImuBatch | None, now_ns: int) -> None:
+        """Take the IMU samples since the last frame (before the frame is matched)."""
+        if self.gyro is not None:
+            self.gyro.advance(imu, now_ns)
+
     def motion_over(self, interval_ns: int) -> np.ndarray:
-        """The last measured motion at the same velocity over ``interval_ns`` (rectified)."""
-        return scale_motion(self.motion, interval_ns / self.motion_interval_ns)
+        """The last measured motion at the same velocity over ``interval_ns`` (rectified);
+        its rotation is the gyro's when the span is the one since the last good frame."""
+        motion = scale_motion(self.motion, interval_ns / self.motion_interval_ns)
+        rotation = self._gyro_rotation(interval_ns)
+        if rotation is not None:
+            motion = motion.copy()
+            motion[:3, :3] = rotation
+        return motion
+
+    def _gyro_rotation(self, span_ns: int) -> np.ndarray | None:
+        return None if self.gyro is None else self.gyro.rotation_since_good(span_ns)
 
     def prediction_uncertainty(self, span_ns: int) -> PredictionUncertainty | None:
         """One sigma of the error of :meth:`motion_over` ``span_ns``: what the session's
-        angular and linear acceleration levels do in that time (a T^2). None when the
-        prediction is poor: no motion measured yet, the last frame failed, or ``span_ns``
-        bridges a gap."""
+        angular and linear acceleration levels do in that time (a T^2), or for the rotation
+        the gyro's learned error (its rate error times T). None when the prediction is poor:
+        no motion measured yet, the last frame failed, or ``span_ns`` bridges a gap."""
         if not self.motion_measured or span_ns > _GAP_FACTOR * self.motion_interval_ns:
             return None
         span_s2 = (max(span_ns, 0) * 1e-9) ** 2
+        rotation_rad = self.angular_accel * span_s2
+        if self.gyro is not None and self._gyro_rotation(span_ns) is not None:
+            rotation_rad = self.gyro.sigma_rad(span_ns)
         return PredictionUncertainty(
-            rotation_rad=self.angular_accel * span_s2, translation_m=self.linear_accel * span_s2
+            rotation_rad=rotation_rad, translation_m=self.linear_accel * span_s2
         )
 
     def _learn_prediction_error(self, motion: np.ndarray, interval_ns: int) -> None:
@@ -123,6 +143,7 @@ class References:
         failed = reference_from_current is None and not first
         was_measured = self.motion_measured
         self.motion_measured = reference_from_current is not None
+        self._gyro_frame_done(failed, estimate)
         if not failed:
             self.last_fix_ns = int(timestamp_ns)
         if failed:
@@ -157,6 +178,16 @@ class References:
             self.reference_from_previous = reference_from_current
             self.reference_from_previous_covariance = estimate.covariance
         self.previous = current
+
+    def _gyro_frame_done(self, failed: bool, estimate: Estimate) -> None:
+        """The gyro learns from vision's rotation since the last good frame (the previous)."""
+        if self.gyro is None:
+            return
+        measured = None
+        current = estimate.reference_from_current
+        if current is not None and estimate.reference is self.reference:
+            measured = (invert_pose(self.reference_from_previous) @ current)[:3, :3]
+        self.gyro.frame_done(not failed, measured)
 
     def _keep_older(self, estimate: Estimate) -> None:
         """The keyframe being replaced stays as a second reference when the new one was
