@@ -23,7 +23,6 @@ from estimator.frontend.fast_threshold import AdaptiveFastThreshold
 from estimator.frontend.match_kernels import as_words
 
 __all__ = [
-    "Corners",
     "FeatureDetector",
     "Features",
     "MatchSet",
@@ -43,20 +42,6 @@ class Features:
     descriptors: np.ndarray  # (N, 32) uint8 for ORB, (N, 128) float32 for SIFT
     response: np.ndarray  # (N,) detector response
     binary: bool  # True: Hamming distance, False: L2
-
-    def __len__(self) -> int:
-        return len(self.points)
-
-
-@dataclass(frozen=True)
-class Corners:
-    """Bucketed ORB corners of one image before description: ``keypoints[index]`` are the
-    kept ones (in order), ``points`` and ``response`` their positions and Harris responses."""
-
-    keypoints: list  # every corner the detector returned
-    index: np.ndarray  # (N,) the kept ones, ascending
-    points: np.ndarray  # (N, 2) float64, (x, y) pixels
-    response: np.ndarray  # (N,)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -156,42 +141,15 @@ class FeatureDetector:
         """
         if not self.binary:  # SIFT's compute rebuilds its scale space: one call is cheaper
             return self._detect_and_compute(image)
-        return self.describe(image, self.corners(image))
-
-    def corners(self, image: np.ndarray) -> Corners:
-        """The bucketed ORB corners of one image, not yet described (ORB only).
-
-        Split from :meth:`describe` so that a caller can leave out corners whose descriptor
-        can never be compared (stereo: no partner in the other image's row band).
-        """
-        if not self.binary:
-            raise ValueError("corners() needs the ORB detector (SIFT describes as it detects)")
         keypoints = self._orb_corners(image)
         if not keypoints:
-            return Corners([], np.zeros(0, np.intp), np.zeros((0, 2)), np.zeros(0))
+            return self._empty()
         points = cv2.KeyPoint_convert(keypoints).astype(float)
         response = np.fromiter(map(_RESPONSE, keypoints), float, len(keypoints))
         keep = self._select(points, response, image.shape)
         if len(keep) < len(keypoints):
+            keypoints = [keypoints[i] for i in keep]
             points, response = points[keep], response[keep]
-        return Corners(keypoints, keep, points, response)
-
-    def describe(
-        self, image: np.ndarray, corners: Corners, subset: np.ndarray | None = None
-    ) -> Features:
-        """ORB descriptors of ``corners`` (of ``image``), or of ``corners[subset]`` only.
-
-        ORB describes each keypoint from its own patch, so a subset's descriptors are exactly
-        those the whole set would give it.
-        """
-        index, points, response = corners.index, corners.points, corners.response
-        if subset is not None and len(subset) < len(index):
-            index, points, response = index[subset], points[subset], response[subset]
-        if len(index) == 0:
-            return self._empty()
-        keypoints = corners.keypoints
-        if len(index) < len(keypoints):  # one pass over the detector's list
-            keypoints = [keypoints[i] for i in index]
         return self._describe(image, keypoints, points, response)
 
     def _orb_corners(self, image: np.ndarray) -> list:

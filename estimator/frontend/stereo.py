@@ -21,13 +21,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
-import numba
 import numpy as np
 
 from estimator.config import FrontendConfig
 from estimator.formats.calibration import Rectification
 from estimator.frontend.features import (
-    FeatureDetector,
     Features,
     MatchSet,
     descriptor_distances,
@@ -38,7 +36,6 @@ from estimator.frontend.match_kernels import as_words, band_matches, zero_mean_s
 __all__ = [
     "StereoMatcher",
     "StereoPoints",
-    "band_partners",
     "point_covariances",
     "row_band_pairs",
     "triangulate",
@@ -97,55 +94,6 @@ def row_band_pairs(
     disparity = left[ia, 0] - right[ib, 0]
     inside = (disparity >= disparity_range[0]) & (disparity <= disparity_range[1])
     return ia[inside], ib[inside]
-
-
-def band_partners(
-    left: np.ndarray,
-    right: np.ndarray,
-    row_tolerance: float,
-    disparity_range: tuple[float, float],
-) -> tuple[np.ndarray, np.ndarray]:
-    """Indices of the left points and of the right points that have a candidate partner.
-
-    The candidates are exactly :func:`row_band_pairs`' (the same row bands and disparity
-    test): a point outside every pair can never be matched, so its descriptor is not needed.
-    """
-    if len(left) == 0 or len(right) == 0:
-        empty = np.zeros(0, dtype=np.intp)
-        return empty, empty
-    order = np.argsort(right[:, 1], kind="stable")
-    rows = right[order, 1]
-    low = np.searchsorted(rows, left[:, 1] - row_tolerance, side="left")
-    high = np.searchsorted(rows, left[:, 1] + row_tolerance, side="right")
-    left_has, right_has = _mark_partners(
-        np.ascontiguousarray(left[:, 0]), np.ascontiguousarray(right[:, 0]), order, low, high,
-        (float(disparity_range[0]), float(disparity_range[1])),
-    )  # fmt: skip
-    return np.flatnonzero(left_has), np.flatnonzero(right_has)
-
-
-@numba.njit(cache=True, nogil=True)
-def _mark_partners(
-    left_x: np.ndarray,
-    right_x: np.ndarray,
-    order: np.ndarray,
-    low: np.ndarray,
-    high: np.ndarray,
-    disparity_range: tuple[float, float],
-) -> tuple[np.ndarray, np.ndarray]:
-    """Flags of the points in at least one candidate pair (the disparity test of
-    ``match_kernels.band_matches`` over the same bands)."""
-    left_has = np.zeros(len(left_x), dtype=np.bool_)
-    right_has = np.zeros(len(right_x), dtype=np.bool_)
-    for i in range(len(left_x)):
-        for k in range(low[i], high[i]):
-            j = order[k]
-            disparity = left_x[i] - right_x[j]
-            if disparity < disparity_range[0] or disparity > disparity_range[1]:
-                continue
-            left_has[i] = True
-            right_has[j] = True
-    return left_has, right_has
 
 
 def _binary_band_matches(
@@ -243,29 +191,6 @@ class StereoMatcher:
             )
         self.config = config
         self.rectification = rectification
-
-    def features(
-        self, detector: FeatureDetector, left_image: np.ndarray, right_image: np.ndarray
-    ) -> tuple[Features, Features]:
-        """Both images' features for :meth:`match`, the same matches as ``detector.detect``.
-
-        With ORB only the corners that have a candidate partner in the other image are
-        described: about a tenth of them on EuRoC have none, and describing is half the cost
-        of detection (docs/performance.md). Matching among candidates keeps its order and
-        ties on the subsets, so the matches are those of describing every corner.
-        """
-        if not detector.binary:
-            return detector.detect(left_image), detector.detect(right_image)
-        left, right = detector.corners(left_image), detector.corners(right_image)
-        config = self.config
-        disparity_range = (config.min_disparity_px, config.max_disparity_px)
-        left_subset, right_subset = band_partners(
-            left.points, right.points, config.stereo_row_tolerance_px, disparity_range
-        )
-        return (
-            detector.describe(left_image, left, left_subset),
-            detector.describe(right_image, right, right_subset),
-        )
 
     def match(
         self,

@@ -221,7 +221,8 @@ class Odometry:
             with stage(timings, "stereo"):
                 return self._tracker.stereo(right)
         with stage(timings, "detect"):
-            left_features, right_features = self.stereo.features(self.detector, left, right)
+            left_features = self.detector.detect(left)
+            right_features = self.detector.detect(right)
         with stage(timings, "stereo"):
             return self.stereo.match(left_features, right_features, left, right)
 
