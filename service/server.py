@@ -20,7 +20,6 @@ from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 from service.app import create_app
-from service.memory import cap_malloc_arenas
 from service.redact import redact_logs
 from service.settings import ServiceSettings
 
@@ -96,8 +95,6 @@ def serve(settings: ServiceSettings, log_level: str = "info") -> int:
     """Serve until interrupted; a configuration problem raises ValueError before binding."""
     settings.check_startable()
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    if settings.malloc_arenas:  # before the app's threads start allocating
-        cap_malloc_arenas(settings.malloc_arenas)
     logging.basicConfig(level=log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
     if settings.open:
         logging.getLogger("swarmvo.service").warning(

@@ -6,14 +6,15 @@ from __future__ import annotations
 import asyncio
 import json
 import sys
+import time
 from pathlib import Path
 
 from websockets.asyncio.server import ServerConnection, serve
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-import load_test  # noqa: E402
-from load_report import LevelResult, runs_table  # noqa: E402
+import load_test
+from load_report import LevelResult, runs_table
 
 
 class TwoFrames:
@@ -40,19 +41,13 @@ def test_a_robot_whose_connection_is_cut_reports_it_and_returns() -> None:
             start = asyncio.get_running_loop().time()
             await asyncio.wait_for(load_test.robot(
                 f"http://127.0.0.1:{port}", "s1", TwoFrames(), rate=20.0, duration=1.0,
-                drain=2.0, stats=stats, start_at=_perf_now(), hold_back=False), timeout=10)
+                drain=2.0, stats=stats, start_at=time.perf_counter(), hold_back=False), timeout=10)
             assert asyncio.get_running_loop().time() - start < 5
             return stats
 
     stats = asyncio.run(scenario())
     assert stats.disconnected is not None
     assert stats.sent >= 1 and stats.answered == 0
-
-
-def _perf_now() -> float:
-    import time
-
-    return time.perf_counter()
 
 
 def test_the_runs_table_counts_the_robots_cut_off() -> None:

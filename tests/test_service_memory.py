@@ -1,5 +1,5 @@
-"""Freed heap memory goes back to the system: the trim itself, when workers and the server
-call it, and the arena cap."""
+"""Freed heap memory goes back to the system: the trim itself, and when workers and the
+server call it."""
 
 from __future__ import annotations
 
@@ -48,13 +48,6 @@ def test_trim_gives_freed_pages_in_the_middle_of_the_heap_back() -> None:
     assert before - after > 0.5 * chunk * count, (before, after)
 
 
-@needs_glibc
-def test_arena_cap_is_accepted_and_zero_is_refused() -> None:
-    assert memory.cap_malloc_arenas(8) is True  # glibc's own default on this machine or more
-    with pytest.raises(ValueError, match="at least one arena"):
-        memory.cap_malloc_arenas(0)
-
-
 def test_a_worker_trims_only_when_it_dropped_a_pipeline(monkeypatch) -> None:
     calls: list[bool] = []
     monkeypatch.setattr(worker_process, "trim_free_memory", lambda: calls.append(True))
@@ -87,8 +80,6 @@ def test_the_server_trims_on_its_interval_and_stops_at_shutdown(
     assert len(calls) == stopped
 
 
-def test_arena_and_trim_settings_are_validated(tmp_path: Path) -> None:
-    with pytest.raises(ValidationError):
-        ServiceSettings(data_dir=tmp_path, api_keys="k", malloc_arenas=-1)
+def test_a_negative_trim_interval_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ValidationError):
         ServiceSettings(data_dir=tmp_path, api_keys="k", memory_trim_interval_s=-1)
