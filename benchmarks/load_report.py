@@ -43,6 +43,9 @@ class LevelResult:
     # CPU of the server process per frame it received (answered or refused): what a frame
     # costs it before any work is done on it.
     server_cpu_ms_per_received: float | None = None
+    # Robots whose connection ended before their last answer, and why (their unanswered
+    # frames are in ``unanswered``).
+    disconnected: list[str] = field(default_factory=list)
     load_average_start: list[float] = field(default_factory=list)
     load_average_end: list[float] = field(default_factory=list)
 
@@ -82,12 +85,14 @@ def print_table(results: list[LevelResult]) -> None:
                 + f"; peak PSS of all {_fmt(r.server_pss_mb_peak, 0)}")
         if r.reject_reasons:
             print(f"        rejected: {r.reject_reasons}")
+        if r.disconnected:
+            print(f"        {len(r.disconnected)} robot(s) cut off: {r.disconnected[0]}")
 
 
 RUNS_HEADER = (
     "| run | robots | offered/s | answered/s | sent | answered | dropped | rejected | lost "
     "| p50 ms | p95 ms | p99 ms | CPU ms/frame server | CPU ms/frame workers | CPU ms/frame total "
-    "| server CPU ms/received | held back | RSS MB | PSS MB | load avg start -> end |"
+    "| server CPU ms/received | held back | cut off | RSS MB | PSS MB | load avg start -> end |"
 )
 
 
@@ -105,7 +110,7 @@ def runs_table(results: list[LevelResult]) -> str:
             f"| {_fmt(r.latency_p50_ms)} | {_fmt(r.latency_p95_ms)} | {_fmt(r.latency_p99_ms)} "
             f"| {_fmt(cpu.get('server_process'))} | {_fmt(cpu.get('worker_processes'))} "
             f"| {_fmt(r.cpu_ms_per_frame)} | {_fmt(r.server_cpu_ms_per_received, 2)} "
-            f"| {r.held_back} | {_fmt(r.server_rss_mb_peak, 0)} "
+            f"| {r.held_back} | {len(r.disconnected)} | {_fmt(r.server_rss_mb_peak, 0)} "
             f"| {_fmt(r.server_pss_mb_peak, 0)} | {load} |"
         )
     return "\n".join(lines)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import os
 import signal
@@ -42,6 +43,7 @@ from load_report import LevelResult, machine_before, print_table, runs_table, wr
 from server_wait import wait_healthy
 from swarmvo_client import Client, DroppedFrame, Pose, open_local_sequence, stream
 from swarmvo_client.models import ImuData
+from websockets.exceptions import ConnectionClosed
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATASET = PROJECT_ROOT.parent / "shared" / "data" / "euroc_v101_micro"
@@ -60,6 +62,7 @@ class RobotStats:
     last_answer: float | None = None
     stage_s: dict[str, list[float]] = field(default_factory=dict)
     reject_reasons: dict[str, int] = field(default_factory=dict)
+    disconnected: str | None = None  # why the connection ended early, if it did
 
 
 class Frames:
@@ -121,6 +124,18 @@ def _record(event: Any, stats: RobotStats, sent_at: dict[int, float], now: float
 
 async def robot(url: str, session_id: str, frames: Frames, rate: float, duration: float,
                 drain: float, stats: RobotStats, start_at: float, hold_back: bool) -> None:
+    """One robot's stream; a connection the server closes (on a starved machine its pings go
+    unanswered for longer than its timeout) ends this robot only, its frames counted lost."""
+    try:
+        await _robot_stream(url, session_id, frames, rate, duration, drain, stats, start_at,
+                            hold_back)
+    except (ConnectionClosed, OSError) as error:
+        stats.disconnected = f"{type(error).__name__}: {error}"[:120]
+
+
+async def _robot_stream(url: str, session_id: str, frames: Frames, rate: float,
+                        duration: float, drain: float, stats: RobotStats, start_at: float,
+                        hold_back: bool) -> None:
     sent_at: dict[int, float] = {}
     async with stream(url, session_id, API_KEY, hold_back=hold_back) as connection:
         done_sending = asyncio.Event()
@@ -164,6 +179,8 @@ async def robot(url: str, session_id: str, frames: Frames, rate: float, duration
                 _record(event, stats, sent_at, time.perf_counter())
         finally:
             producer.cancel()
+            with contextlib.suppress(asyncio.CancelledError, ConnectionClosed, OSError):
+                await producer
         await connection.close()
 
 
@@ -315,6 +332,7 @@ def _level_result(stats: list[RobotStats], robots: int, rate: float, duration: f
         stage_median_ms={k: float(np.median(v) * 1000) for k, v in sorted(stages.items())},
         reject_reasons=reasons,
         held_back=sum(s.held_back for s in stats), server_cpu_ms_per_received=per_received,
+        disconnected=[s.disconnected for s in stats if s.disconnected],
         load_average_start=load_start,
         load_average_end=list(os.getloadavg()),
     )

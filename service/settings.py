@@ -71,6 +71,9 @@ class ServiceSettings(BaseSettings):
     queue_size: int = Field(8, ge=1, le=10_000)
     queue_policy: QueuePolicy = "reject"
     ws_max_message_bytes: int = Field(16 * 1024 * 1024, ge=1024)
+    # Seconds between returns of the server's freed heap pages to the system (service.memory;
+    # 0 = never).
+    memory_trim_interval_s: float = Field(10.0, ge=0, le=3600)
     # Replicas on one PostgreSQL database (service.lease): a replica owns a session while it
     # streams, for this long after its last write; another one takes over after that. Short
     # means a quick failover, long tolerates longer stalls of a replica. Unused on SQLite.

@@ -7,6 +7,7 @@ name, hence module level).
 
 from __future__ import annotations
 
+import gc
 import logging
 import multiprocessing
 import multiprocessing.connection
@@ -24,6 +25,7 @@ from service.frame_work import (
     finish_pipeline,
     session_problem,
 )
+from service.memory import trim_free_memory
 from service.storage import SmoothedPose as StoredSmoothedPose
 
 _factory: PipelineFactory | None = None
@@ -85,11 +87,21 @@ def worker_check(prepared: PreparedSession) -> str | None:
 
 
 def worker_finish(session_id: str) -> list[StoredSmoothedPose]:
-    return finish_pipeline(_pipelines, session_id)
+    flushed = finish_pipeline(_pipelines, session_id)
+    release_memory()
+    return flushed
 
 
 def worker_drop(session_id: str) -> None:
-    _pipelines.pop(session_id, None)
+    if _pipelines.pop(session_id, None) is not None:
+        release_memory()
+
+
+def release_memory() -> None:
+    """After a pipeline is dropped: free its cycles, then give the pages back to the system
+    (a worker otherwise keeps the memory of every session it ever held; docs/performance.md)."""
+    gc.collect()
+    trim_free_memory()
 
 
 def worker_pid() -> int:

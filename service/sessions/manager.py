@@ -13,6 +13,7 @@ from typing import Protocol
 
 from service.estimator_adapter import PipelineFactory
 from service.lease import LeaseBook, replica_id
+from service.memory import trim_free_memory
 from service.metrics import Metrics
 from service.pose_writer import PoseWriter
 from service.sessions.frames import STREAM_CLOSE_DELETED, SessionGone
@@ -65,6 +66,7 @@ class SessionManager:
         self.deleted: OrderedDict[str, None] = OrderedDict()
         self.streams: dict[str, set[StreamHandle]] = {}
         self._background: set[asyncio.Task[None]] = set()
+        self._trimmer: asyncio.Task[None] | None = None
         self._on_change: Callable[[], None] = lambda: metrics.sessions_active.set(
             len(self.live)
         )
@@ -76,6 +78,17 @@ class SessionManager:
         except BaseException:
             self.io_pool.shutdown(wait=False)
             raise
+        if self.settings.memory_trim_interval_s > 0:
+            self._trimmer = asyncio.get_running_loop().create_task(
+                self._trim_periodically(self.settings.memory_trim_interval_s))
+
+    async def _trim_periodically(self, interval_s: float) -> None:
+        """Give the server's freed heap pages back now and then: the frames it received (724
+        KB each, refused ones too) leave freed buffers in every thread's heap."""
+        loop = asyncio.get_running_loop()
+        while True:
+            await asyncio.sleep(interval_s)
+            await loop.run_in_executor(self.io_pool, trim_free_memory)
 
     def live_session(self, record: SessionRecord) -> LiveSession:
         """The session's live state, created on first use; SessionGone once it was deleted."""
@@ -180,6 +193,10 @@ class SessionManager:
             stream.terminate(STREAM_CLOSE_DELETED, "session deleted", last)
 
     async def shutdown(self, drain_seconds: float = 10.0) -> None:
+        if self._trimmer is not None:
+            self._trimmer.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._trimmer
         sessions = list(self.live.values())
         self.live.clear()
         self._on_change()

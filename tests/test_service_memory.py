@@ -1,0 +1,85 @@
+"""Freed heap memory goes back to the system: the trim itself, and when workers and the
+server call it."""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import time
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+from pydantic import ValidationError
+from test_service_units import FakeFactory, settings_for
+
+import service.sessions.manager as manager_module
+import service.worker_process as worker_process
+from service import memory
+from service.app import create_app
+from service.settings import ServiceSettings
+
+needs_glibc = pytest.mark.skipif(memory._glibc() is None, reason="malloc_trim is glibc's")
+
+
+def _resident_bytes() -> int:
+    pages = int(Path("/proc/self/statm").read_text().split()[1])
+    return pages * os.sysconf("SC_PAGE_SIZE")
+
+
+@needs_glibc
+def test_trim_gives_freed_pages_in_the_middle_of_the_heap_back() -> None:
+    libc = memory._glibc()
+    assert libc is not None
+    libc.malloc.restype = ctypes.c_void_p
+    libc.malloc.argtypes = [ctypes.c_size_t]
+    libc.free.argtypes = [ctypes.c_void_p]
+    chunk, count = 4000, 20_000  # 80 MB of small blocks, below the mmap threshold
+    blocks = [libc.malloc(chunk) for _ in range(count)]
+    for block in blocks:
+        ctypes.memset(block, 1, chunk)  # resident now
+    keep = libc.malloc(chunk)  # above the freed ones: free() alone cannot shrink the heap
+    for block in blocks:
+        libc.free(block)
+    before = _resident_bytes()
+    assert memory.trim_free_memory() is True
+    after = _resident_bytes()
+    libc.free(keep)
+    assert before - after > 0.5 * chunk * count, (before, after)
+
+
+def test_a_worker_trims_only_when_it_dropped_a_pipeline(monkeypatch) -> None:
+    calls: list[bool] = []
+    monkeypatch.setattr(worker_process, "trim_free_memory", lambda: calls.append(True))
+    monkeypatch.setattr(worker_process, "_pipelines", {"a": object()})
+    worker_process.worker_drop("unknown")
+    assert calls == []
+    worker_process.worker_drop("a")
+    assert calls == [True] and worker_process._pipelines == {}
+    assert worker_process.worker_finish("a") == []  # nothing left to flush: still trimmed
+    assert calls == [True, True]
+
+
+@pytest.mark.parametrize("interval_s", [0.05, 0.0])
+def test_the_server_trims_on_its_interval_and_stops_at_shutdown(
+    tmp_path: Path, monkeypatch, interval_s: float
+) -> None:
+    calls: list[float] = []
+    monkeypatch.setattr(manager_module, "trim_free_memory",
+                        lambda: calls.append(time.monotonic()))
+    settings = settings_for(tmp_path, memory_trim_interval_s=interval_s)
+    with TestClient(create_app(settings, FakeFactory())) as client:
+        assert client.get("/healthz").status_code == 200
+        time.sleep(0.5)
+    stopped = len(calls)
+    time.sleep(0.2)
+    if interval_s:
+        assert stopped >= 2
+    else:
+        assert stopped == 0
+    assert len(calls) == stopped
+
+
+def test_a_negative_trim_interval_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(ValidationError):
+        ServiceSettings(data_dir=tmp_path, api_keys="k", memory_trim_interval_s=-1)
