@@ -279,6 +279,9 @@ class BackendConfig(_Section):
     landmark_noise_scale: float = Field(1.0, gt=0)
     landmark_huber: float = Field(2.0, gt=0)
     landmark_between: bool = True
+    landmark_flow_noise: bool = True  # pixel noise grows with the flow (frontend/stereo_noise)
+    landmark_across_keyframes: bool = True  # a keyframe's point matched before keeps its landmark
+    landmark_cholesky: bool = True  # Cholesky instead of QR while landmarks are on (~8x faster)
     cv_translation_sigma_m: float = Field(0.05, gt=0)
     cv_rotation_sigma_rad: float = Field(0.05, gt=0)
     # IMU: noise from sensor.yaml times a scale; bias random walk override (rad/s^2/sqrt(Hz)).

@@ -118,11 +118,17 @@ class LandmarkMap:
         body_from_rect = self.body_from_camera @ camera.camera_from_rect
         sensor = gtsam.Pose3(body_from_rect)
         sigmas = np.asarray(observations.sigmas_px) * self.config.landmark_noise_scale
-        base = gtsam.noiseModel.Gaussian.Covariance(stereo_covariance(*sigmas))
+        covariance = stereo_covariance(*sigmas)
         huber = gtsam.noiseModel.mEstimator.Huber.Create(self.config.landmark_huber)
-        noise = gtsam.noiseModel.Robust.Create(huber, base)
+        scales = (
+            observations.flow_scale()
+            if self.config.landmark_flow_noise
+            else np.ones(len(observations))
+        )
 
-        def observe(frame: int, pixel: np.ndarray, number: int) -> None:
+        def observe(frame: int, pixel: np.ndarray, number: int, scale: float) -> None:
+            base = gtsam.noiseModel.Gaussian.Covariance(covariance * scale**2)
+            noise = gtsam.noiseModel.Robust.Create(huber, base)
             measured = gtsam.StereoPoint2(*(float(value) for value in pixel))
             step.factors.add(
                 gtsam.GenericStereoFactor3D(
@@ -141,12 +147,13 @@ class LandmarkMap:
                 self._by_point[(observations.reference_ns, int(observations.reference_ids[i]))] = (
                     number
                 )
-                observe(reference, observations.reference_pixels[i], number)
+                observe(reference, observations.reference_pixels[i], number, 1.0)
             else:
                 step.keep.append(landmark_key(number))
             self._stamps[number] = step.stamp
-            self._by_point[(timestamp_ns, int(observations.current_ids[i]))] = number
-            observe(step.current, observations.current_pixels[i], number)
+            if self.config.landmark_across_keyframes:
+                self._by_point[(timestamp_ns, int(observations.current_ids[i]))] = number
+            observe(step.current, observations.current_pixels[i], number, float(scales[i]))
         return len(chosen)
 
     def _choose(

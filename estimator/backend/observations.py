@@ -37,6 +37,10 @@ class StereoObservations:
     reference_points: np.ndarray  # (N, 3) rectified reference camera (initial landmarks)
     camera: StereoCamera
     sigmas_px: tuple[float, float, float]  # the session's noise of u, v and disparity
+    # The noise grows with the flow between the two images: sigma x (1 + gain x flow) /
+    # (1 + gain x typical_flow), the level being the one at the recent frames' typical flow.
+    flow_gain: float = 0.0
+    typical_flow_px: float = 0.0
 
     def __post_init__(self) -> None:
         count = len(self.reference_ids)
@@ -52,6 +56,12 @@ class StereoObservations:
 
     def __len__(self) -> int:
         return len(self.reference_ids)
+
+    def flow_scale(self) -> np.ndarray:
+        """(N,) factor of each pair's pixel noise for its flow between the two frames."""
+        moved = np.hypot(*(self.current_pixels - self.reference_pixels)[:, [0, 2]].T)
+        typical = 1.0 + self.flow_gain * self.typical_flow_px
+        return (1.0 + self.flow_gain * moved) / typical
 
 
 def stereo_pixels(pixels: np.ndarray, disparity: np.ndarray) -> np.ndarray:

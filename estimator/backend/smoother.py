@@ -63,7 +63,9 @@ class Smoother:
         params.setRelinearizeThreshold(thresholds)
         # QR: the bias random walk (~4e-6 rad/s per frame) against a 0.05 rad/s prior is too
         # ill-conditioned for Cholesky when no gyro factor ties the biases to the poses.
-        params.setFactorization("QR")
+        params.setFactorization(
+            "CHOLESKY" if config.landmarks and config.landmark_cholesky else "QR"
+        )
         params.relinearizeSkip = 1
         if config.smoother == "isam2":
             return gtsam.ISAM2(params)

@@ -397,8 +397,8 @@ class Odometry:
             measurement = Measurement()
         else:
             landmarks = self.config.backend.landmarks
-            level = self._estimation.noise.level if landmarks else None
-            measurement = self._frames.measurement(estimate, level)
+            noise = self._estimation.noise if landmarks else None
+            measurement = self._frames.measurement(estimate, noise)
         fused = self._backend.add_frame(
             int(frame.timestamp_ns),
             relative_pose=measurement.relative_pose,

@@ -15,7 +15,7 @@ from estimator.odometry.frames import Estimate
 
 if TYPE_CHECKING:
     from estimator.backend.observations import StereoObservations
-    from estimator.frontend.stereo_noise import NoiseLevel
+    from estimator.frontend.stereo_noise import StereoNoiseModel
 
 __all__ = ["CameraFrames", "Measurement"]
 
@@ -47,12 +47,12 @@ class CameraFrames:
         """A relative pose of rectified frames as one of the original left camera."""
         return self.camera_from_rect @ rectified_motion @ self.rect_from_camera
 
-    def measurement(self, estimate: Estimate, level: NoiseLevel | None = None) -> Measurement:
+    def measurement(self, estimate: Estimate, noise: StereoNoiseModel | None = None) -> Measurement:
         """The estimate for the back end: T_ref_cur against the frame it was made from (the back
         end ties the two frames directly instead of through the poses in between). With the
-        session's noise ``level``, also the inliers' stereo pixels (landmarks)."""
+        session's ``noise`` model, also the inliers' stereo pixels (landmarks)."""
         assert estimate.result is not None and estimate.reference is not None
-        stereo = None if level is None else self.stereo_observations(estimate, level)
+        stereo = None if noise is None else self.stereo_observations(estimate, noise)
         return Measurement(
             relative_pose=self.reference_from_current(estimate),
             inlier_residuals=self.inlier_residuals(estimate),
@@ -64,7 +64,7 @@ class CameraFrames:
         )
 
     def stereo_observations(
-        self, estimate: Estimate, level: NoiseLevel
+        self, estimate: Estimate, noise: StereoNoiseModel
     ) -> StereoObservations | None:
         """The inliers as rectified stereo pixels of both frames, named by their point indices
         (None without the rectification or the current frame's points)."""
@@ -89,7 +89,9 @@ class CameraFrames:
             ),
             reference_points=previous.points[reference_ids],
             camera=StereoCamera(rect.fx, rect.cx, rect.cy, rect.baseline, self.camera_from_rect),
-            sigmas_px=level.as_tuple(),
+            sigmas_px=noise.level.as_tuple(),
+            flow_gain=noise.gain,
+            typical_flow_px=noise.typical_flow,
         )
 
     def measurement_covariance(self, estimate: Estimate) -> np.ndarray | None:
