@@ -280,7 +280,7 @@ class BackendConfig(_Section):
     landmark_huber: float = Field(2.0, gt=0)
     landmark_between: bool = True
     landmark_flow_noise: bool = True  # pixel noise grows with the flow (frontend/stereo_noise)
-    landmark_across_keyframes: bool = True  # a keyframe's point matched before keeps its landmark
+    landmark_across_keyframes: bool = False  # a point matched to a landmark keeps it as keyframe
     landmark_cholesky: bool = True  # Cholesky instead of QR while landmarks are on (~8x faster)
     cv_translation_sigma_m: float = Field(0.05, gt=0)
     cv_rotation_sigma_rad: float = Field(0.05, gt=0)

@@ -95,7 +95,9 @@ def test_a_landmark_seen_again_from_a_new_keyframe_is_the_same_variable() -> Non
     body_poses = [np.eye(4), motion, motion @ motion]
     rect_poses = [pose @ CAMERA_MOUNT @ CAMERA_FROM_RECT for pose in body_poses]
     world = transform_points(rect_poses[0], _scene(rng, 60))
-    config = BackendConfig(use_imu=False, landmarks=True, landmark_max_per_frame=60)
+    config = BackendConfig(
+        use_imu=False, landmarks=True, landmark_max_per_frame=60, landmark_across_keyframes=True
+    )
     backend = FusionBackend(config, CAMERA_MOUNT, None)
     backend.add_frame(0, np.eye(4), None, 0, None)
     ids = np.arange(60)

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["StereoCamera", "StereoObservations", "stereo_pixels"]
+__all__ = ["StereoCamera", "StereoObservations", "project_stereo", "stereo_pixels"]
 
 
 @dataclass(frozen=True)
@@ -62,6 +62,14 @@ class StereoObservations:
         moved = np.hypot(*(self.current_pixels - self.reference_pixels)[:, [0, 2]].T)
         typical = 1.0 + self.flow_gain * self.typical_flow_px
         return (1.0 + self.flow_gain * moved) / typical
+
+
+def project_stereo(points: np.ndarray, camera: StereoCamera) -> np.ndarray:
+    """(u_left, u_right, v) of rectified-camera points (N, 3): the inverse of triangulation."""
+    depth = points[:, 2]
+    u = camera.fx * points[:, 0] / depth + camera.cx
+    v = camera.fx * points[:, 1] / depth + camera.cy
+    return np.column_stack([u, u - camera.fx * camera.baseline / depth, v])
 
 
 def stereo_pixels(pixels: np.ndarray, disparity: np.ndarray) -> np.ndarray:

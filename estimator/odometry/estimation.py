@@ -67,7 +67,6 @@ class PoseEstimation:
             if self.config.registration.mahalanobis_refine:
                 estimate = self._refine(estimate, pairs)
         estimate.pairs, estimate.reference = pairs, reference
-        estimate.current_points = points
         return estimate
 
     def plausible(self, estimate: Estimate, prediction: np.ndarray, span_ns: int) -> Estimate:

@@ -85,7 +85,6 @@ class Estimate:
     covariance: np.ndarray | None = None
     # (N, 3, 3) covariances of the current and reference points of ``pairs``.
     point_covariances: tuple[np.ndarray, np.ndarray] | None = None
-    current_points: StereoPoints | None = None  # the current frame's (pairs index them)
 
 
 def failed(estimate: Estimate, reason: str) -> Estimate:

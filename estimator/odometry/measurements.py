@@ -67,16 +67,22 @@ class CameraFrames:
         self, estimate: Estimate, noise: StereoNoiseModel
     ) -> StereoObservations | None:
         """The inliers as rectified stereo pixels of both frames, named by their point indices
-        (None without the rectification or the current frame's points)."""
-        from estimator.backend.observations import StereoCamera, StereoObservations, stereo_pixels
+        (None without the rectification)."""
+        from estimator.backend.observations import (
+            StereoCamera,
+            StereoObservations,
+            project_stereo,
+            stereo_pixels,
+        )
 
         pairs, result, reference = estimate.pairs, estimate.result, estimate.reference
-        current, rect = estimate.current_points, self.rectification
-        if pairs is None or result is None or reference is None or current is None or not rect:
+        rect = self.rectification
+        if pairs is None or result is None or reference is None or rect is None:
             return None
         mask = result.inliers
         reference_ids, current_ids = pairs.reference_index[mask], pairs.current_index[mask]
         previous = reference.points
+        camera = StereoCamera(rect.fx, rect.cx, rect.cy, rect.baseline, self.camera_from_rect)
         return StereoObservations(
             reference_ns=int(reference.timestamp_ns),
             reference_ids=np.asarray(reference_ids, dtype=np.int64),
@@ -84,11 +90,11 @@ class CameraFrames:
             reference_pixels=stereo_pixels(
                 previous.pixels[reference_ids], previous.disparity[reference_ids]
             ),
-            current_pixels=stereo_pixels(
-                current.pixels[current_ids], current.disparity[current_ids]
-            ),
+            # From the matched points, not the detections: the temporal match refines the
+            # current pixels to sub-pixel precision against the reference image.
+            current_pixels=project_stereo(pairs.current_points[mask], camera),
             reference_points=previous.points[reference_ids],
-            camera=StereoCamera(rect.fx, rect.cx, rect.cy, rect.baseline, self.camera_from_rect),
+            camera=camera,
             sigmas_px=noise.level.as_tuple(),
             flow_gain=noise.gain,
             typical_flow_px=noise.typical_flow,
