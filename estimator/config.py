@@ -273,7 +273,8 @@ class BackendConfig(_Section):
     # (GenericStereoFactor3D), at most ``landmark_max_per_frame`` well-spread ones per frame,
     # with the session's measured pixel noise times ``landmark_noise_scale`` and a Huber kernel
     # at ``landmark_huber`` sigmas. ``landmark_between``: keep the relative-pose factor too
-    # (it counts the same pixels twice).
+    # (it counts the same pixels twice). Off by default: on the real MH_01 clip it does not
+    # beat the relative poses and makes the fused covariance too small (docs/backend.md).
     landmarks: bool = False
     landmark_max_per_frame: int = Field(120, ge=3)
     landmark_noise_scale: float = Field(1.0, gt=0)
