@@ -4,7 +4,8 @@
 the smoother and its keys (``smoother.py``), the frames it still holds and their final
 estimates (``window.py``), the IMU factors (``imu_terms.py``), the outlier gate
 (``gating.py``), the motion prior (``motion_prior.py``), the start-up standstill
-(``standstill.py``) and the priors a graph starts from (``anchor.py``).
+(``standstill.py``), the priors a graph starts from (``anchor.py``) and, as an option, the
+inliers as stereo landmarks (``landmarks.py``).
 
 Per frame k (one Pose3, body in world, and with an IMU one gyro bias): the front-end relative
 pose as a robust ``BetweenFactorPose3`` from the frame it was measured against (a keyframe) to
