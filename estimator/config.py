@@ -273,6 +273,21 @@ class BackendConfig(_Section):
     # covariance is then too small for its errors there (NEES 15.5 per DOF over 1 s windows
     # against 1.2; docs/backend.md), so it is not the default.
     old_reference: Literal["chain", "prior", "prior-after-gap"] = "prior-after-gap"
+    # Stereo landmarks (backend/landmarks.py, docs/backend.md): the inliers of each accepted
+    # measurement enter the window as 3D points observed in both rectified images
+    # (GenericStereoFactor3D), at most ``landmark_max_per_frame`` well-spread ones per frame,
+    # with the session's measured pixel noise times ``landmark_noise_scale`` and a Huber kernel
+    # at ``landmark_huber`` sigmas. ``landmark_between``: keep the relative-pose factor too
+    # (it counts the same pixels twice). Off by default: on the real MH_01 clip it does not
+    # beat the relative poses and makes the fused covariance too small (docs/backend.md).
+    landmarks: bool = False
+    landmark_max_per_frame: int = Field(120, ge=3)
+    landmark_noise_scale: float = Field(1.0, gt=0)
+    landmark_huber: float = Field(2.0, gt=0)
+    landmark_between: bool = True
+    landmark_flow_noise: bool = True  # pixel noise grows with the flow (frontend/stereo_noise)
+    landmark_across_keyframes: bool = False  # a point matched to a landmark keeps it as keyframe
+    landmark_cholesky: bool = True  # Cholesky instead of QR while landmarks are on (~8x faster)
     cv_translation_sigma_m: float = Field(0.05, gt=0)
     cv_rotation_sigma_rad: float = Field(0.05, gt=0)
     # IMU: noise from sensor.yaml times a scale; bias random walk override (rad/s^2/sqrt(Hz)).

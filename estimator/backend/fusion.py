@@ -4,7 +4,8 @@
 the smoother and its keys (``smoother.py``), the frames it still holds and their final
 estimates (``window.py``), the IMU factors (``imu_terms.py``), the outlier gate
 (``gating.py``), the motion prior (``motion_prior.py``), the start-up standstill
-(``standstill.py``) and the priors a graph starts from (``anchor.py``).
+(``standstill.py``), the priors a graph starts from (``anchor.py``) and, as an option, the
+inliers as stereo landmarks (``landmarks.py``).
 
 Per frame k (one Pose3, body in world, and with an IMU one gyro bias): the front-end relative
 pose as a robust ``BetweenFactorPose3`` from the frame it was measured against (a keyframe) to
@@ -32,8 +33,10 @@ from estimator.backend.estimate import FusedEstimate, check_pose
 from estimator.backend.gating import agrees_with_standstill, gate_distance
 from estimator.backend.imu import GRAVITY, SpecificForceDelta, gravity_aligned_rotation
 from estimator.backend.imu_terms import ImuTerms
+from estimator.backend.landmarks import LandmarkMap
 from estimator.backend.motion_prior import add_motion_prior, constant_velocity
 from estimator.backend.noise import relative_pose_covariance, robust
+from estimator.backend.observations import StereoObservations
 from estimator.backend.smoother import (
     ACCEL_BIAS_KEY,
     GRAVITY_KEY,
@@ -50,6 +53,10 @@ from estimator.geometry import invert_pose, make_pose, nearest_rigid
 from estimator.types import FrameStatus, ImuBatch, ImuNoise, check_timestamp_order
 
 __all__ = ["FusedEstimate", "FusionBackend"]
+
+# Fewer landmarks than this in a frame: the relative pose is added even without
+# ``landmark_between`` (a few points tie a frame too loosely on their own).
+_MIN_LANDMARKS = 20
 
 
 class FusionBackend:
@@ -78,6 +85,7 @@ class FusionBackend:
         self._accel_bias = np.zeros(3)
         self._smoother = Smoother(config)
         self._window = FrameWindow(self._smoother, self.body_from_camera)
+        self._landmarks = LandmarkMap(config, self.body_from_camera) if config.landmarks else None
         self._index = -1
         self._last_ns = 0
         self._body_pose = np.eye(4)
@@ -115,6 +123,7 @@ class FusionBackend:
         reference_ns: int | None = None,
         inlier_points: np.ndarray | None = None,
         covariance: np.ndarray | None = None,
+        stereo: StereoObservations | None = None,
     ) -> FusedEstimate:
         """Add frame ``timestamp_ns``; ``relative_pose`` is the front-end T_ref_cur (camera).
 
@@ -126,7 +135,8 @@ class FusionBackend:
         are strongly correlated); without them it gets the diagonal one from the residuals.
         ``covariance`` (6, 6), the relative pose's own covariance in the camera frame (GTSAM
         tangent, right perturbation) when the front end computed one (the Mahalanobis
-        refinement), takes precedence over both.
+        refinement), takes precedence over both. ``stereo``, the inliers' pixels in both
+        frames, adds them as landmarks when ``config.landmarks`` is on (``landmarks.py``).
         """
         timestamp_ns = int(timestamp_ns)
         check_timestamp_order(timestamp_ns, self._last_ns if self._index >= 0 else None)
@@ -145,7 +155,7 @@ class FusionBackend:
             self._imu.buffer.extend(imu)
         if self._index < 0:
             return self._start(timestamp_ns)
-        return self._advance(timestamp_ns, relative_pose, covariance, reference_ns)
+        return self._advance(timestamp_ns, relative_pose, covariance, reference_ns, stereo)
 
     def state(self) -> dict[str, Any]:
         """The estimates a continuation in another process starts from (JSON-ready)."""
@@ -233,6 +243,7 @@ class FusionBackend:
         relative_pose: np.ndarray | None,
         covariance: np.ndarray | None,
         reference_ns: int | None = None,
+        stereo: StereoObservations | None = None,
     ) -> FusedEstimate:
         """One frame: its factors (IMU, vision, motion prior, standstill), the update, status."""
         dt = (timestamp_ns - self._last_ns) * 1e-9
@@ -243,6 +254,7 @@ class FusionBackend:
             dt=dt,
             stamp=stamp,
             cutoff=stamp - self.config.smoother_lag_s,  # keys stamped before it are dropped now
+            timestamp_ns=timestamp_ns,
         )
         step.keys.append(pose_key(step.current))
         self._add_imu(step, timestamp_ns, relative_pose, covariance, reference_ns)
@@ -253,7 +265,9 @@ class FusionBackend:
                 step, self._window, self._body_pose, self._gravity, self._accel_bias
             )
         prediction = self._prediction(step, motion, inertial)
-        guess = self._add_vision_factor(step, relative_pose, covariance, reference_ns, prediction)
+        guess = self._add_vision_factor(
+            step, relative_pose, covariance, reference_ns, prediction, stereo
+        )
         if self.config.motion_prior == "always" or not (step.accepted or inertial is not None):
             add_motion_prior(step, motion, self.config)
         guess = self._rest.add(step, guess)
@@ -316,6 +330,7 @@ class FusionBackend:
         covariance: np.ndarray | None,
         reference_ns: int | None,
         prediction: np.ndarray,
+        stereo: StereoObservations | None = None,
     ) -> np.ndarray:
         """The front-end relative pose as a robust factor unless the gate rejects it.
 
@@ -341,9 +356,16 @@ class FusionBackend:
         if not self._passes_gate(step, body_motion, prediction, covariance):
             return prediction
         step.accepted = True
-        self._add_accepted_vision(
-            step, reference, reference_pose, live, body_measured, body_motion, covariance
-        )
+        observed = 0
+        if self._landmarks is not None and stereo is not None and len(stereo):
+            reference_body = self._body_pose if reference == step.previous else reference_pose
+            observed = self._landmarks.add(
+                step, stereo, reference, reference_body if live else None, step.timestamp_ns
+            )
+        if self.config.landmark_between or observed < _MIN_LANDMARKS:
+            self._add_accepted_vision(
+                step, reference, reference_pose, live, body_measured, body_motion, covariance
+            )
         self._window.oldest_reference = max(self._window.oldest_reference, reference)
         return body_motion
 
@@ -489,6 +511,8 @@ class FusionBackend:
     def _restart(self, index: int, body_pose: np.ndarray) -> None:
         """A fresh smoother anchored at ``body_pose``: the trajectory goes on from here."""
         self._smoother.reset()
+        if self._landmarks is not None:
+            self._landmarks.reset()
         gyro_bias = (self._bias, self.config.gyro_bias_prior_sigma) if self.use_imu else None
         inertial = (
             self._inertial_prior(self.config.gravity_prior_sigma) if self._use_accel else None

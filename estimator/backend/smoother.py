@@ -55,6 +55,7 @@ class Smoother:
         rotation, translation = config.relinearize_rotation_rad, config.relinearize_translation_m
         thresholds.insert(("x", np.array([rotation] * 3 + [translation] * 3)))
         thresholds.insert(("b", np.full(3, config.relinearize_bias)))
+        thresholds.insert(("l", np.full(3, translation)))  # stereo landmarks (metres)
         # Gravity and accelerometer bias: the inertial factor is linear in both, so its
         # linearisation is exact at any point and a change of theirs never needs one.
         thresholds.insert(("g", np.full(3, np.inf)))
@@ -62,7 +63,9 @@ class Smoother:
         params.setRelinearizeThreshold(thresholds)
         # QR: the bias random walk (~4e-6 rad/s per frame) against a 0.05 rad/s prior is too
         # ill-conditioned for Cholesky when no gyro factor ties the biases to the poses.
-        params.setFactorization("QR")
+        params.setFactorization(
+            "CHOLESKY" if config.landmarks and config.landmark_cholesky else "QR"
+        )
         params.relinearizeSkip = 1
         if config.smoother == "isam2":
             return gtsam.ISAM2(params)

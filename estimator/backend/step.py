@@ -21,6 +21,7 @@ class Step:
     dt: float
     stamp: float  # smoother time of the new keys
     cutoff: float  # keys stamped before it are dropped by this update
+    timestamp_ns: int = 0  # the new frame's time
     factors: gtsam.NonlinearFactorGraph = field(default_factory=gtsam.NonlinearFactorGraph)
     values: gtsam.Values = field(default_factory=gtsam.Values)
     keys: list[int] = field(default_factory=list)

@@ -61,7 +61,7 @@ class Odometry:
         self.stereo = StereoMatcher(self.config.frontend, self.rectification)
         track_mode = self.config.frontend.mode == "track"
         self._tracker = Tracker(self.config.frontend, self.rectification) if track_mode else None
-        self._frames = CameraFrames(self.rectification.R_left)
+        self._frames = CameraFrames(self.rectification.R_left, self.rectification)
         self._initial_pose = checked_pose(initial_pose) if initial_pose is not None else None
         self._backend = self._make_backend(imu_noise) if self.config.backend.enabled else None
         self._world_from_backend = np.eye(4)  # anchors the back end's world on initial_pose
@@ -412,7 +412,9 @@ class Odometry:
         elif estimate.reference_from_current is None:
             measurement = Measurement()
         else:
-            measurement = self._frames.measurement(estimate)
+            landmarks = self.config.backend.landmarks
+            noise = self._estimation.noise if landmarks else None
+            measurement = self._frames.measurement(estimate, noise)
         fused = self._backend.add_frame(
             int(frame.timestamp_ns),
             relative_pose=measurement.relative_pose,
@@ -422,6 +424,7 @@ class Odometry:
             reference_ns=measurement.reference_ns,
             inlier_points=measurement.inlier_points,
             covariance=measurement.covariance,
+            stereo=measurement.stereo,
         )
         self._fused = fused
         if first:

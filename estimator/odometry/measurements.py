@@ -4,12 +4,18 @@ camera frame, with its inlier points, residuals and covariance."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from estimator.config import BackendConfig
+from estimator.formats.calibration import Rectification
 from estimator.geometry import invert_pose, make_pose, transform_points
 from estimator.odometry.frames import Estimate
+
+if TYPE_CHECKING:
+    from estimator.backend.observations import StereoObservations
+    from estimator.frontend.stereo_noise import StereoNoiseModel
 
 __all__ = ["CameraFrames", "Measurement"]
 
@@ -24,23 +30,29 @@ class Measurement:
     reference_ns: int | None = None
     inlier_points: np.ndarray | None = None
     covariance: np.ndarray | None = None
+    stereo: StereoObservations | None = None  # the inliers' pixels, for stereo landmarks
 
 
 class CameraFrames:
     """Between the rectified left camera (where geometry runs) and the original one (poses)."""
 
-    def __init__(self, rectifying_rotation: np.ndarray) -> None:
+    def __init__(
+        self, rectifying_rotation: np.ndarray, rectification: Rectification | None = None
+    ) -> None:
         self.rect_from_camera = make_pose(rectifying_rotation, np.zeros(3))
         self.camera_from_rect = invert_pose(self.rect_from_camera)
+        self.rectification = rectification
 
     def in_camera(self, rectified_motion: np.ndarray) -> np.ndarray:
         """A relative pose of rectified frames as one of the original left camera."""
         return self.camera_from_rect @ rectified_motion @ self.rect_from_camera
 
-    def measurement(self, estimate: Estimate) -> Measurement:
+    def measurement(self, estimate: Estimate, noise: StereoNoiseModel | None = None) -> Measurement:
         """The estimate for the back end: T_ref_cur against the frame it was made from (the back
-        end ties the two frames directly instead of through the poses in between)."""
+        end ties the two frames directly instead of through the poses in between). With the
+        session's ``noise`` model, also the inliers' stereo pixels (landmarks)."""
         assert estimate.result is not None and estimate.reference is not None
+        stereo = None if noise is None else self.stereo_observations(estimate, noise)
         return Measurement(
             relative_pose=self.reference_from_current(estimate),
             inlier_residuals=self.inlier_residuals(estimate),
@@ -48,6 +60,44 @@ class CameraFrames:
             reference_ns=estimate.reference.timestamp_ns,
             inlier_points=self.inlier_points(estimate),
             covariance=self.measurement_covariance(estimate),
+            stereo=stereo,
+        )
+
+    def stereo_observations(
+        self, estimate: Estimate, noise: StereoNoiseModel
+    ) -> StereoObservations | None:
+        """The inliers as rectified stereo pixels of both frames, named by their point indices
+        (None without the rectification)."""
+        from estimator.backend.observations import (
+            StereoCamera,
+            StereoObservations,
+            project_stereo,
+            stereo_pixels,
+        )
+
+        pairs, result, reference = estimate.pairs, estimate.result, estimate.reference
+        rect = self.rectification
+        if pairs is None or result is None or reference is None or rect is None:
+            return None
+        mask = result.inliers
+        reference_ids, current_ids = pairs.reference_index[mask], pairs.current_index[mask]
+        previous = reference.points
+        camera = StereoCamera(rect.fx, rect.cx, rect.cy, rect.baseline, self.camera_from_rect)
+        return StereoObservations(
+            reference_ns=int(reference.timestamp_ns),
+            reference_ids=np.asarray(reference_ids, dtype=np.int64),
+            current_ids=np.asarray(current_ids, dtype=np.int64),
+            reference_pixels=stereo_pixels(
+                previous.pixels[reference_ids], previous.disparity[reference_ids]
+            ),
+            # From the matched points, not the detections: the temporal match refines the
+            # current pixels to sub-pixel precision against the reference image.
+            current_pixels=project_stereo(pairs.current_points[mask], camera),
+            reference_points=previous.points[reference_ids],
+            camera=camera,
+            sigmas_px=noise.level.as_tuple(),
+            flow_gain=noise.gain,
+            typical_flow_px=noise.typical_flow,
         )
 
     def measurement_covariance(self, estimate: Estimate) -> np.ndarray | None:
