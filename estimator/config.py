@@ -267,7 +267,11 @@ class BackendConfig(_Section):
     # the real MH_01 clip fused 0.0067 deg per frame instead of 0.0116, but the reported pose
     # covariance is then too small for its errors there (NEES 15.5 per DOF over 1 s windows
     # against 1.2; docs/backend.md), so it is not the default.
-    old_reference: Literal["chain", "prior", "prior-after-gap"] = "prior-after-gap"
+    old_reference: Literal["chain", "prior", "prior-after-gap", "views"] = "prior-after-gap"
+    # "views": a measurement against a keyframe goes through a view variable of that keyframe,
+    # which carries the error all its measurements share (this fraction of each measurement's
+    # covariance; backend/keyframe_views.py) and stays while measurements refer to it.
+    keyframe_shared_error: float = Field(0.8, gt=0, lt=1)
     cv_translation_sigma_m: float = Field(0.05, gt=0)
     cv_rotation_sigma_rad: float = Field(0.05, gt=0)
     # IMU: noise from sensor.yaml times a scale; bias random walk override (rad/s^2/sqrt(Hz)).
