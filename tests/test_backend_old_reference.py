@@ -29,7 +29,12 @@ def _between_pairs(backend: FusionBackend) -> set[tuple[str, int, str, int]]:
 
 
 def _keyframe_run(
-    frames: int, keyframe_every: int, imu: bool, seed: int = 31, mode: str = "views"
+    frames: int,
+    keyframe_every: int,
+    imu: bool,
+    seed: int = 31,
+    mode: str = "views",
+    **settings: float,
 ):
     """Exact keyframe measurements: frame k measured against the latest keyframe (every
     ``keyframe_every`` frames, each measured against the one before)."""
@@ -37,7 +42,7 @@ def _keyframe_run(
     stamps = scenario.timestamps_ns
     camera = scenario.body_poses @ BODY_FROM_CAMERA
     backend = FusionBackend(
-        BackendConfig(old_reference=mode), BODY_FROM_CAMERA, ImuNoise() if imu else None
+        BackendConfig(old_reference=mode, **settings), BODY_FROM_CAMERA, ImuNoise() if imu else None
     )
     answers = [backend.add_frame(int(stamps[0]), None, None, 0, scenario.imu.between(
         int(stamps[0]) - 10**9, int(stamps[0])) if imu else None)]  # fmt: skip
@@ -93,3 +98,16 @@ def test_views_give_frames_measured_against_an_old_keyframe_its_uncertainty():
     assert first is not None and third is not None
     assert 2.5 < np.trace(third) / np.trace(first) < 3.5
     assert np.linalg.eigvalsh(third - first).min() > 0
+
+
+def test_measurements_against_one_keyframe_are_not_counted_as_independent():
+    """Frames 1..20 all measured against frame 0 (no IMU): the n-th measurement's covariance is
+    n times its own, so frame 20 is about twice as uncertain as frame 10, as a drift that
+    accumulates along the keyframe's measurements is; counted as independent, the two are
+    equally uncertain (one measurement each from the pinned frame 0)."""
+    _, _, inflated = _keyframe_run(21, keyframe_every=100, imu=False)
+    _, _, independent = _keyframe_run(21, keyframe_every=100, imu=False, keyframe_count_inflation=0)
+    ratio = np.trace(inflated[20].body_covariance) / np.trace(inflated[10].body_covariance)
+    assert 1.7 < ratio < 2.3
+    ratio = np.trace(independent[20].body_covariance) / np.trace(independent[10].body_covariance)
+    assert 0.8 < ratio < 1.25

@@ -1,25 +1,32 @@
-"""Measurements against one keyframe share an error: a view variable per keyframe carries it.
+"""Measurements against a keyframe that has left the window: a view variable of the keyframe.
 
-The front end measures frame j against keyframe K from K's stereo points. Their triangulation
-errors are the same for every frame measured against K, so the measurement errors are
-strongly correlated (on the real MH_01 clip the lag-1 correlation of consecutive errors
-against the same keyframe is about 0.87, ``swarmvo bench consistency``). Independent
-factors K -> j would count that shared error once per frame: a graph tying the frames
-together with the IMU then believes K -> j to a fraction of what it knows, and its reported
-covariances are too small.
+``old_reference = "prior"`` placed such a frame in the world from the keyframe's last estimate
+with the measurement's covariance alone: its absolute covariance stopped at one measurement's
+while the keyframe's own uncertainty, and the drift before it, were dropped, so a filter
+trusting the pose covariance saw its errors as too large (MH_01 fused pose NEES 15.5 per DOF).
 
-Model: T_Kj measured = Exp(s) T_Kj Exp(u_j) with s (left, at K) shared by all frames measured
-against K and u_j (right, at j) independent; the measurement's covariance C_j is split into
-``shared`` C_j for s and (1 - ``shared``) C_j for u_j. The view V_K = X_K Exp(s) is a variable
-of its own: ``Between(X_K, V_K, I)`` with covariance ``shared`` Ad(T) C_j Ad(T)^T (the right
-perturbation at j moved to a left one at K) from the first measurement, and
-``Between(V_K, X_j, T_Kj)`` with (1 - ``shared``) C_j for each measurement. One measurement
-alone gets exactly its covariance C_j back.
+Here every measurement against keyframe K goes through a view V_K of it, a Pose3 variable tied
+to X_K by ``Between(X_K, V_K, I)`` when K is first measured against (while X_K is in the
+window), and each frame j by ``Between(V_K, X_j, T_Kj)``. The view is restamped with each use,
+so it stays in the smoother after X_K has been marginalised: the frames keep their tie to the
+keyframe and its uncertainty (the marginal the smoother folds into V_K), and they share it.
 
-The view stays in the smoother while measurements refer to it (its key is restamped with each
-use), also after X_K itself has been marginalised: the frames keep their tie to the keyframe
-and its uncertainty, instead of a pose prior from its last estimate that drops both. A view not
-used for a lag is marginalised like any frame.
+Two properties of the front end's measurements shape the noise:
+
+* they share an error (K's stereo points are the same for all): T_Kj measured =
+  Exp(s) T_Kj Exp(u_j), s (left, at K) common, u_j (right, at j) independent. The fraction
+  ``keyframe_shared_error`` of the measurement's covariance C_j goes to s, on the view's link
+  (moved to K by Ad(T_Kj)), the rest to u_j; one measurement alone keeps exactly C_j.
+* consecutive ones are strongly correlated (lag-1 correlation 0.87 against the same keyframe
+  on MH_01, ``swarmvo bench consistency``), so n of them do not carry n times the information:
+  the n-th measurement against a keyframe gets n ** ``keyframe_count_inflation`` C_j. With
+  ``1`` the information of the n measurements grows like log n instead of n, and the frames'
+  absolute covariance grows along a keyframe's measurements like a random walk, the way the
+  errors do.
+
+On MH_01 fused (real IMU) a larger shared fraction made the pose covariance less consistent
+(the frames of one keyframe then hold together more tightly than their errors do), and the
+inflation was what made it consistent (docs/backend.md has the table).
 """
 
 from __future__ import annotations
@@ -46,9 +53,11 @@ class KeyframeViews:
         self.smoother = smoother
         self.config = config
         self.stamps: dict[int, float] = {}  # keyframe index -> smoother stamp of its view
+        self.counts: dict[int, int] = {}  # keyframe index -> measurements against it so far
 
     def reset(self) -> None:
         self.stamps.clear()
+        self.counts.clear()
 
     def add(
         self,
@@ -69,6 +78,7 @@ class KeyframeViews:
             for index, stamp in self.stamps.items()
             if stamp > step.cutoff + STAMP_MARGIN_S
         }
+        self.counts = {index: n for index, n in self.counts.items() if index in self.stamps}
         key = view_key(reference)
         shared = self.config.keyframe_shared_error
         if reference in self.stamps and self.smoother.isam().valueExists(key):
@@ -90,7 +100,9 @@ class KeyframeViews:
         else:
             return False
         self.stamps[reference] = step.stamp
-        base = gtsam.noiseModel.Gaussian.Covariance((1.0 - shared) * covariance)
+        self.counts[reference] = self.counts.get(reference, 0) + 1
+        inflation = float(self.counts[reference]) ** self.config.keyframe_count_inflation
+        base = gtsam.noiseModel.Gaussian.Covariance(inflation * (1.0 - shared) * covariance)
         noise = robust(base, self.config.robust_kernel, self.config.robust_parameter)
         step.factors.add(
             gtsam.BetweenFactorPose3(key, pose_key(step.current), gtsam.Pose3(measured), noise)
