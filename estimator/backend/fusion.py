@@ -416,7 +416,8 @@ class FusionBackend:
         covariance: np.ndarray,
     ) -> None:
         """The factor for an accepted measurement: between the reference and this frame while
-        the reference is in the window, else a prior or a chain (``old_reference``)."""
+        the reference is in the window, else a prior or a chain (``old_reference``); with
+        ``"views"`` through the keyframe's view (``keyframe_views.py``) while it has one."""
         previous = step.previous
         mode = self.config.old_reference
         if mode == "views" and reference != previous:
