@@ -33,6 +33,7 @@ from estimator.backend.estimate import FusedEstimate, check_pose
 from estimator.backend.gating import agrees_with_standstill, gate_distance
 from estimator.backend.imu import GRAVITY, SpecificForceDelta, gravity_aligned_rotation
 from estimator.backend.imu_terms import ImuTerms
+from estimator.backend.keyframe_views import KeyframeViews
 from estimator.backend.landmarks import LandmarkMap
 from estimator.backend.motion_prior import add_motion_prior, constant_velocity
 from estimator.backend.noise import relative_pose_covariance, robust
@@ -86,6 +87,7 @@ class FusionBackend:
         self._smoother = Smoother(config)
         self._window = FrameWindow(self._smoother, self.body_from_camera)
         self._landmarks = LandmarkMap(config, self.body_from_camera) if config.landmarks else None
+        self._views = KeyframeViews(self._smoother, config)
         self._index = -1
         self._last_ns = 0
         self._body_pose = np.eye(4)
@@ -436,13 +438,19 @@ class FusionBackend:
         covariance: np.ndarray,
     ) -> None:
         """The factor for an accepted measurement: between the reference and this frame while
-        the reference is in the window, else a prior or a chain (``old_reference``)."""
+        the reference is in the window, else a prior or a chain (``old_reference``); with
+        ``"views"`` through the keyframe's view (``keyframe_views.py``) while it has one."""
+        previous = step.previous
+        mode = self.config.old_reference
+        if mode == "views" and reference != previous:
+            if self._views.add(step, reference, live, reference_pose, body_measured, covariance):
+                return
+            live = False  # neither the keyframe nor its view is left: as "prior-after-gap"
         base = gtsam.noiseModel.Gaussian.Covariance(covariance)
         noise = robust(base, self.config.robust_kernel, self.config.robust_parameter)
-        previous = step.previous
         after_gap = self._last_fix_index != previous
-        mode = self.config.old_reference
-        if not live and (mode == "prior" or (mode == "prior-after-gap" and after_gap)):
+        placing = mode == "prior" or (mode in ("prior-after-gap", "views") and after_gap)
+        if not live and placing:
             # The reference has left the window: its estimate and the measurement place this
             # frame in the world directly (as the front end's chain does), instead of through
             # recent frames whose estimates the smoother still moves (after a gap, frames
@@ -513,6 +521,7 @@ class FusionBackend:
         self._smoother.reset()
         if self._landmarks is not None:
             self._landmarks.reset()
+        self._views.reset()
         gyro_bias = (self._bias, self.config.gyro_bias_prior_sigma) if self.use_imu else None
         inertial = (
             self._inertial_prior(self.config.gravity_prior_sigma) if self._use_accel else None

@@ -54,6 +54,7 @@ class Smoother:
         thresholds = gtsam.ISAM2ThresholdMap()
         rotation, translation = config.relinearize_rotation_rad, config.relinearize_translation_m
         thresholds.insert(("x", np.array([rotation] * 3 + [translation] * 3)))
+        thresholds.insert(("r", np.array([rotation] * 3 + [translation] * 3)))  # keyframe views
         thresholds.insert(("b", np.full(3, config.relinearize_bias)))
         thresholds.insert(("l", np.full(3, translation)))  # stereo landmarks (metres)
         # Gravity and accelerometer bias: the inertial factor is linear in both, so its
