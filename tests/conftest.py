@@ -36,3 +36,23 @@ def euroc_v102_imu_segment() -> Path:
 def euroc_mh01_moving() -> Path:
     """EuRoC MH_01 200 stereo frames + IMU + ground truth (carried and swung by hand)."""
     return _dataset("euroc_mh01_moving")
+
+
+def _between_factor_ends(smoother_graph) -> set[tuple[str, int, str, int]]:
+    """(symbol, index) of both ends of every relative-pose factor in a smoother's graph."""
+    import gtsam
+
+    factors = smoother_graph.getFactors()
+    ends = set()
+    for i in range(factors.size()):
+        factor = factors.at(i)
+        if factor is not None and isinstance(factor, gtsam.BetweenFactorPose3):
+            first, second = (gtsam.Symbol(key) for key in factor.keys())
+            ends.add((chr(first.chr()), first.index(), chr(second.chr()), second.index()))
+    return ends
+
+
+@pytest.fixture
+def between_factor_ends():
+    """What a back-end test asks of the smoother's graph: which keys its relative poses tie."""
+    return _between_factor_ends
