@@ -613,6 +613,46 @@ def test_static_initialisation_estimates_the_gyro_bias_from_the_standstill():
     assert rms[True] < 0.7 * rms[False]
 
 
+def test_a_cruising_start_that_reads_like_rest_does_not_set_the_gyro_bias():
+    """A platform already moving at constant speed and turn rate (a car cruising): its IMU
+    before frame 0 reads like a still sensor, but its mean rate is bias plus turn. Vision shows
+    the motion at the first interval, so the tight bias prior of a rest must not hold; the
+    bias is then learned from vision and the gyro."""
+    noise = ImuNoise()
+    rng = np.random.default_rng(5)
+    bias = np.array([0.001, -0.002, 0.0005])
+    turn = np.array([0.0, 0.02, 0.0])  # rad/s about the body y axis
+    step = 5_000_000
+    stamps = np.arange(-40, 61 * 10 + 1, dtype=np.int64) * step
+    gyro = (
+        bias + turn + rng.normal(0.0, noise.gyro_noise_density * np.sqrt(200.0), (len(stamps), 3))
+    )
+    accel = np.array([0.0, 0.0, 9.81]) + rng.normal(
+        0.0, noise.accel_noise_density * np.sqrt(200.0), (len(stamps), 3)
+    )
+    imu = ImuBatch(stamps, gyro, accel)
+    config = BackendConfig(use_accelerometer=False)
+    backend = FusionBackend(config, BODY_FROM_CAMERA, noise)
+    out = [backend.add_frame(0, None, None, 0, imu.between(-(10**10), 0))]
+    assert "at rest for 0.20 s before frame 0" in out[0].message
+    body_step = make_pose(Rotation.from_rotvec(turn * 0.05).as_matrix(), [0.6, 0.0, 0.0])
+    camera_step = invert_pose(BODY_FROM_CAMERA) @ body_step @ BODY_FROM_CAMERA
+    for k in range(1, 61):
+        out.append(
+            backend.add_frame(
+                k * 50_000_000,
+                camera_step,
+                np.full(100, 0.01),
+                100,
+                imu.between((k - 1) * 50_000_000, k * 50_000_000),
+            )
+        )
+    # Taken as rest, the bias would start at bias + turn (0.02 rad/s off) and stay there.
+    assert np.abs(out[-1].gyro_bias - bias).max() < 2e-3
+    assert "its gyro bias prior dropped" in out[1].message
+    assert all(o.status is FrameStatus.OK for o in out)
+
+
 def test_static_initialisation_is_skipped_when_the_imu_moves_before_the_first_frame():
     scenario = smooth_trajectory(30, seed=2)
     measurements = simulate_frontend(scenario.body_poses, BODY_FROM_CAMERA, seed=3)
