@@ -560,34 +560,49 @@ def test_an_unknown_reference_is_not_used():
     assert "unknown" in out.message
 
 
-def _standstill_run(config: BackendConfig, seconds: float, seed: int = 0):
-    """A still body (IMU with EuRoC noise and a known bias) seen by noisy identity poses."""
-    noise = ImuNoise()
-    rng = np.random.default_rng(seed)
-    bias = np.array([0.003, -0.004, 0.002])
-    step = 5_000_000
-    stamps = np.arange(-40, round(seconds * 200) + 1, dtype=np.int64) * step
-    gyro = bias + rng.normal(0.0, noise.gyro_noise_density * np.sqrt(200.0), (len(stamps), 3))
+def _steady_imu(rng: np.random.Generator, noise: ImuNoise, rate: np.ndarray, seconds: float):
+    """200 Hz IMU from 0.2 s before frame 0: a constant angular rate (bias and any turn) and
+    gravity, each with the sheet's white noise (what a still sensor, or a steady cruise, reads)."""
+    stamps = np.arange(-40, round(seconds * 200) + 1, dtype=np.int64) * 5_000_000
+    gyro = rate + rng.normal(0.0, noise.gyro_noise_density * np.sqrt(200.0), (len(stamps), 3))
     accel = np.array([0.0, 0.0, 9.81]) + rng.normal(
         0.0, noise.accel_noise_density * np.sqrt(200.0), (len(stamps), 3)
     )
-    imu = ImuBatch(stamps, gyro, accel)
-    backend = FusionBackend(config, BODY_FROM_CAMERA, noise)
+    return ImuBatch(stamps, gyro, accel)
+
+
+def _run_at_20_hz(backend: FusionBackend, imu: ImuBatch, frames: int, relative_pose):
+    """Frame 0 with the IMU before it, then ``frames`` frames at 20 Hz, each measured against
+    the previous one by ``relative_pose(k)`` (camera frame) and given its interval's IMU."""
     out = [backend.add_frame(0, None, None, 0, imu.between(-(10**10), 0))]
-    for k in range(1, round(seconds * 20) + 1):
-        jitter = make_pose(
-            Rotation.from_rotvec(rng.normal(0, 2e-4, 3)).as_matrix(), rng.normal(0, 1e-3, 3)
-        )
+    for k in range(1, frames + 1):
         out.append(
             backend.add_frame(
                 k * 50_000_000,
-                jitter,
+                relative_pose(k),
                 np.full(100, 0.01),
                 100,
                 imu.between((k - 1) * 50_000_000, k * 50_000_000),
             )
         )
-    return out, bias, backend, gyro.mean(axis=0)  # every sample was delivered, all at rest
+    return out
+
+
+def _standstill_run(config: BackendConfig, seconds: float, seed: int = 0):
+    """A still body (IMU with EuRoC noise and a known bias) seen by noisy identity poses."""
+    noise = ImuNoise()
+    rng = np.random.default_rng(seed)
+    bias = np.array([0.003, -0.004, 0.002])
+    imu = _steady_imu(rng, noise, bias, seconds)
+    backend = FusionBackend(config, BODY_FROM_CAMERA, noise)
+
+    def jitter(_: int) -> np.ndarray:
+        return make_pose(
+            Rotation.from_rotvec(rng.normal(0, 2e-4, 3)).as_matrix(), rng.normal(0, 1e-3, 3)
+        )
+
+    out = _run_at_20_hz(backend, imu, round(seconds * 20), jitter)
+    return out, bias, backend, imu.gyro.mean(axis=0)  # every sample was delivered, all at rest
 
 
 def test_static_initialisation_estimates_the_gyro_bias_from_the_standstill():
@@ -622,31 +637,13 @@ def test_a_cruising_start_that_reads_like_rest_does_not_set_the_gyro_bias():
     rng = np.random.default_rng(5)
     bias = np.array([0.001, -0.002, 0.0005])
     turn = np.array([0.0, 0.02, 0.0])  # rad/s about the body y axis
-    step = 5_000_000
-    stamps = np.arange(-40, 61 * 10 + 1, dtype=np.int64) * step
-    gyro = (
-        bias + turn + rng.normal(0.0, noise.gyro_noise_density * np.sqrt(200.0), (len(stamps), 3))
-    )
-    accel = np.array([0.0, 0.0, 9.81]) + rng.normal(
-        0.0, noise.accel_noise_density * np.sqrt(200.0), (len(stamps), 3)
-    )
-    imu = ImuBatch(stamps, gyro, accel)
+    imu = _steady_imu(rng, noise, bias + turn, 3.05)
     config = BackendConfig(use_accelerometer=False)
     backend = FusionBackend(config, BODY_FROM_CAMERA, noise)
-    out = [backend.add_frame(0, None, None, 0, imu.between(-(10**10), 0))]
-    assert "at rest for 0.20 s before frame 0" in out[0].message
     body_step = make_pose(Rotation.from_rotvec(turn * 0.05).as_matrix(), [0.6, 0.0, 0.0])
     camera_step = invert_pose(BODY_FROM_CAMERA) @ body_step @ BODY_FROM_CAMERA
-    for k in range(1, 61):
-        out.append(
-            backend.add_frame(
-                k * 50_000_000,
-                camera_step,
-                np.full(100, 0.01),
-                100,
-                imu.between((k - 1) * 50_000_000, k * 50_000_000),
-            )
-        )
+    out = _run_at_20_hz(backend, imu, 60, lambda _: camera_step)
+    assert "at rest for 0.20 s before frame 0" in out[0].message
     # Taken as rest, the bias would start at bias + turn (0.02 rad/s off) and stay there.
     assert np.abs(out[-1].gyro_bias - bias).max() < 2e-3
     assert "its gyro bias prior dropped" in out[1].message
