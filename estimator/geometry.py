@@ -8,6 +8,8 @@ every point by every quaternion at once (particles x points), which is what the 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = [
@@ -84,24 +86,138 @@ def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix (..., 3, 3) of unit quaternion(s) (..., 4)."""
-    w, x, y, z = np.moveaxis(quat_normalize(q), -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=-2,
-    )
+    """Rotation matrix (..., 3, 3) of unit quaternion(s) (..., 4), normalised first.
+
+    One quaternion (the refinement's step, a prediction) goes through plain floats: a dozen
+    numpy calls on 4-element arrays cost more than the arithmetic itself.
+    """
+    q = np.asarray(q, dtype=float)
+    if q.shape == (4,):
+        w, x, y, z = (float(c) for c in q)
+        norm = math.sqrt(w * w + x * x + y * y + z * z)
+        w, x, y, z = w / norm, x / norm, y / norm, z / norm
+        return np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+            ]
+        )
+    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
+    matrix = np.empty((*q.shape[:-1], 3, 3))
+    matrix[..., 0, 0], matrix[..., 0, 1] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z)
+    matrix[..., 0, 2], matrix[..., 1, 0] = 2 * (x * z + w * y), 2 * (x * y + w * z)
+    matrix[..., 1, 1], matrix[..., 1, 2] = 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    matrix[..., 2, 0], matrix[..., 2, 1] = 2 * (x * z - w * y), 2 * (y * z + w * x)
+    matrix[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return matrix
+
+
+def _orthonormal_rotations(rotation: object) -> np.ndarray:
+    """(..., 3, 3) rotation matrices, checked: a reflection or a singular matrix is an error,
+    one that is orthonormal only to a tolerance is projected onto SO(3) (closest, Frobenius)."""
+    matrices = np.asarray(rotation, dtype=float)
+    if matrices.ndim < 2 or matrices.shape[-2:] != (3, 3):
+        raise ValueError(f"rotation matrices must have shape (..., 3, 3), got {matrices.shape}")
+    determinant = np.linalg.det(matrices)
+    if not (determinant > 0).all():
+        raise ValueError("a rotation matrix has a non-positive determinant (a reflection)")
+    gram = matrices @ np.swapaxes(matrices, -1, -2)
+    orthonormal = np.abs(gram - np.eye(3)) <= _ORTHONORMAL_ATOL + _ORTHONORMAL_RTOL * np.eye(3)
+    orthonormal = orthonormal.all(axis=(-2, -1))
+    if not orthonormal.all():
+        matrices = matrices.copy()
+        u, _, vt = np.linalg.svd(matrices[~orthonormal])
+        matrices[~orthonormal] = u @ vt
+    return matrices
+
+
+# A matrix whose rows are orthonormal to this tolerance is converted as it is.
+_ORTHONORMAL_ATOL, _ORTHONORMAL_RTOL = 1e-12, 1e-5
+
+
+def _shepperd(m: np.ndarray) -> list[float]:
+    """(x, y, z, w) up to scale of one orthonormal 3x3 matrix, in plain floats.
+
+    Of 4w^2 = 1 + tr R and 4x^2 = 1 + 2 R_xx - tr R (y, z alike) the largest is the root
+    taken, so the divisor is never small; the others come from the off-diagonal entries.
+    """
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m.tolist()
+    trace = m00 + m11 + m22
+    largest = max(m00, m11, m22, trace)  # ties go to the first, as the order here lists
+    if largest == m00:
+        return [1 - trace + 2 * m00, m10 + m01, m20 + m02, m21 - m12]
+    if largest == m11:
+        return [m10 + m01, 1 - trace + 2 * m11, m21 + m12, m02 - m20]
+    if largest == m22:
+        return [m20 + m02, m21 + m12, 1 - trace + 2 * m22, m10 - m01]
+    return [m21 - m12, m02 - m20, m10 - m01, 1 + trace]
 
 
 def matrix_to_quat(rotation: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w >= 0) of rotation matrix/matrices, via scipy (numerically robust)."""
-    from scipy.spatial.transform import Rotation  # here: SciPy costs 40 MB in every process
+    """Unit quaternion(s) (w >= 0) of rotation matrix/matrices (..., 3, 3).
 
-    xyzw = Rotation.from_matrix(np.asarray(rotation, dtype=float)).as_quat()
-    return quat_normalize(np.roll(xyzw, 1, axis=-1))
+    Shepperd's branch formula (``_shepperd``): exact near the identity and near 180 degrees
+    alike. A reflection raises ValueError; a matrix orthonormal only roughly is projected
+    onto SO(3) first.
+    """
+    # Normalised as (x, y, z, w), then again as (w, x, y, z): the same rounding as before.
+    return quat_normalize(np.roll(_unit_xyzw(rotation), 1, axis=-1))
+
+
+def _unit_xyzw(rotation: object) -> np.ndarray:
+    """Unit (x, y, z, w) of rotation matrices, any sign; one matrix in plain floats."""
+    matrix = np.asarray(rotation, dtype=float)
+    if matrix.shape == (3, 3) and _is_rotation(matrix):
+        xyzw = _shepperd(matrix)
+        norm = math.sqrt(sum(c * c for c in xyzw))
+        return np.array(xyzw) / norm
+    matrices = _orthonormal_rotations(matrix)
+    if matrices.ndim == 2:
+        xyzw = np.array(_shepperd(matrices))
+    else:
+        xyzw = _shepperd_batch(matrices)
+    return xyzw / np.linalg.norm(xyzw, axis=-1, keepdims=True)
+
+
+def _is_rotation(m: np.ndarray) -> bool:
+    """A 3x3 matrix with positive determinant and orthonormal rows (tolerance as in
+    ``_orthonormal_rotations``), checked in plain floats; False sends it the long way."""
+    rows = m.tolist()
+    r0, r1, r2 = rows
+    cross = (
+        r1[1] * r2[2] - r1[2] * r2[1],
+        r1[2] * r2[0] - r1[0] * r2[2],
+        r1[0] * r2[1] - r1[1] * r2[0],
+    )
+    if not r0[0] * cross[0] + r0[1] * cross[1] + r0[2] * cross[2] > 0:
+        return False
+    for i in range(3):
+        for j in range(i, 3):
+            dot = rows[i][0] * rows[j][0] + rows[i][1] * rows[j][1] + rows[i][2] * rows[j][2]
+            tolerance = _ORTHONORMAL_ATOL + (_ORTHONORMAL_RTOL if i == j else 0.0)
+            if not abs(dot - (1.0 if i == j else 0.0)) <= tolerance:
+                return False
+    return True
+
+
+def _shepperd_batch(m: np.ndarray) -> np.ndarray:
+    """``_shepperd`` of (..., 3, 3) matrices at once: all four branches, then a pick."""
+    m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
+    m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
+    m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
+    trace = m00 + m11 + m22
+    branches = np.stack(
+        [
+            np.stack([1 - trace + 2 * m00, m10 + m01, m20 + m02, m21 - m12], axis=-1),
+            np.stack([m10 + m01, 1 - trace + 2 * m11, m21 + m12, m02 - m20], axis=-1),
+            np.stack([m20 + m02, m21 + m12, 1 - trace + 2 * m22, m10 - m01], axis=-1),
+            np.stack([m21 - m12, m02 - m20, m10 - m01, 1 + trace], axis=-1),
+        ],
+        axis=-2,
+    )
+    choice = np.argmax(np.stack([m00, m11, m22, trace], axis=-1), axis=-1)
+    return np.take_along_axis(branches, choice[..., None, None], axis=-2)[..., 0, :]
 
 
 def rotation_vector_to_quat(rotvec: np.ndarray) -> np.ndarray:
@@ -236,10 +352,21 @@ def transport_covariance(covariance: np.ndarray, pose: np.ndarray) -> np.ndarray
 
 
 def rotation_angle_deg(rotation: np.ndarray) -> np.ndarray:
-    """Geodesic angle of rotation matrix/matrices in degrees (robust near 0 and 180)."""
-    from scipy.spatial.transform import Rotation
+    """Geodesic angle of rotation matrix/matrices in degrees (robust near 0 and 180).
 
-    return np.degrees(np.linalg.norm(Rotation.from_matrix(rotation).as_rotvec(), axis=-1))
+    From the quaternion, 2 atan2(|v|, |w|): the arccosine of the trace loses half the digits
+    near 0 and 180 degrees, the atan2 none. The angle is taken as the length of the rotation
+    vector (angle / sin(angle / 2)) v, with its series below 1e-3 rad, which rounds exactly as
+    the previous (SciPy) implementation did.
+    """
+    xyzw = _unit_xyzw(rotation)
+    vector = xyzw[..., :3]
+    angle = 2.0 * np.arctan2(np.linalg.norm(vector, axis=-1), np.abs(xyzw[..., 3]))
+    small = angle <= 1e-3
+    squared = angle**2
+    series = 2 + squared / 12 + 7 * squared**2 / 2880
+    scale = np.where(small, series, angle / (np.sin(angle / 2.0) + small))
+    return np.degrees(np.linalg.norm(scale[..., None] * vector, axis=-1))
 
 
 # ----------------------------------------------------------------------------- Kabsch / Arun
@@ -267,9 +394,7 @@ def kabsch(
     return rotation, translation
 
 
-def wahba(
-    source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None
-) -> np.ndarray:
+def wahba(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     """Least-squares rotation target ~ R source with no translation (Wahba's problem).
 
     The rotation part of :func:`kabsch`; on its own it fits directions (unit bearing vectors,
