@@ -267,12 +267,16 @@ def refine_pose_mahalanobis(
     iterations: int = 5,
     robust: Robust = "cauchy",
     robust_scale: float = 3.0,
+    with_covariance: bool = True,
 ) -> RefinementResult:
     """Refine target ~ R source + t on inlier pairs weighed by their 3x3 covariances.
 
     Returns the input pose with ``success=False`` (never raises on data) when the pairs are
     too few, not finite, or leave a direction unconstrained; the cost never rises (steps that
     raise it are damped, Levenberg-Marquardt). ``robust_scale`` is in standard deviations.
+    Without ``with_covariance`` the result's covariance is None and its variance factor 1:
+    a caller that wants the pose alone (the support test's refits) skips the median and the
+    inverse.
     """
     n = len(np.asarray(source))
     source = _checked(source, (n, 3), "source")
@@ -308,7 +312,7 @@ def refine_pose_mahalanobis(
         return unchanged("the cost rose", initial_cost)
     if _condition(current.hessian) > _MAX_CONDITION:
         return unchanged("ill-conditioned: the pairs do not fix all six degrees", initial_cost)
-    covariance, variance_factor = _scaled_covariance(current)
+    covariance, variance_factor = _scaled_covariance(current) if with_covariance else (None, 1.0)
     return RefinementResult(
         estimate_r, estimate_t, covariance, True, steps, initial_cost, current.cost,
         variance_factor=variance_factor,

@@ -76,7 +76,7 @@ def mahalanobis_support(
             break
         refined = refine_pose_mahalanobis(
             source[chosen], target[chosen], source_cov[chosen], target_cov[chosen],
-            rotation, translation, iterations=3, robust="cauchy",
+            rotation, translation, iterations=3, robust="cauchy", with_covariance=False,
         )  # fmt: skip
         if refined.success:
             rotation, translation = refined.rotation, refined.translation
