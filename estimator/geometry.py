@@ -227,6 +227,11 @@ def rotation_vector_to_quat(rotvec: np.ndarray) -> np.ndarray:
     a swarm can move freely without ever leaving the rotation group.
     """
     rotvec = np.asarray(rotvec, dtype=float)
+    if rotvec.shape == (3,):  # one step of the refinement: plain floats, same formula
+        x, y, z = rotvec.tolist()
+        angle_1 = math.sqrt(x * x + y * y + z * z)
+        scale_1 = 0.5 - angle_1**2 / 48.0 if angle_1 < 1e-8 else math.sin(0.5 * angle_1) / angle_1
+        return np.array([math.cos(0.5 * angle_1), x * scale_1, y * scale_1, z * scale_1])
     angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
     half = 0.5 * angle
     # sin(a/2)/a with its Taylor series near zero, so tiny rotations stay exact.

@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 
 from estimator.backend import FusionBackend
-from estimator.backend.covariance_scale import ChainDisagreement, CovarianceScale
+from estimator.backend.covariance_scale import (
+    ChainDisagreement,
+    CovarianceScale,
+    _disagreement,
+    solve_factor,
+)
 from estimator.config import BackendConfig
 from estimator.geometry import invert_pose
 from estimator.rendered.scenario import CAMERA_MOUNT, smooth_trajectory
@@ -42,11 +47,13 @@ def test_the_factor_is_one_until_enough_comparisons_and_stays_bounded() -> None:
     rng = np.random.default_rng(0)
     for _ in range(19):
         error = rng.normal(size=3) * 0.1  # hugely beyond the 1 mrad stated
-        scale.observe(gtsam.Rot3.Expmap(error).matrix(), np.eye(3) * 1e-6, np.eye(3),
-                      np.zeros((3, 3)), 0.05)
+        scale.observe(
+            gtsam.Rot3.Expmap(error).matrix(), np.eye(3) * 1e-6, np.eye(3), np.zeros((3, 3)), 0.05
+        )
     assert scale.value == 1.0
-    scale.observe(np.eye(3), np.eye(3) * 1e-6, gtsam.Rot3.Expmap([0.1, 0, 0]).matrix(),
-                  np.zeros((3, 3)), 0.05)
+    scale.observe(
+        np.eye(3), np.eye(3) * 1e-6, gtsam.Rot3.Expmap([0.1, 0, 0]).matrix(), np.zeros((3, 3)), 0.05
+    )
     assert scale.value == 4.0
     with pytest.raises(ValueError, match="enclose 1"):
         CovarianceScale(bounds=(2.0, 4.0))
@@ -69,10 +76,16 @@ def _fused(factor: float, mode: str = "gyro", frames: int = 160):
             error = rng.multivariate_normal(np.zeros(6), factor * covariance)
             truth = invert_pose(camera[k - 1]) @ camera[k]
             relative = truth @ gtsam.Pose3.Expmap(error).matrix()
-        out.append(backend.add_frame(
-            int(stamps[k]), relative, None, 100, scenario.imu.between(int(start), int(stamps[k])),
-            covariance=covariance if k else None,
-        ))
+        out.append(
+            backend.add_frame(
+                int(stamps[k]),
+                relative,
+                None,
+                100,
+                scenario.imu.between(int(start), int(stamps[k])),
+                covariance=covariance if k else None,
+            )
+        )
     return out
 
 
@@ -161,10 +174,16 @@ def _run(backend: FusionBackend, frames: range, factor: float = 9.0, seed: int =
             error = rng.multivariate_normal(np.zeros(6), factor * covariance)
             relative = invert_pose(camera[k - 1]) @ camera[k] @ gtsam.Pose3.Expmap(error).matrix()
         imu = scenario.imu.between(int(start), int(stamps[k]))
-        out.append(backend.add_frame(
-            int(stamps[k]), relative, None, 100, imu,
-            covariance=covariance if relative is not None else None,
-        ))
+        out.append(
+            backend.add_frame(
+                int(stamps[k]),
+                relative,
+                None,
+                100,
+                imu,
+                covariance=covariance if relative is not None else None,
+            )
+        )
     return out
 
 
@@ -182,3 +201,31 @@ def test_a_restored_back_end_continues_with_the_stored_factors() -> None:
     assert all(e.pose_covariance_scale >= e.covariance_scale for e in continued)
     fresh = _run(FusionBackend(BackendConfig(), CAMERA_MOUNT, ImuNoise()), range(100, 110))
     assert fresh[0].covariance_scale == 1.0  # without the state: from 1 again
+
+
+def test_the_decomposed_disagreement_equals_the_direct_solve() -> None:
+    """q(s) = sum f^2 / (s lambda + 1) (decomposed once) against e^T (s V + G)^-1 e solved
+    directly; a singular gyro covariance takes the direct path and gives the same factor."""
+    rng = np.random.default_rng(11)
+    count = 200
+    a = rng.normal(size=(count, 3, 3)) * 1e-3
+    vision = a @ a.transpose(0, 2, 1)
+    b = rng.normal(size=(count, 3, 3)) * 1e-3
+    gyro = b @ b.transpose(0, 2, 1) + 1e-9 * np.eye(3)
+    errors = rng.normal(size=(count, 3)) * 2e-3
+    for log_scale in (-2.0, 0.0, 1.5):
+        covariance = np.exp(log_scale) * vision + gyro
+        direct = np.einsum(
+            "ni,ni->n", errors, np.linalg.solve(covariance, errors[..., None])[..., 0]
+        )
+        decomposed = _disagreement(np.median, errors, vision, gyro)(log_scale)
+        assert decomposed == pytest.approx(float(np.median(direct)), rel=1e-9)
+    factor = solve_factor(np.median, 2.366, errors, vision, gyro, (1 / 16, 16.0))
+    assert 1 / 16 < factor < 16.0
+    singular = gyro.copy()
+    singular[0] = np.zeros((3, 3))  # not positive definite: the direct path
+    covariance = vision + singular
+    direct = np.einsum("ni,ni->n", errors, np.linalg.solve(covariance, errors[..., None])[..., 0])
+    assert _disagreement(np.mean, errors, vision, singular)(0.0) == pytest.approx(
+        float(np.mean(direct)), rel=1e-12
+    )

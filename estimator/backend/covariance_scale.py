@@ -60,12 +60,7 @@ def solve_factor(
 ) -> float:
     """The factor s whose ``statistic`` of q(s) = e^T (s V + G)^-1 e over the samples equals
     ``target``; q falls as s grows, so bisection on log s finds it (or a bound)."""
-
-    def value(log_scale: float) -> float:
-        covariance = np.exp(log_scale) * vision + gyro
-        solved = np.linalg.solve(covariance, errors[..., None])[..., 0]
-        return float(statistic(np.einsum("ni,ni->n", errors, solved)))
-
+    value = _disagreement(statistic, errors, vision, gyro)
     low, high = np.log(bounds[0]), np.log(bounds[1])
     if value(high) >= target:
         return bounds[1]
@@ -78,6 +73,42 @@ def solve_factor(
         else:
             high = middle
     return float(np.exp(0.5 * (low + high)))
+
+
+def _disagreement(
+    statistic: Callable[[np.ndarray], float],
+    errors: np.ndarray,
+    vision: np.ndarray,
+    gyro: np.ndarray,
+) -> Callable[[float], float]:
+    """log s -> statistic of q(s), with the samples decomposed once for all the bisection's
+    evaluations.
+
+    With G = L L^T and L^-1 V L^-T = U diag(lambda) U^T, s V + G = L U (s diag(lambda) + I)
+    U^T L^T, so q(s) = sum_k f_k^2 / (s lambda_k + 1) with f = U^T L^-1 e: three divisions
+    per sample instead of a 3x3 solve at each of the ~40 evaluations. A gyro covariance that
+    is not positive definite (no bias allowance) falls back to the solves.
+    """
+    errors = np.asarray(errors, dtype=float)
+    try:
+        inverse_root = np.linalg.inv(np.linalg.cholesky(gyro))
+    except np.linalg.LinAlgError:
+
+        def solved(log_scale: float) -> float:
+            covariance = np.exp(log_scale) * vision + gyro
+            solution = np.linalg.solve(covariance, errors[..., None])[..., 0]
+            return float(statistic(np.einsum("ni,ni->n", errors, solution)))
+
+        return solved
+    whitened = inverse_root @ vision @ np.swapaxes(inverse_root, -1, -2)
+    eigenvalues, eigenvectors = np.linalg.eigh(0.5 * (whitened + np.swapaxes(whitened, -1, -2)))
+    weights = np.einsum("nji,njk,nk->ni", eigenvectors, inverse_root, errors) ** 2
+    eigenvalues = np.maximum(eigenvalues, 0.0)  # V is positive semi-definite: rounding only
+
+    def decomposed(log_scale: float) -> float:
+        return float(statistic((weights / (np.exp(log_scale) * eigenvalues + 1.0)).sum(axis=1)))
+
+    return decomposed
 
 
 class GyroChain:
