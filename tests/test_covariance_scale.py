@@ -13,6 +13,7 @@ from estimator.backend.covariance_scale import (
     ChainDisagreement,
     CovarianceScale,
     _disagreement,
+    _median,
     solve_factor,
 )
 from estimator.config import BackendConfig
@@ -229,3 +230,11 @@ def test_the_decomposed_disagreement_equals_the_direct_solve() -> None:
     assert _disagreement(np.mean, errors, vision, singular)(0.0) == pytest.approx(
         float(np.mean(direct)), rel=1e-12
     )
+
+
+def test_the_bisection_median_is_numpys() -> None:
+    rng = np.random.default_rng(12)
+    for count in (1, 2, 3, 10, 11, 400):
+        values = rng.lognormal(size=count)
+        assert _median(values) == float(np.median(values))
+    assert np.isnan(_median(np.array([1.0, np.nan, 2.0])))

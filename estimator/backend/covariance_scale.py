@@ -111,6 +111,19 @@ def _disagreement(
     return decomposed
 
 
+def _median(values: np.ndarray) -> float:
+    """``np.median`` of a 1-D array (the same number, NaN when one is NaN) without its
+    generic machinery: the bisection takes about 40 medians per frame."""
+    count = len(values)
+    if count == 0 or np.isnan(values).any():
+        return float("nan")
+    half = count // 2
+    if count % 2:
+        return float(np.partition(values, half)[half])
+    part = np.partition(values, (half - 1, half))
+    return float((part[half - 1] + part[half]) / 2.0)
+
+
 class GyroChain:
     """The gyro intervals of the recent frames, composed between any two of them.
 
@@ -215,7 +228,7 @@ class CovarianceScale:
     def _solve(self) -> float:
         """The factor whose median normalised disagreement is chi-square(3)'s median."""
         errors, vision, gyro = np.array(self._errors), np.array(self._vision), np.array(self._gyro)
-        return solve_factor(np.median, _CHI2_3_MEDIAN, errors, vision, gyro, self.bounds)
+        return solve_factor(_median, _CHI2_3_MEDIAN, errors, vision, gyro, self.bounds)
 
     def state(self) -> dict[str, float]:
         return {"value": self._value}

@@ -180,8 +180,8 @@ def _source_frame_jacobian(source: np.ndarray) -> np.ndarray:
 def _solve_damped(linearisation: _Linearisation, damping: float) -> np.ndarray:
     """The Levenberg-Marquardt step; all NaN when the damped system is singular, so the
     caller treats it as a rejected step rather than an error."""
-    hessian = linearisation.hessian
-    damped = hessian + damping * np.diag(np.diag(hessian))
+    damped = linearisation.hessian.copy()
+    damped.flat[::7] += damping * damped.flat[::7]  # H + damping diag(H)
     try:
         return np.linalg.solve(damped, -linearisation.gradient)
     except np.linalg.LinAlgError:
