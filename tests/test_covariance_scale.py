@@ -10,10 +10,11 @@ import pytest
 
 from estimator.backend import FusionBackend
 from estimator.backend.covariance_scale import (
+    _CHI2_3_MEDIAN,
     ChainDisagreement,
     CovarianceScale,
-    _disagreement,
     _median,
+    disagreement_spectra,
     solve_factor,
 )
 from estimator.config import BackendConfig
@@ -206,7 +207,7 @@ def test_a_restored_back_end_continues_with_the_stored_factors() -> None:
 
 def test_the_decomposed_disagreement_equals_the_direct_solve() -> None:
     """q(s) = sum f^2 / (s lambda + 1) (decomposed once) against e^T (s V + G)^-1 e solved
-    directly; a singular gyro covariance takes the direct path and gives the same factor."""
+    directly; a singular gyro covariance takes the direct path."""
     rng = np.random.default_rng(11)
     count = 200
     a = rng.normal(size=(count, 3, 3)) * 1e-3
@@ -214,22 +215,41 @@ def test_the_decomposed_disagreement_equals_the_direct_solve() -> None:
     b = rng.normal(size=(count, 3, 3)) * 1e-3
     gyro = b @ b.transpose(0, 2, 1) + 1e-9 * np.eye(3)
     errors = rng.normal(size=(count, 3)) * 2e-3
+    spectra = disagreement_spectra(errors, vision, gyro)
+    assert spectra is not None
     for log_scale in (-2.0, 0.0, 1.5):
         covariance = np.exp(log_scale) * vision + gyro
-        direct = np.einsum(
-            "ni,ni->n", errors, np.linalg.solve(covariance, errors[..., None])[..., 0]
-        )
-        decomposed = _disagreement(np.median, errors, vision, gyro)(log_scale)
-        assert decomposed == pytest.approx(float(np.median(direct)), rel=1e-9)
+        solution = np.linalg.solve(covariance, errors[..., None])[..., 0]
+        direct = np.einsum("ni,ni->n", errors, solution)
+        decomposed = (spectra[1] / (np.exp(log_scale) * spectra[0] + 1.0)).sum(axis=1)
+        np.testing.assert_allclose(decomposed, direct, rtol=1e-9)
     factor = solve_factor(np.median, 2.366, errors, vision, gyro, (1 / 16, 16.0))
     assert 1 / 16 < factor < 16.0
     singular = gyro.copy()
     singular[0] = np.zeros((3, 3))  # not positive definite: the direct path
-    covariance = vision + singular
-    direct = np.einsum("ni,ni->n", errors, np.linalg.solve(covariance, errors[..., None])[..., 0])
-    assert _disagreement(np.mean, errors, vision, singular)(0.0) == pytest.approx(
-        float(np.mean(direct)), rel=1e-12
-    )
+    assert disagreement_spectra(errors, vision, singular) is None
+    assert 1 / 16 <= solve_factor(np.mean, 3.0, errors, vision, singular, (1 / 16, 16.0)) <= 16.0
+
+
+def test_the_per_sample_spectra_give_the_factor_of_the_whole_window() -> None:
+    """CovarianceScale decomposes each comparison once; its factor is that of the window."""
+    rng = np.random.default_rng(13)
+    scale = CovarianceScale(window=50, min_samples=5, bias_sigma=2e-4)
+    errors, visions, gyros = [], [], []
+    for _ in range(60):
+        a = rng.normal(size=(3, 3)) * 1e-3
+        vision = a @ a.T + 1e-8 * np.eye(3)
+        gyro_rotation = gtsam.Rot3.Expmap(rng.normal(size=3) * 1e-3).matrix()
+        scale.observe(np.eye(3), vision, gyro_rotation, 1e-8 * np.eye(3), 0.05)
+        errors.append(np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(gyro_rotation.T))))
+        visions.append(vision)
+        gyros.append(1e-8 * np.eye(3) + (2e-4 * 0.05) ** 2 * np.eye(3))
+    window = slice(-50, None)
+    expected = solve_factor(
+        np.median, _CHI2_3_MEDIAN, np.array(errors[window]), np.array(visions[window]),
+        np.array(gyros[window]), scale.bounds,
+    )  # fmt: skip
+    assert scale.value == pytest.approx(expected, rel=1e-9)
 
 
 def test_the_bisection_median_is_numpys() -> None:

@@ -50,6 +50,9 @@ _CHI2_3_MEAN = 3.0
 _BISECTION_STEPS = 40
 
 
+Spectra = tuple[np.ndarray, np.ndarray]  # (N, 3) eigenvalues lambda, (N, 3) weights f^2
+
+
 def solve_factor(
     statistic: Callable[[np.ndarray], float],
     target: float,
@@ -60,7 +63,36 @@ def solve_factor(
 ) -> float:
     """The factor s whose ``statistic`` of q(s) = e^T (s V + G)^-1 e over the samples equals
     ``target``; q falls as s grows, so bisection on log s finds it (or a bound)."""
-    value = _disagreement(statistic, errors, vision, gyro)
+    errors = np.asarray(errors, dtype=float)
+    spectra = disagreement_spectra(errors, vision, gyro)
+    if spectra is not None:
+        return solve_factor_spectra(statistic, target, spectra, bounds)
+
+    def solved(log_scale: float) -> float:
+        covariance = np.exp(log_scale) * vision + gyro
+        solution = np.linalg.solve(covariance, errors[..., None])[..., 0]
+        return float(statistic(np.einsum("ni,ni->n", errors, solution)))
+
+    return _bisect(solved, target, bounds)
+
+
+def solve_factor_spectra(
+    statistic: Callable[[np.ndarray], float],
+    target: float,
+    spectra: Spectra,
+    bounds: tuple[float, float],
+) -> float:
+    """``solve_factor`` of samples decomposed by ``disagreement_spectra`` (kept per sample
+    by a caller that adds one sample a frame to a window of hundreds)."""
+    eigenvalues, weights = spectra
+
+    def decomposed(log_scale: float) -> float:
+        return float(statistic((weights / (np.exp(log_scale) * eigenvalues + 1.0)).sum(axis=1)))
+
+    return _bisect(decomposed, target, bounds)
+
+
+def _bisect(value: Callable[[float], float], target: float, bounds: tuple[float, float]) -> float:
     low, high = np.log(bounds[0]), np.log(bounds[1])
     if value(high) >= target:
         return bounds[1]
@@ -75,40 +107,24 @@ def solve_factor(
     return float(np.exp(0.5 * (low + high)))
 
 
-def _disagreement(
-    statistic: Callable[[np.ndarray], float],
-    errors: np.ndarray,
-    vision: np.ndarray,
-    gyro: np.ndarray,
-) -> Callable[[float], float]:
-    """log s -> statistic of q(s), with the samples decomposed once for all the bisection's
-    evaluations.
+def disagreement_spectra(
+    errors: np.ndarray, vision: np.ndarray, gyro: np.ndarray
+) -> Spectra | None:
+    """The samples (N, 3), (N, 3, 3), (N, 3, 3) decomposed so that q(s) is elementwise.
 
     With G = L L^T and L^-1 V L^-T = U diag(lambda) U^T, s V + G = L U (s diag(lambda) + I)
     U^T L^T, so q(s) = sum_k f_k^2 / (s lambda_k + 1) with f = U^T L^-1 e: three divisions
-    per sample instead of a 3x3 solve at each of the ~40 evaluations. A gyro covariance that
-    is not positive definite (no bias allowance) falls back to the solves.
+    per sample instead of a 3x3 solve at each of the bisection's ~40 evaluations. None when a
+    gyro covariance is not positive definite (no bias allowance): the caller solves instead.
     """
-    errors = np.asarray(errors, dtype=float)
     try:
         inverse_root = np.linalg.inv(np.linalg.cholesky(gyro))
     except np.linalg.LinAlgError:
-
-        def solved(log_scale: float) -> float:
-            covariance = np.exp(log_scale) * vision + gyro
-            solution = np.linalg.solve(covariance, errors[..., None])[..., 0]
-            return float(statistic(np.einsum("ni,ni->n", errors, solution)))
-
-        return solved
+        return None
     whitened = inverse_root @ vision @ np.swapaxes(inverse_root, -1, -2)
     eigenvalues, eigenvectors = np.linalg.eigh(0.5 * (whitened + np.swapaxes(whitened, -1, -2)))
     weights = np.einsum("nji,njk,nk->ni", eigenvectors, inverse_root, errors) ** 2
-    eigenvalues = np.maximum(eigenvalues, 0.0)  # V is positive semi-definite: rounding only
-
-    def decomposed(log_scale: float) -> float:
-        return float(statistic((weights / (np.exp(log_scale) * eigenvalues + 1.0)).sum(axis=1)))
-
-    return decomposed
+    return np.maximum(eigenvalues, 0.0), weights  # V is positive semi-definite: rounding only
 
 
 def _median(values: np.ndarray) -> float:
@@ -194,6 +210,8 @@ class CovarianceScale:
         self._errors: deque[np.ndarray] = deque(maxlen=window)
         self._vision: deque[np.ndarray] = deque(maxlen=window)
         self._gyro: deque[np.ndarray] = deque(maxlen=window)
+        # Each sample decomposed once, when it arrives (None: its gyro covariance is singular).
+        self._spectra: deque[Spectra | None] = deque(maxlen=window)
         self._value = 1.0
 
     @property
@@ -221,12 +239,21 @@ class CovarianceScale:
         self._errors.append(error)
         self._vision.append(np.asarray(vision_covariance, dtype=float))
         self._gyro.append(np.asarray(gyro_covariance, dtype=float) + bias)
+        self._spectra.append(
+            disagreement_spectra(error[None], self._vision[-1][None], self._gyro[-1][None])
+        )
         if len(self._errors) >= self.min_samples:
             self._value = self._solve()
         return self._value
 
     def _solve(self) -> float:
         """The factor whose median normalised disagreement is chi-square(3)'s median."""
+        if all(spectrum is not None for spectrum in self._spectra):
+            eigenvalues = np.concatenate([spectrum[0] for spectrum in self._spectra])  # type: ignore[index]
+            weights = np.concatenate([spectrum[1] for spectrum in self._spectra])  # type: ignore[index]
+            return solve_factor_spectra(
+                _median, _CHI2_3_MEDIAN, (eigenvalues, weights), self.bounds
+            )
         errors, vision, gyro = np.array(self._errors), np.array(self._vision), np.array(self._gyro)
         return solve_factor(_median, _CHI2_3_MEDIAN, errors, vision, gyro, self.bounds)
 
