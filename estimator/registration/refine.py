@@ -22,7 +22,8 @@ from typing import Literal
 
 import numpy as np
 
-from estimator.geometry import quat_to_matrix, rotation_vector_to_quat, skew
+from estimator.geometry import quat_to_matrix, rotation_vector_to_quat
+from estimator.registration.refine_kernels import ROBUST_CODES, linearise_pairs, squared_distances
 
 __all__ = ["CHI2_3_MEDIAN", "RefinementResult", "refine_pose_mahalanobis", "squared_mahalanobis"]
 
@@ -67,37 +68,6 @@ class _Linearisation:
     squared: np.ndarray  # (N,) squared Mahalanobis distances of the pairs
 
 
-def _robust(squared: np.ndarray, kind: Robust, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """(rho, weight) of squared Mahalanobis distances; weight = d rho / d squared."""
-    if kind == "none":
-        return squared, np.ones_like(squared)
-    c2 = scale * scale
-    if kind == "cauchy":
-        return c2 * np.log1p(squared / c2), 1.0 / (1.0 + squared / c2)
-    distance = np.sqrt(squared)
-    outside = distance > scale
-    rho = np.where(outside, 2.0 * scale * distance - c2, squared)
-    weight = np.where(outside, scale / np.maximum(distance, 1e-300), 1.0)
-    return rho, weight
-
-
-def _inverse_symmetric(matrices: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) inverses of symmetric 3x3 matrices by their adjugate (several times faster
-    than a batched LAPACK call at a few hundred points); raises on a singular one."""
-    a, b, c = matrices[:, 0, 0], matrices[:, 0, 1], matrices[:, 0, 2]
-    d, e, f = matrices[:, 1, 1], matrices[:, 1, 2], matrices[:, 2, 2]
-    cofactor_a, cofactor_b, cofactor_c = d * f - e * e, c * e - b * f, b * e - c * d
-    determinant = a * cofactor_a + b * cofactor_b + c * cofactor_c
-    if not (np.abs(determinant) > 0).all():
-        raise np.linalg.LinAlgError("singular point covariance")
-    inverse = np.empty_like(matrices)
-    inverse[:, 0, 0], inverse[:, 0, 1], inverse[:, 0, 2] = cofactor_a, cofactor_b, cofactor_c
-    inverse[:, 1, 1], inverse[:, 1, 2] = a * f - c * c, b * c - a * e
-    inverse[:, 2, 2] = a * d - b * b
-    inverse[:, 1, 0], inverse[:, 2, 0], inverse[:, 2, 1] = cofactor_b, cofactor_c, inverse[:, 1, 2]
-    return inverse / determinant[:, None, None]
-
-
 def squared_mahalanobis(
     source: np.ndarray,
     target: np.ndarray,
@@ -107,12 +77,25 @@ def squared_mahalanobis(
     translation: np.ndarray,
 ) -> np.ndarray:
     """(N,) r^T (R C_src R^T + C_tgt)^-1 r with r = target - (R source + t): the support test
-    and the noise model's check use the same distance as the refinement."""
-    residual = (target - translation) @ rotation - source  # R^T r: the source frame
-    moved = (target_cov.reshape(-1, 3) @ rotation).reshape(-1, 3, 3)
-    moved = (moved.transpose(0, 2, 1).reshape(-1, 3) @ rotation).reshape(-1, 3, 3)
-    information = _inverse_symmetric(source_cov + moved)
-    return np.einsum("ni,nij,nj->n", residual, information, residual)
+    and the noise model's check use the same distance as the refinement. Raises
+    ``LinAlgError`` on a singular point covariance."""
+    squared, regular = squared_distances(
+        *_pair_arrays(source, target, source_cov, target_cov), *_pose_arrays(rotation, translation)
+    )
+    if not regular:
+        raise np.linalg.LinAlgError("singular point covariance")
+    return squared
+
+
+def _pair_arrays(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    return tuple(np.ascontiguousarray(array, dtype=float) for array in arrays)
+
+
+def _pose_arrays(rotation: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return (
+        np.ascontiguousarray(rotation, dtype=float),
+        np.ascontiguousarray(translation, dtype=float).reshape(3),
+    )
 
 
 def _linearise(
@@ -120,7 +103,6 @@ def _linearise(
     target: np.ndarray,
     source_cov: np.ndarray,
     target_cov: np.ndarray,
-    jacobian: np.ndarray,
     rotation: np.ndarray,
     translation: np.ndarray,
     robust: Robust,
@@ -129,25 +111,16 @@ def _linearise(
     """Cost, J^T W J and J^T W r over all pairs at once (IRLS weights from ``robust``).
 
     Worked in the source frame, where the residual is r' = R^T r, its covariance
-    C_src + R^T C_tgt R and its Jacobian [[s]x, -I] (the right perturbation): the products
-    are then plain matrix products, the refinement's whole cost.
+    C_src + R^T C_tgt R and its Jacobian [[s]x, -I] (the right perturbation); one compiled
+    pass over the pairs (``refine_kernels.linearise_pairs``).
     """
-    n = len(source)
-    residual = (target - translation) @ rotation - source  # R^T (target - t) - s, per row
-    # R^T C_tgt R for all points with two GEMMs (C symmetric): A_n = C_n R, then R^T A_n.
-    moved = (target_cov.reshape(3 * n, 3) @ rotation).reshape(n, 3, 3)
-    moved = (moved.transpose(0, 2, 1).reshape(3 * n, 3) @ rotation).reshape(n, 3, 3)
-    information = _inverse_symmetric(source_cov + moved)
-    whitened = np.matmul(information, residual[:, :, None])[:, :, 0]  # W r
-    squared = np.einsum("ni,ni->n", residual, whitened)
-    rho, weight = _robust(squared, robust, scale)
-    # W J as (N, 3, 6) needs no transposes: H = J^T (W J) and g = (W J)^T r' are two GEMMs
-    # over the stacked 3N rows.
-    weighted = np.matmul(information, jacobian) * weight[:, None, None]
-    weighted = weighted.reshape(3 * n, 6)
-    hessian = jacobian.reshape(3 * n, 6).T @ weighted
-    gradient = weighted.T @ residual.reshape(3 * n)
-    return _Linearisation(float(rho.sum()), hessian, gradient, squared)
+    cost, hessian, gradient, squared, regular = linearise_pairs(
+        source, target, source_cov, target_cov, *_pose_arrays(rotation, translation),
+        ROBUST_CODES[robust], float(scale),
+    )  # fmt: skip
+    if not regular:
+        raise np.linalg.LinAlgError("singular point covariance")
+    return _Linearisation(float(cost), hessian, gradient, squared)
 
 
 def _condition(hessian: np.ndarray) -> float:
@@ -164,17 +137,6 @@ def _checked(array: np.ndarray, shape: tuple[int, ...], name: str) -> np.ndarray
     if array.shape != shape:
         raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
     return array
-
-
-def _source_frame_jacobian(source: np.ndarray) -> np.ndarray:
-    """(N, 3, 6) Jacobian of the source-frame residual; built once since it ignores the pose.
-
-    r' = R^T (target - t) - Exp(omega) (s + v)  =>  dr'/domega = [s]x, dr'/dv = -I.
-    """
-    jacobian = np.empty((len(source), 3, 6))
-    jacobian[:, :, :3] = skew(source)
-    jacobian[:, :, 3:] = -np.eye(3)
-    return jacobian
 
 
 def _solve_damped(linearisation: _Linearisation, damping: float) -> np.ndarray:
@@ -296,7 +258,7 @@ def refine_pose_mahalanobis(
     arrays = (source, target, source_cov, target_cov, rotation, translation)
     if not all(np.isfinite(a).all() for a in arrays):
         return unchanged("non-finite input")
-    data = (source, target, source_cov, target_cov, _source_frame_jacobian(source))
+    data = _pair_arrays(source, target, source_cov, target_cov)
     try:
         current = _linearise(*data, rotation, translation, robust, robust_scale)
     except np.linalg.LinAlgError:
