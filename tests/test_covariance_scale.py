@@ -258,3 +258,9 @@ def test_the_bisection_median_is_numpys() -> None:
         values = rng.lognormal(size=count)
         assert _median(values) == float(np.median(values))
     assert np.isnan(_median(np.array([1.0, np.nan, 2.0])))
+
+
+def test_the_chi_square_median_is_scipys() -> None:
+    from scipy.stats import chi2
+
+    assert float(chi2.ppf(0.5, 3)) == _CHI2_3_MEDIAN
