@@ -294,6 +294,7 @@ class ChainDisagreement:
         self._chain: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self._keyframes: list[int] = []  # stamps used as references, oldest first
         self._samples: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=count)
+        self._spectra: deque[Spectra | None] = deque(maxlen=count)  # each sample's, once
         self._value = bounds[0]  # no stretch yet: no inflation
 
     @property
@@ -324,11 +325,21 @@ class ChainDisagreement:
         )
         anchors = [k for k in self._keyframes if timestamp_ns - k <= self.window_ns]
         if anchors and timestamp_ns - anchors[0] >= self.window_ns // 2:
-            self._samples.append(self._stretch(anchors[0], timestamp_ns))
-            errors, vision, gyro = (np.array(part) for part in zip(*self._samples, strict=True))
-            self._value = solve_factor(np.mean, _CHI2_3_MEAN, errors, vision, gyro, self.bounds)
+            sample = self._stretch(anchors[0], timestamp_ns)
+            self._samples.append(sample)
+            self._spectra.append(disagreement_spectra(*(part[None] for part in sample)))
+            self._value = self._solve()
         self._forget(timestamp_ns, reference_ns)
         return self._value
+
+    def _solve(self) -> float:
+        """The factor whose mean normalised disagreement is chi-square(3)'s mean."""
+        if all(spectrum is not None for spectrum in self._spectra):
+            eigenvalues = np.concatenate([spectrum[0] for spectrum in self._spectra])  # type: ignore[index]
+            weights = np.concatenate([spectrum[1] for spectrum in self._spectra])  # type: ignore[index]
+            return solve_factor_spectra(np.mean, _CHI2_3_MEAN, (eigenvalues, weights), self.bounds)
+        errors, vision, gyro = (np.array(part) for part in zip(*self._samples, strict=True))
+        return solve_factor(np.mean, _CHI2_3_MEAN, errors, vision, gyro, self.bounds)
 
     def _stretch(self, first_ns: int, last_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(error, vision covariance, gyro covariance) of the chained motion first -> last."""
