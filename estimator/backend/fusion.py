@@ -50,7 +50,7 @@ from estimator.backend.standstill import StartupRest
 from estimator.backend.step import Step
 from estimator.backend.window import FrameWindow, OpenFrame
 from estimator.config import BackendConfig
-from estimator.geometry import invert_pose, make_pose, nearest_rigid
+from estimator.geometry import invert_pose, make_pose, nearest_rigid, se3_adjoint
 from estimator.types import FrameStatus, ImuBatch, ImuNoise, check_timestamp_order
 
 __all__ = ["FusedEstimate", "FusionBackend"]
@@ -74,7 +74,7 @@ class FusionBackend:
             body_from_camera = np.asarray(config.body_from_camera, dtype=float).reshape(4, 4)
         self.body_from_camera = nearest_rigid(check_pose("body_from_camera", body_from_camera))
         self.camera_from_body = invert_pose(self.body_from_camera)
-        self._adjoint = np.asarray(gtsam.Pose3(self.body_from_camera).AdjointMap())
+        self._adjoint = se3_adjoint(self.body_from_camera)
         self.use_imu = bool(config.use_imu and imu_noise is not None)
         self._use_accel = bool(self.use_imu and config.use_accelerometer)
         self._calibration = GyroCalibration(config, self.body_from_camera) if self.use_imu else None
