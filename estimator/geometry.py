@@ -320,7 +320,7 @@ def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def se3_adjoint(pose: np.ndarray, *, inverse: bool = False) -> np.ndarray:
-    """Adjoint Ad(T) (6x6) of a 4x4 pose T; with ``inverse``, Ad(T^-1) without forming T^-1.
+    """Adjoint Ad(T) (6x6) of a 4x4 pose T; with ``inverse``, Ad(T^-1).
 
     Tangent vectors are GTSAM's Pose3 ones, rotation first: xi = (omega, v), with the
     perturbation on the right, T exp(xi) ~ (R Exp(omega), t + R v) (the refinement's and the
@@ -330,13 +330,15 @@ def se3_adjoint(pose: np.ndarray, *, inverse: bool = False) -> np.ndarray:
         Ad(T) = [[R, 0], [[t]x R, R]],   Ad(T^-1) = [[R^T, 0], [-R^T [t]x, R^T]].
 
     Translation-first conventions (e.g. ROS covariances) swap the blocks: [[R, [t]x R], [0, R]].
+    The products are summed in GTSAM's order (not through BLAS), so the matrix is
+    Pose3.AdjointMap's to the last bit and covariances handed to the back end do not depend
+    on which of the two built them.
     """
-    rotation = pose[:3, :3]
     if inverse:
-        rotation = rotation.T
-        coupling = -rotation @ skew(pose[:3, 3])
-    else:
-        coupling = skew(pose[:3, 3]) @ rotation
+        pose = invert_pose(pose)
+    rotation = pose[:3, :3]
+    # [t]x R term by term, k = 0, 1, 2 in turn, as Eigen's fixed-size product does.
+    coupling = (skew(pose[:3, 3])[:, :, None] * rotation[None, :, :]).sum(axis=1)
     adjoint = np.zeros((6, 6))
     adjoint[:3, :3] = rotation
     adjoint[3:, :3] = coupling

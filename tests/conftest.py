@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import pytest
+
+if TYPE_CHECKING:
+    from estimator.formats.datasets import Sequence
+    from estimator.pipeline import RunResult
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = PROJECT_ROOT.parent / "shared" / "data"
@@ -36,6 +42,42 @@ def euroc_v102_imu_segment() -> Path:
 def euroc_mh01_moving() -> Path:
     """EuRoC MH_01 200 stereo frames + IMU + ground truth (carried and swung by hand)."""
     return _dataset("euroc_mh01_moving")
+
+
+@dataclass(frozen=True)
+class RealClipRun:
+    """One pipeline run over a real clip: the opened sequence, the run and its summary."""
+
+    sequence: Sequence
+    run: RunResult
+    summary: dict[str, Any]
+
+
+def _run_real_clip(path: Path, *, imu: bool, **sections: dict[str, Any]) -> RealClipRun:
+    """Run the default configuration (with or without the IMU) over a real clip, with
+    ``sections`` set on it (e.g. ``backend={"landmarks": True}``); every frame must be tracked."""
+    import warnings
+
+    from estimator.formats.datasets import open_sequence
+    from estimator.pipeline import build_config, run_sequence, summarize
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # unpaired camera rows
+        sequence = open_sequence(path)
+    config = build_config(imu=imu)
+    for section, values in sections.items():
+        for name, value in values.items():
+            setattr(getattr(config, section), name, value)
+    run = run_sequence(sequence, config, use_imu=imu)
+    summary, _ = summarize(run)
+    assert summary["frames_failed"] == 0, summary["status_counts"]
+    return RealClipRun(sequence, run, summary)
+
+
+@pytest.fixture
+def run_real_clip():
+    """What a real-clip test asks: the pipeline run over a clip with a few settings changed."""
+    return _run_real_clip
 
 
 def _between_factor_ends(smoother_graph) -> set[tuple[str, int, str, int]]:

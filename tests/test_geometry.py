@@ -194,3 +194,20 @@ def test_transport_covariance_follows_a_perturbation_through_the_chain() -> None
     np.testing.assert_allclose(
         g.transport_covariance(covariance, pose), jacobian @ covariance @ jacobian.T, atol=1e-12
     )
+
+
+def test_se3_adjoint_is_gtsams_adjoint_map() -> None:
+    """The back end hands these matrices to GTSAM factors: same block order (rotation first)
+    and same values as Pose3.AdjointMap, for the pose and for its inverse."""
+    import gtsam
+
+    rng = np.random.default_rng(11)
+    for _ in range(200):
+        twist = rng.normal(size=6) * np.array([1.0, 1.0, 1.0, 5.0, 5.0, 5.0])
+        pose = np.asarray(gtsam.Pose3.Expmap(twist).matrix())
+        expected = np.asarray(gtsam.Pose3(pose).AdjointMap())
+        np.testing.assert_allclose(g.se3_adjoint(pose), expected, rtol=0, atol=1e-12)
+        expected_inverse = np.asarray(gtsam.Pose3(g.invert_pose(pose)).AdjointMap())
+        np.testing.assert_allclose(
+            g.se3_adjoint(pose, inverse=True), expected_inverse, rtol=0, atol=1e-12
+        )

@@ -66,6 +66,22 @@ def test_integration_of_a_constant_rate_is_exact() -> None:
     assert integrate_gyro(batch.timestamps_ns[5:], batch.gyro[5:], 0, DT_NS) is None  # a hole
 
 
+
+def test_integration_reads_the_samples_as_the_back_end_preintegration() -> None:
+    """Frame times between the samples, a varying rate: the search windows' rotation is the one
+    the back end's gyro factor measures over the same interval (one sampling rule)."""
+    from estimator.backend.imu import preintegrate_gyro, rotation_params
+    from estimator.types import ImuNoise
+
+    rng = np.random.default_rng(7)
+    stamps = np.arange(0, 130_000_000, IMU_NS, dtype=np.int64)
+    rates = rng.normal(0.0, 0.8, size=(len(stamps), 3))
+    start_ns, end_ns = 3_000_000, 3_000_000 + DT_NS + 4_000_000
+    rotation = integrate_gyro(stamps, rates, start_ns, end_ns)
+    expected = preintegrate_gyro(stamps, rates, start_ns, end_ns, rotation_params(ImuNoise()))
+    assert rotation is not None
+    np.testing.assert_allclose(rotation, expected.delta_rotation, atol=1e-12)
+
 def test_the_gyro_lands_a_turning_cars_points_within_a_pixel() -> None:
     """Straight at 12 m/s, then a turn at 45 deg/s begins: constant velocity misses it by tens
     of pixels, the gyro's prediction (with a bias it has learned against vision) lands every

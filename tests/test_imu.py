@@ -15,10 +15,10 @@ from estimator.backend.imu import (
     gravity_aligned_rotation,
     preintegrate_gyro,
     rotation_params,
-    sample_segments,
 )
 from estimator.formats.datasets import read_euroc_ground_truth, read_euroc_imu, read_euroc_imu_noise
 from estimator.geometry import rotation_angle_deg
+from estimator.imu_sampling import sample_segments
 from estimator.types import ImuBatch, ImuNoise
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -13,9 +12,7 @@ from estimator.backend import FusionBackend
 from estimator.backend.landmarks import spread_order, stereo_covariance
 from estimator.backend.observations import StereoCamera, StereoObservations, stereo_pixels
 from estimator.config import BackendConfig
-from estimator.formats.datasets import open_sequence
 from estimator.geometry import invert_pose, make_pose, rotation_angle_deg, transform_points
-from estimator.pipeline import build_config, run_sequence, summarize
 from estimator.rendered.scenario import CAMERA_MOUNT
 
 FX, CX, CY, BASELINE = 436.0, 370.0, 245.0, 0.11
@@ -114,7 +111,7 @@ def test_a_landmark_seen_again_from_a_new_keyframe_is_the_same_variable() -> Non
             k * STEP_NS, relative @ CAMERA_MOUNT, None, 60, None, reference_ns=reference * STEP_NS,
             covariance=covariance, stereo=stereo,
         )  # fmt: skip
-    assert len(backend._landmarks) == 60  # type: ignore[arg-type]
+    assert len(backend._vision._landmarks) == 60  # type: ignore[arg-type]
 
 
 def test_spread_order_covers_the_image_before_repeating_a_cell() -> None:
@@ -141,16 +138,10 @@ def test_stereo_covariance_shares_the_column_noise_between_both_images() -> None
 @pytest.mark.slow
 @pytest.mark.euroc
 def test_real_clip_with_landmarks_is_tracked_within_the_bounds_of_the_default(
-    euroc_mh01_moving: Path,
+    euroc_mh01_moving: Path, run_real_clip
 ) -> None:
     """The option on MH_01, vision alone: measured 4.7 mm ATE and 0.0202 deg per frame (the
     default: 4.7 mm, 0.0211 deg), every frame tracked."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # unpaired camera rows
-        sequence = open_sequence(euroc_mh01_moving)
-    config = build_config(imu=False)
-    config.backend.landmarks = True
-    summary, _ = summarize(run_sequence(sequence, config, use_imu=False))
-    assert summary["frames_failed"] == 0, summary["status_counts"]
+    summary = run_real_clip(euroc_mh01_moving, imu=False, backend={"landmarks": True}).summary
     assert summary["ate_rmse_m"] < 0.0052
     assert summary["rpe_rot_rmse_deg"] < 0.022

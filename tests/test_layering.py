@@ -2,7 +2,8 @@
 
 Layers, bottom to top:
 
-- core: ``estimator.geometry``, ``estimator.types``, ``estimator.config`` and the packages
+- core: ``estimator.geometry``, ``estimator.types``, ``estimator.config``,
+  ``estimator.imu_sampling`` and the packages
   ``registration``, ``frontend``, ``backend``, ``formats``, ``evaluation``, ``rendered``.
   ``config`` counts as core: it is the typed schema the front end and the back end read their
   own section from, and it imports nothing from the estimator itself.
@@ -30,6 +31,7 @@ CORE = (
     "estimator.geometry",
     "estimator.types",
     "estimator.config",
+    "estimator.imu_sampling",
     "estimator.registration",
     "estimator.frontend",
     "estimator.backend",

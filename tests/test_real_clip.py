@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import pytest
 
 from estimator.evaluation.consistency import relative_nees
-from estimator.formats.datasets import open_sequence
-from estimator.pipeline import build_config, odometry_messages, run_sequence, summarize
+from estimator.pipeline import odometry_messages
 from estimator.registration.refine import CHI2_3_MEDIAN
 
 
@@ -22,15 +20,11 @@ from estimator.registration.refine import CHI2_3_MEDIAN
     [(False, 0.023), (True, 0.019)],
 )
 def test_real_clip_is_tracked_with_no_lost_frame_and_a_consistent_noise_model(
-    euroc_mh01_moving: Path, fuse_previous_frame: bool, max_rotation_deg: float
+    euroc_mh01_moving: Path, fuse_previous_frame: bool, max_rotation_deg: float, run_real_clip
 ) -> None:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # unpaired camera rows
-        sequence = open_sequence(euroc_mh01_moving)
-    config = build_config(imu=False)
-    config.frontend.fuse_previous_frame = fuse_previous_frame
-    summary, _ = summarize(run_sequence(sequence, config, use_imu=False))
-    assert summary["frames_failed"] == 0, summary["status_counts"]
+    summary = run_real_clip(
+        euroc_mh01_moving, imu=False, frontend={"fuse_previous_frame": fuse_previous_frame}
+    ).summary
     assert summary["ate_rmse_m"] < 0.0052
     assert summary["rpe_rot_rmse_deg"] < max_rotation_deg
     # The estimated noise predicts the inliers' residuals: chi-square median within 20 %.
@@ -41,19 +35,13 @@ def test_real_clip_is_tracked_with_no_lost_frame_and_a_consistent_noise_model(
 @pytest.mark.slow
 @pytest.mark.euroc
 def test_real_clip_fused_with_old_references_placed_keeps_the_rotation_per_frame_below_the_target(
-    euroc_mh01_moving: Path,
+    euroc_mh01_moving: Path, run_real_clip
 ) -> None:
     """The option ``backend.old_reference = "prior"`` (real IMU): a measurement whose keyframe
     has left the smoother's window places its frame from the keyframe's estimate. Chained
     through the previous frame it was 0.0116 deg per frame, placed 0.0067 (target 0.010); not
     the default, because its pose covariance is too small for its errors on this clip."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # unpaired camera rows
-        sequence = open_sequence(euroc_mh01_moving)
-    config = build_config(imu=True)
-    config.backend.old_reference = "prior"
-    summary, _ = summarize(run_sequence(sequence, config, use_imu=True))
-    assert summary["frames_failed"] == 0, summary["status_counts"]
+    summary = run_real_clip(euroc_mh01_moving, imu=True, backend={"old_reference": "prior"}).summary
     assert summary["fused"]["ate_rmse_m"] < 0.0045
     assert summary["fused"]["rpe_rot_rmse_deg"] < 0.0085
 
@@ -61,20 +49,14 @@ def test_real_clip_fused_with_old_references_placed_keeps_the_rotation_per_frame
 @pytest.mark.slow
 @pytest.mark.euroc
 def test_real_clip_fused_through_keyframe_views_keeps_the_rotation_and_the_covariance(
-    euroc_mh01_moving: Path,
+    euroc_mh01_moving: Path, run_real_clip
 ) -> None:
     """The option ``backend.old_reference = "views"`` (real IMU): measurements against a
     keyframe go through a view of it that outlives the window, the n-th one with n times its
     covariance. Measured 4.4 mm, 0.0076 deg per frame, NEES per DOF over 1 s windows 2.07 (pose)
     and 1.00 (twist); "prior" had 0.0067 deg with a pose NEES of 15.5."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # unpaired camera rows
-        sequence = open_sequence(euroc_mh01_moving)
-    config = build_config(imu=True)
-    config.backend.old_reference = "views"
-    run = run_sequence(sequence, config, use_imu=True)
-    summary, _ = summarize(run)
-    assert summary["frames_failed"] == 0, summary["status_counts"]
+    clip = run_real_clip(euroc_mh01_moving, imu=True, backend={"old_reference": "views"})
+    sequence, run, summary = clip.sequence, clip.run, clip.summary
     assert summary["fused"]["ate_rmse_m"] < 0.005
     assert summary["fused"]["rpe_rot_rmse_deg"] < 0.0085
     assert sequence.ground_truth is not None

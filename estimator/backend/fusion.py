@@ -2,10 +2,11 @@
 
 ``FusionBackend`` reads as the steps of a frame; each concern lives in a module of its own:
 the smoother and its keys (``smoother.py``), the frames it still holds and their final
-estimates (``window.py``), the IMU factors (``imu_terms.py``), the outlier gate
-(``gating.py``), the motion prior (``motion_prior.py``), the start-up standstill
-(``standstill.py``), the priors a graph starts from (``anchor.py``) and, as an option, the
-inliers as stereo landmarks (``landmarks.py``).
+estimates (``window.py``), the IMU factors (``imu_terms.py``), the front end's relative pose
+as a gated factor (``vision_factors.py``, with the outlier gate in ``gating.py``), the motion
+prior (``motion_prior.py``), the start-up standstill (``standstill.py``), the priors a graph
+starts from (``anchor.py``) and, as an option, the inliers as stereo landmarks
+(``landmarks.py``).
 
 Per frame k (one Pose3, body in world, and with an IMU one gyro bias): the front-end relative
 pose as a robust ``BetweenFactorPose3`` from the frame it was measured against (a keyframe) to
@@ -14,9 +15,6 @@ otherwise the constant-velocity motion prior. ``pose`` is the newest frame's est
 arrives; the final, smoothed estimate of a frame is handed out once when it leaves the window
 (``FusedEstimate.final_poses``, then ``flush()``). World: the first body pose, levelled (z up,
 yaw 0) from the first frame's accelerometer samples when the IMU is used.
-
-Over 500 lines on purpose: the steps of a frame share the smoother, the window and the last
-estimates held by ``FusionBackend``; splitting the class would only pass that state around.
 """
 
 from __future__ import annotations
@@ -30,13 +28,10 @@ import numpy as np
 from estimator.backend.anchor import Anchor, InertialPrior
 from estimator.backend.covariance_scale import GyroCalibration
 from estimator.backend.estimate import FusedEstimate, check_pose
-from estimator.backend.gating import agrees_with_standstill, gate_distance
 from estimator.backend.imu import GRAVITY, SpecificForceDelta, gravity_aligned_rotation
 from estimator.backend.imu_terms import ImuTerms
-from estimator.backend.keyframe_views import KeyframeViews
-from estimator.backend.landmarks import LandmarkMap
 from estimator.backend.motion_prior import add_motion_prior, constant_velocity
-from estimator.backend.noise import relative_pose_covariance, robust
+from estimator.backend.noise import relative_pose_covariance
 from estimator.backend.observations import StereoObservations
 from estimator.backend.smoother import (
     ACCEL_BIAS_KEY,
@@ -48,17 +43,13 @@ from estimator.backend.smoother import (
 )
 from estimator.backend.standstill import StartupRest
 from estimator.backend.step import Step
+from estimator.backend.vision_factors import PreviousFrame, VisionFactors
 from estimator.backend.window import FrameWindow, OpenFrame
 from estimator.config import BackendConfig
-from estimator.geometry import invert_pose, make_pose, nearest_rigid
+from estimator.geometry import invert_pose, make_pose, nearest_rigid, se3_adjoint
 from estimator.types import FrameStatus, ImuBatch, ImuNoise, check_timestamp_order
 
 __all__ = ["FusedEstimate", "FusionBackend"]
-
-# Fewer landmarks than this in a frame: the relative pose is added even without
-# ``landmark_between`` (a few points tie a frame too loosely on their own).
-_MIN_LANDMARKS = 20
-
 
 class FusionBackend:
     """Incremental fusion of per-frame relative poses with the IMU (see module doc)."""
@@ -74,7 +65,7 @@ class FusionBackend:
             body_from_camera = np.asarray(config.body_from_camera, dtype=float).reshape(4, 4)
         self.body_from_camera = nearest_rigid(check_pose("body_from_camera", body_from_camera))
         self.camera_from_body = invert_pose(self.body_from_camera)
-        self._adjoint = np.asarray(gtsam.Pose3(self.body_from_camera).AdjointMap())
+        self._adjoint = se3_adjoint(self.body_from_camera)
         self.use_imu = bool(config.use_imu and imu_noise is not None)
         self._use_accel = bool(self.use_imu and config.use_accelerometer)
         self._calibration = GyroCalibration(config, self.body_from_camera) if self.use_imu else None
@@ -86,18 +77,13 @@ class FusionBackend:
         self._accel_bias = np.zeros(3)
         self._smoother = Smoother(config)
         self._window = FrameWindow(self._smoother, self.body_from_camera)
-        self._landmarks = LandmarkMap(config, self.body_from_camera) if config.landmarks else None
-        self._views = KeyframeViews(self._smoother, config)
+        self._vision = VisionFactors(config, self.body_from_camera, self._smoother, self._window)
         self._index = -1
         self._last_ns = 0
         self._body_pose = np.eye(4)
         self._previous_motion: np.ndarray | None = None  # body T_k-2,k-1 (estimated)
         self._previous_dt = 0.0
         self._bias = np.zeros(3)
-        # The newest frame with accepted vision (or the first): its time widens the gate after
-        # a gap, and a measurement whose reference has left the window is chained through it.
-        self._last_fix_index = 0
-        self._last_fix_ns = 0
         self._rest = StartupRest(
             config,
             self._imu.noise if self._imu is not None else None,
@@ -192,7 +178,7 @@ class FusionBackend:
 
     def _start(self, timestamp_ns: int) -> FusedEstimate:
         self._index = 0
-        self._smoother.start_ns = self._last_ns = self._last_fix_ns = timestamp_ns
+        self._smoother.start_ns = self._last_ns = self._vision.last_fix_ns = timestamp_ns
         rotation, levelled, message = self._level(timestamp_ns)
         gyro_bias = None
         if self._imu is not None:
@@ -267,8 +253,11 @@ class FusionBackend:
                 step, self._window, self._body_pose, self._gravity, self._accel_bias
             )
         prediction = self._prediction(step, motion, inertial)
-        guess = self._add_vision_factor(
-            step, relative_pose, covariance, reference_ns, prediction, stereo
+        previous = PreviousFrame(
+            self._body_pose, self._last_ns, self._previous_motion, self._previous_dt
+        )
+        guess = self._vision.add(
+            step, previous, relative_pose, covariance, reference_ns, prediction, stereo
         )
         if self.config.motion_prior == "always" or not (step.accepted or inertial is not None):
             add_motion_prior(step, motion, self.config)
@@ -325,167 +314,6 @@ class FusionBackend:
             prediction[:3, 3] = self._body_pose[:3, :3].T @ (inertial[1] - self._body_pose[:3, 3])
         return prediction
 
-    def _add_vision_factor(
-        self,
-        step: Step,
-        relative_pose: np.ndarray | None,
-        covariance: np.ndarray | None,
-        reference_ns: int | None,
-        prediction: np.ndarray,
-        stereo: StereoObservations | None = None,
-    ) -> np.ndarray:
-        """The front-end relative pose as a robust factor unless the gate rejects it.
-
-        Returns the initial guess of the body motion (the measurement when accepted, else the
-        prediction); clears ``step.still`` when vision disagrees with a standstill.
-        """
-        reference = self._vision_reference(step, relative_pose, covariance, reference_ns)
-        if reference is None:
-            return prediction
-        assert relative_pose is not None and covariance is not None
-        body_measured = nearest_rigid(self.body_from_camera @ relative_pose @ self.camera_from_body)
-        live = reference == step.previous or self._window.in_window(reference, step.cutoff)
-        reference_pose = None
-        if reference != step.previous:
-            reference_pose = (
-                self._smoother.pose(reference)
-                if live
-                else self._window.references[int(reference_ns)][1]  # type: ignore[arg-type]
-            )
-        body_motion = self._motion_from_previous(body_measured, reference_pose)
-        if step.still:  # vision must agree with the standstill too
-            step.still = agrees_with_standstill(body_motion, covariance)
-        if not self._passes_gate(step, body_motion, prediction, covariance):
-            return prediction
-        step.accepted = True
-        observed = 0
-        if self._landmarks is not None and stereo is not None and len(stereo):
-            reference_body = self._body_pose if reference == step.previous else reference_pose
-            observed = self._landmarks.add(
-                step, stereo, reference, reference_body if live else None, step.timestamp_ns
-            )
-        if self.config.landmark_between or observed < _MIN_LANDMARKS:
-            self._add_accepted_vision(
-                step, reference, reference_pose, live, body_measured, body_motion, covariance
-            )
-        self._window.oldest_reference = max(self._window.oldest_reference, reference)
-        return body_motion
-
-    def _vision_reference(
-        self,
-        step: Step,
-        relative_pose: np.ndarray | None,
-        covariance: np.ndarray | None,
-        reference_ns: int | None,
-    ) -> int | None:
-        """Index of the frame the measurement was taken against; None (with a note when a
-        measurement is lost) when there is nothing usable to add."""
-        if relative_pose is None or covariance is None:
-            return None
-        reference = self._window.reference_index(reference_ns, self._index)
-        if reference is None:
-            step.notes.append(
-                f"relative pose not used (reference frame {reference_ns} is unknown or "
-                "older than the latest reference)"
-            )
-        return reference
-
-    def _motion_from_previous(
-        self, body_measured: np.ndarray, reference_pose: np.ndarray | None
-    ) -> np.ndarray:
-        """The measurement seen as a motion from the previous frame, through the current
-        estimates: for the gate and the initial guess (and as the factor itself when the
-        reference has already left the window). ``reference_pose`` is None when the
-        reference is the previous frame."""
-        if reference_pose is None:
-            return body_measured
-        return nearest_rigid(invert_pose(self._body_pose) @ reference_pose @ body_measured)
-
-    def _passes_gate(
-        self, step: Step, body_motion: np.ndarray, prediction: np.ndarray, covariance: np.ndarray
-    ) -> bool:
-        """The outlier gate: a measurement too far from the prediction is noted and dropped,
-        so one bad front-end frame cannot pull the graph."""
-        distance = gate_distance(
-            body_motion,
-            prediction,
-            covariance,
-            step.preintegration,
-            step.dt,
-            (self._last_ns - self._last_fix_ns) * 1e-9,
-            self._previous_motion,
-            self._previous_dt,
-            self.config,
-        )
-        gate = self.config.outlier_gate_chi2
-        if gate is None or distance <= gate:
-            return True
-        step.notes.append(
-            f"relative pose rejected (squared Mahalanobis distance {distance:.0f} "
-            f"> {gate:g} from the prediction)"
-        )
-        step.rejected = True
-        return False
-
-    def _add_accepted_vision(
-        self,
-        step: Step,
-        reference: int,
-        reference_pose: np.ndarray | None,
-        live: bool,
-        body_measured: np.ndarray,
-        body_motion: np.ndarray,
-        covariance: np.ndarray,
-    ) -> None:
-        """The factor for an accepted measurement: between the reference and this frame while
-        the reference is in the window, else a prior or a chain (``old_reference``); with
-        ``"views"`` through the keyframe's view (``keyframe_views.py``) while it has one."""
-        previous = step.previous
-        mode = self.config.old_reference
-        if mode == "views" and reference != previous:
-            if self._views.add(step, reference, live, reference_pose, body_measured, covariance):
-                return
-            live = False  # neither the keyframe nor its view is left: as "prior-after-gap"
-        base = gtsam.noiseModel.Gaussian.Covariance(covariance)
-        noise = robust(base, self.config.robust_kernel, self.config.robust_parameter)
-        after_gap = self._last_fix_index != previous
-        placing = mode == "prior" or (mode in ("prior-after-gap", "views") and after_gap)
-        if not live and placing:
-            # The reference has left the window: its estimate and the measurement place this
-            # frame in the world directly (as the front end's chain does), instead of through
-            # recent frames whose estimates the smoother still moves (after a gap, frames
-            # carried by the IMU alone).
-            placed = reference_pose @ body_measured  # type: ignore[operator]
-            step.factors.add(
-                gtsam.PriorFactorPose3(pose_key(step.current), gtsam.Pose3(placed), noise)
-            )
-            return
-        source, measured = (reference, body_measured) if live else (previous, body_motion)
-        if not live and after_gap:
-            source, measured = self._chained(step, measured, body_motion)
-        step.factors.add(
-            gtsam.BetweenFactorPose3(
-                pose_key(source),
-                pose_key(step.current),
-                gtsam.Pose3(measured),
-                noise,
-            )
-        )
-
-    def _chained(
-        self, step: Step, measured: np.ndarray, body_motion: np.ndarray
-    ) -> tuple[int, np.ndarray]:
-        """Source frame and relative pose for a measurement whose reference has left the
-        window, after frames without vision: chained through the last frame with accepted
-        vision while it is in the window, not through the previous (coasted) frame, whose
-        IMU-only estimate would otherwise carry its error into every frame after the gap."""
-        anchor = self._last_fix_index
-        if not self._window.in_window(anchor, step.cutoff):
-            return step.previous, measured
-        # body_motion is T_prev_cur through the current estimates: T_anchor_cur follows.
-        anchor_from_previous = invert_pose(self._smoother.pose(anchor)) @ self._body_pose
-        return anchor, nearest_rigid(anchor_from_previous @ body_motion)
-
     # ------------------------------------------------------------------ update and answer
 
     def _commit(self, step: Step, timestamp_ns: int, guess: np.ndarray) -> np.ndarray:
@@ -519,9 +347,7 @@ class FusionBackend:
     def _restart(self, index: int, body_pose: np.ndarray) -> None:
         """A fresh smoother anchored at ``body_pose``: the trajectory goes on from here."""
         self._smoother.reset()
-        if self._landmarks is not None:
-            self._landmarks.reset()
-        self._views.reset()
+        self._vision.reset()
         gyro_bias = (self._bias, self.config.gyro_bias_prior_sigma) if self.use_imu else None
         inertial = (
             self._inertial_prior(self.config.gravity_prior_sigma) if self._use_accel else None
@@ -532,7 +358,7 @@ class FusionBackend:
     def _status(self, step: Step) -> FrameStatus:
         """OK with accepted vision, else DEGRADED (gyro) or LOST; notes the last fix."""
         if step.accepted:
-            self._last_fix_index, self._last_fix_ns = step.current, self._last_ns
+            self._vision.last_fix_index, self._vision.last_fix_ns = step.current, self._last_ns
             return FrameStatus.OK
         if step.preintegration is not None:
             step.notes.insert(0, "no vision: rotation from gyro, translation from motion prior")

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from estimator.imu_sampling import sample_segments
 from estimator.types import ImuBatch, ImuNoise
 
 __all__ = [
@@ -28,7 +29,6 @@ __all__ = [
     "preintegrate_gyro",
     "preintegrate_specific_force",
     "rotation_params",
-    "sample_segments",
 ]
 
 GRAVITY = 9.81  # m/s^2, magnitude only: the world z axis points up (against gravity)
@@ -56,33 +56,6 @@ def rotation_params(noise: ImuNoise, noise_scale: float = 1.0) -> gtsam.Preinteg
     params = gtsam.PreintegratedRotationParams()
     params.setGyroscopeCovariance(np.eye(3) * (noise.gyro_noise_density * noise_scale) ** 2)
     return params
-
-
-def sample_segments(
-    timestamps_ns: np.ndarray, samples: np.ndarray, start_ns: int, end_ns: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Split [start, end] at the samples; one mean value (rate or specific force) per piece.
-
-    The signal is interpolated linearly between samples (and held beyond the first/last
-    sample), so each piece uses the average of its two end values (trapezoidal rule). Sample
-    times rarely coincide with frame times; cutting at the exact frame times keeps the
-    per-frame increments unbiased.
-    """
-    timestamps_ns = np.asarray(timestamps_ns, dtype=np.int64)
-    values = np.asarray(samples, dtype=float)
-    if end_ns <= start_ns:
-        raise ValueError(f"IMU interval must have end > start (got {start_ns} .. {end_ns})")
-    if len(timestamps_ns) == 0:
-        raise ValueError("no IMU samples to integrate")
-    if values.shape != (len(timestamps_ns), 3):
-        raise ValueError(f"samples must be (M, 3) matching the timestamps, got {values.shape}")
-    inside = timestamps_ns[(timestamps_ns > start_ns) & (timestamps_ns < end_ns)]
-    breaks = np.concatenate([[start_ns], inside, [end_ns]]).astype(np.int64)
-    # Interpolate relative to the first break so float64 keeps nanosecond resolution.
-    t = (breaks - start_ns).astype(float)
-    samples_t = (timestamps_ns - start_ns).astype(float)
-    at_breaks = np.stack([np.interp(t, samples_t, values[:, axis]) for axis in range(3)], axis=1)
-    return 0.5 * (at_breaks[:-1] + at_breaks[1:]), np.diff(breaks) * 1e-9
 
 
 def preintegrate_gyro(

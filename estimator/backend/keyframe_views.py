@@ -38,6 +38,7 @@ from estimator.backend.noise import robust
 from estimator.backend.smoother import STAMP_MARGIN_S, Smoother, pose_key
 from estimator.backend.step import Step
 from estimator.config import BackendConfig
+from estimator.geometry import se3_adjoint
 
 __all__ = ["KeyframeViews", "view_key"]
 
@@ -84,7 +85,7 @@ class KeyframeViews:
         if reference in self.stamps and self.smoother.isam().valueExists(key):
             step.keep.append(key)
         elif live and reference_pose is not None:
-            adjoint = np.asarray(gtsam.Pose3(measured).AdjointMap())
+            adjoint = se3_adjoint(measured)
             shared_covariance = shared * adjoint @ covariance @ adjoint.T
             shared_covariance = 0.5 * (shared_covariance + shared_covariance.T)
             step.values.insert(key, gtsam.Pose3(reference_pose))

@@ -14,7 +14,7 @@ import gtsam
 import numpy as np
 
 from estimator.config import BackendConfig
-from estimator.geometry import invert_pose
+from estimator.geometry import se3_adjoint
 
 __all__ = ["ACCEL_BIAS_KEY", "GRAVITY_KEY", "STAMP_MARGIN_S", "Smoother", "bias_key", "pose_key"]
 
@@ -140,7 +140,7 @@ class Smoother:
             joint = isam.jointMarginalCovariance(gtsam.KeyVector([previous, current]))
         except RuntimeError:  # numerical failure inside GTSAM
             return None, None
-        jacobian = np.hstack([-gtsam.Pose3(invert_pose(motion)).AdjointMap(), np.eye(6)])
+        jacobian = np.hstack([-se3_adjoint(motion, inverse=True), np.eye(6)])
         blocks = np.block(
             [
                 [joint.at(previous, previous), joint.at(previous, current)],

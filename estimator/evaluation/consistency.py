@@ -39,7 +39,7 @@ import numpy as np
 
 from estimator.formats.datasets import GroundTruth
 from estimator.formats.odometry_msg import OdometryMessage
-from estimator.geometry import invert_pose
+from estimator.geometry import invert_pose, transport_covariance
 
 __all__ = [
     "MeasurementCheck",
@@ -79,10 +79,6 @@ class NeesResult:
         }
 
 
-def _adjoint(pose: np.ndarray) -> np.ndarray:
-    return np.asarray(gtsam.Pose3(pose).AdjointMap())
-
-
 def body_pose_covariance(message: OdometryMessage) -> np.ndarray:
     """The message's pose covariance back in the body-frame tangent (rotation, translation)."""
     rotation = np.zeros((6, 6))
@@ -93,8 +89,7 @@ def body_pose_covariance(message: OdometryMessage) -> np.ndarray:
 
 def _pose_window_covariance(first: OdometryMessage, last: OdometryMessage) -> np.ndarray:
     motion = invert_pose(first.pose) @ last.pose
-    adjoint = _adjoint(invert_pose(motion))
-    moved = adjoint @ body_pose_covariance(first) @ adjoint.T
+    moved = transport_covariance(body_pose_covariance(first), motion)
     later = body_pose_covariance(last)
     values, vectors = np.linalg.eigh(later - moved)
     sums = np.einsum("ij,jk,ki->i", vectors.T, later + moved, vectors)
@@ -109,8 +104,8 @@ def _twist_window_covariance(window: list[OdometryMessage]) -> np.ndarray:
         dt = (message.stamp_ns - previous.stamp_ns) * 1e-9
         step = message.twist_covariance[np.ix_(_ROS_TO_GTSAM, _ROS_TO_GTSAM)] * dt**2
         motion = invert_pose(previous.pose) @ message.pose
-        adjoint = _adjoint(invert_pose(motion))  # carry the sum so far into this frame
-        covariance = adjoint @ covariance @ adjoint.T + step
+        # carry the sum so far into this frame
+        covariance = transport_covariance(covariance, motion) + step
     return covariance
 
 

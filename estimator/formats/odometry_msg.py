@@ -34,7 +34,14 @@ import numpy as np
 
 from estimator.backend.systematic_noise import drift_growth, reported_measurement_covariance
 from estimator.config import BackendConfig
-from estimator.geometry import invert_pose, make_pose, matrix_to_quat, quat_to_matrix
+from estimator.geometry import (
+    invert_pose,
+    make_pose,
+    matrix_to_quat,
+    quat_to_matrix,
+    se3_adjoint,
+    transport_covariance,
+)
 from estimator.types import FrameReport, FrameStatus
 
 __all__ = ["BASE_FRAME", "ODOM_FRAME", "OdometryBuilder", "OdometryMessage", "odom_rotation"]
@@ -129,17 +136,6 @@ def odom_rotation(first_accel: np.ndarray | None) -> np.ndarray:
         return np.eye(3)
 
 
-def _adjoint(pose: np.ndarray) -> np.ndarray:
-    """SE(3) adjoint in GTSAM's tangent order (rotation, translation)."""
-    return np.asarray(gtsam.Pose3(pose).AdjointMap())
-
-
-def _transport(covariance: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """Covariance of a right perturbation re-expressed after ``pose``: Ad(pose^-1) C Ad^T."""
-    adjoint = _adjoint(invert_pose(pose))
-    return adjoint @ covariance @ adjoint.T
-
-
 @dataclass
 class _Chained:
     """A frame's front-end pose and covariance (left camera tangent) along the keyframe chain."""
@@ -175,7 +171,7 @@ class OdometryBuilder:
         self._without_gyro = calibrated and not gyro_calibrated
         self.body_from_camera = np.asarray(body_from_camera, dtype=float)
         self.camera_from_body = invert_pose(self.body_from_camera)
-        self._camera_to_body = _adjoint(self.body_from_camera)
+        self._camera_to_body = se3_adjoint(self.body_from_camera)
         self._level = odom_rotation(first_accel)
         self._floor = np.diag(
             [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
@@ -245,11 +241,11 @@ class OdometryBuilder:
         reported = scale * covariance
         if previous is not None:
             motion = invert_pose(previous[0]) @ body_pose
-            change = covariance - _transport(previous[1], motion)
+            change = covariance - transport_covariance(previous[1], motion)
             values, vectors = np.linalg.eigh(0.5 * (change + change.T))
             # What the smoother takes back is not scaled: a large factor would take it many times.
             grown = (vectors * np.where(values > 0, scale * values, values)) @ vectors.T
-            reported = _transport(previous[2], motion) + grown
+            reported = transport_covariance(previous[2], motion) + grown
             values, vectors = np.linalg.eigh(0.5 * (reported + reported.T))
             reported = (vectors * np.clip(values, 0.0, None)) @ vectors.T
         self._previous_pose = (body_pose, covariance, reported)
@@ -271,12 +267,12 @@ class OdometryBuilder:
             motion = invert_pose(reference.pose) @ pose
             if self._without_gyro:
                 measurement = reported_measurement_covariance(measurement, motion, self._config)
-            covariance = _transport(reference.covariance, motion) + measurement
+            covariance = transport_covariance(reference.covariance, motion) + measurement
             chained = _Chained(pose, covariance, measurement, report.reference_timestamp_ns)
         else:  # no measurement: the previous pose, moved on at constant velocity
             previous = self._chain[self._previous_ns]
             motion = invert_pose(previous.pose) @ pose
-            covariance = _transport(previous.covariance, motion) + self._coast
+            covariance = transport_covariance(previous.covariance, motion) + self._coast
             chained = _Chained(pose, covariance, None, None)
         self._chain[report.timestamp_ns] = chained
         self._forget(report)
@@ -332,7 +328,7 @@ class OdometryBuilder:
             return drift_growth(chained.covariance, previous.covariance, camera_motion)
         if chained.reference_ns == self._previous_ns or previous.measurement is None:
             return chained.measurement
-        return chained.measurement + _transport(previous.measurement, camera_motion)
+        return chained.measurement + transport_covariance(previous.measurement, camera_motion)
 
 
 def _swap_blocks(covariance: np.ndarray) -> np.ndarray:

@@ -21,6 +21,7 @@ from estimator.geometry import (
     rotation_angle_deg,
     rotation_vector_to_quat,
 )
+from estimator.imu_sampling import sample_segments, samples_cover
 from estimator.types import ImuBatch
 
 __all__ = ["GyroPrediction", "integrate_gyro"]
@@ -37,22 +38,15 @@ _COVERAGE_SLACK_NS = 15_000_000
 def integrate_gyro(
     timestamps_ns: np.ndarray, rates: np.ndarray, start_ns: int, end_ns: int
 ) -> np.ndarray | None:
-    """Body rotation body(start) <- body(end) from rates (rad/s, bias removed), piecewise
-    constant between the midpoints of the samples; None when the samples do not cover
-    [start_ns, end_ns] (but for one missing sample at either end)."""
-    stamps = np.asarray(timestamps_ns, dtype=np.int64)
-    if end_ns <= start_ns or len(stamps) < 2:
+    """Body rotation body(start) <- body(end) from rates (rad/s, bias removed), read between
+    the samples as the back end's preintegration reads them (``sample_segments``); None when
+    the samples do not cover [start_ns, end_ns] (but for one missing sample at either end)."""
+    if not samples_cover(timestamps_ns, start_ns, end_ns, _COVERAGE_SLACK_NS):
         return None
-    if stamps[0] > start_ns + _COVERAGE_SLACK_NS or stamps[-1] < end_ns - _COVERAGE_SLACK_NS:
-        return None
-    # Sample k holds from the midpoint with its predecessor to that with its successor.
-    edges = np.concatenate([[start_ns], (stamps[:-1] + stamps[1:]) // 2, [end_ns]])
-    edges = np.clip(edges, start_ns, end_ns)
-    durations = np.diff(edges) * 1e-9
+    pieces, durations = sample_segments(timestamps_ns, rates, start_ns, end_ns)
     rotation = np.array([1.0, 0.0, 0.0, 0.0])
-    for rate, duration in zip(rates, durations, strict=True):
-        if duration > 0:
-            rotation = quat_multiply(rotation, rotation_vector_to_quat(rate * duration))
+    for rate, duration in zip(pieces, durations, strict=True):
+        rotation = quat_multiply(rotation, rotation_vector_to_quat(rate * duration))
     return quat_to_matrix(rotation)
 
 

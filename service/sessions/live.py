@@ -4,9 +4,8 @@ Each live session has one consumer task that takes frames from its queue one at 
 them to its worker (see :mod:`service.workers`: a pinned process, or a thread), so frames of one
 session never overlap while different sessions use all workers. The pose is committed to the
 database (in an I/O thread) before its future resolves, i.e. before any client can see it.
-
-Over 500 lines on purpose: the steps of a frame (lease, worker, answer, store) and the flush
-all read and move the one session's state; splitting the class would only pass it around.
+The session's lease lives in :mod:`.session_lease`; the pipeline spec sent to the worker and
+what its answer or failure becomes, in :mod:`.worker_answer`.
 """
 
 from __future__ import annotations
@@ -17,17 +16,15 @@ import logging
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
-from typing import Any, NoReturn
+from typing import Any
 
-import numpy as np
 from sqlalchemy.exc import DBAPIError
 
 from estimator.types import TimestampOrderError, check_timestamp_order
 from service.answer import FrameAnswer, flat_of
 from service.estimator_adapter import PreparedSession
 from service.images import ImageLimits
-from service.lease import Held, LeaseBook, LeaseHeld
+from service.lease import LeaseBook
 from service.metrics import Metrics
 from service.pose_writer import PoseWriter
 from service.sessions.frames import (
@@ -38,28 +35,23 @@ from service.sessions.frames import (
     SessionGone,
 )
 from service.sessions.imu_buffer import ImuBuffer, ImuSamples, ImuTake
+from service.sessions.session_lease import SessionLease
+from service.sessions.worker_answer import (
+    WorkerRun,
+    answer_of,
+    failure_refusal,
+    pipeline_spec,
+    samples_seen,
+)
 from service.settings import ServiceSettings
-from service.storage import Fence, LeaseLost, PendingPose, SessionRecord, SmoothedPose, Store
+from service.storage import LeaseLost, PendingPose, SessionRecord, SmoothedPose, Store
 from service.workers import (
     FrameFailure,
-    FrameProcessed,
     FrameRequest,
-    PipelineSpec,
     Runner,
 )
 
 logger = logging.getLogger("swarmvo.service")
-
-
-@dataclass(frozen=True)
-class _WorkerRun:
-    """What the worker answered for one frame, and the pipeline spec it was sent with."""
-
-    outcome: FrameProcessed | FrameFailure
-    spec: PipelineSpec | None
-    resume_message: str
-    sent: float  # perf_counter when the request left
-    answered: float  # perf_counter when the answer came back
 
 
 class LiveSession:
@@ -93,8 +85,7 @@ class LiveSession:
         self.io_pool = io_pool
         self.pose_writer = pose_writer or PoseWriter(store, io_pool)
         self.metrics = metrics
-        self.leases = leases
-        self.lease: Held | None = None  # this replica's lease on the session, when it has one
+        self.lease = SessionLease(leases, record.id, store, io_pool)
         # Frames queued or in flight by timestamp: a resent one shares the first one's answer.
         self.pending: dict[int, asyncio.Future[Answered]] = {}
         self.limits = ImageLimits(
@@ -223,55 +214,19 @@ class LiveSession:
         return Answered(stored, duplicate=True)
 
     async def _hold_lease(self) -> None:
-        """Own the session before processing: take or renew its lease (PostgreSQL only).
-
-        A new fencing token means another replica may have written meanwhile: the counters are
-        read again, and the pipeline is rebuilt from the stored state only if they moved (a
-        lease given up and taken back by this replica keeps its pipeline).
-        """
-        if self.leases is None or not self.leases.enabled:
-            return
-        if self.lease is not None and time.monotonic() < self.lease.renew_after:
-            return
-        loop = asyncio.get_running_loop()
-        try:
-            fence = await self._acquire_lease(self.leases)
-        except LeaseHeld as error:
-            self.lease = None
-            raise FrameRejected(503, str(error), "lease_held", error.retry_after_s) from error
-        assert fence is not None
-        if self.lease is None or self.lease.fence.token != fence.token:
-            record = await loop.run_in_executor(self.io_pool, self.store.get_session,
-                                                self.session_id)
-            if record is None:
-                raise SessionGone()
+        """Own the session before processing; when another replica may have written
+        meanwhile, the counters are read again and the pipeline is rebuilt from the stored
+        state only if they moved."""
+        record = await self.lease.hold()
+        if record is not None:
             stored = (record.frame_count, record.last_timestamp_ns)
             if stored != (self.next_index, self.last_processed_ns):  # written by another
                 self.next_index, self.last_processed_ns = stored
                 self.pipeline_ready = False
-        self.lease = self.leases.held(fence)
-
-    async def _acquire_lease(self, leases: LeaseBook) -> Fence | None:
-        """Take the lease; one that expires within a lease's time is waited for here, once.
-
-        Its holder may be dead (a failover): refusing would cost the robot a reconnect and a
-        resend before the frame is computed. A holder that keeps streaming renews it meanwhile,
-        and the frame is refused after all (LeaseHeld).
-        """
-        loop = asyncio.get_running_loop()
-        try:
-            return await loop.run_in_executor(self.io_pool, leases.acquire, self.session_id)
-        except LeaseHeld as error:
-            if error.retry_after_s > leases.ttl_s:
-                raise
-            await asyncio.sleep(error.retry_after_s)
-        return await loop.run_in_executor(self.io_pool, leases.acquire, self.session_id)
 
     def release_lease(self) -> None:
         """Give the lease up (blocking I/O): the session's streams have all ended."""
-        lease, self.lease = self.lease, None
-        if self.leases is not None and lease is not None:
-            self.leases.release(self.session_id, lease.fence)
+        self.lease.release()
 
     # -- consumer side
 
@@ -299,7 +254,7 @@ class LiveSession:
                 logger.error("database unavailable for session %s: %s", self.session_id,
                              str(error).splitlines()[0] if str(error) else repr(error))
                 self.metrics.errors.labels("storage").inc()
-                self.lease = None
+                self.lease.drop()
                 refusal = FrameRejected(
                     503, "database unavailable; retry the frame", "storage", 1.0
                 )
@@ -336,22 +291,6 @@ class LiveSession:
                     error.status_code, f"an earlier frame was refused: {error.detail}",
                     error.kind, error.retry_after_s))
 
-    def _pipeline_spec(self) -> tuple[PipelineSpec, str]:
-        """How to build the pipeline: resumed from the last stored pose when there is one."""
-        last, state = self.store.resume_point(self.session_id)
-        if last is None:
-            return PipelineSpec(self.prepared, None, 0), ""
-        initial = np.array(last.pose, dtype=float).reshape(4, 4)
-        if state is not None and state.get("timestamp_ns") != last.timestamp_ns:
-            state = None  # not the state of this pose (written by an older server)
-        known = ("its motion and back-end biases carried over" if state is not None
-                 else "motion since then is not known to the estimator")
-        message = (
-            f"resumed from the stored pose of frame {last.index} "
-            f"(timestamp {last.timestamp_ns}); {known}"
-        )
-        return PipelineSpec(self.prepared, initial, last.index + 1, state), message
-
     async def _process(self, job: FrameJob) -> Answered:
         """Decode + odometry in the session's worker, then persist in an I/O thread."""
         started = time.perf_counter()
@@ -363,9 +302,11 @@ class LiveSession:
         run = await self._run_in_worker(job, take)
         outcome = run.outcome
         if isinstance(outcome, FrameFailure):
-            self._refuse_failed(job, outcome, take)
+            if samples_seen(outcome):
+                self.imu.consume(take)  # the estimator saw these samples
+            raise failure_refusal(job, outcome, self.session_id)
         self.imu.consume(take)
-        answer = self._answer_of(run, outcome, timings)
+        answer = answer_of(run, outcome, timings)
         stored = time.perf_counter()
         await self._persist(answer, outcome.state)
         done = time.perf_counter()
@@ -374,7 +315,7 @@ class LiveSession:
         self._note_stored(job.timestamp_ns, timings, answer.status)
         return Answered(answer.model_copy(update={"timings_s": timings}))
 
-    async def _run_in_worker(self, job: FrameJob, take: ImuTake) -> _WorkerRun:
+    async def _run_in_worker(self, job: FrameJob, take: ImuTake) -> WorkerRun:
         """Send the frame to the worker, building the pipeline first when it is not there.
 
         A worker that lost the pipeline (it was restarted) answers ``pipeline_missing``: the
@@ -386,7 +327,7 @@ class LiveSession:
             spec = None
             if not self.pipeline_ready:
                 spec, resume_message = await loop.run_in_executor(
-                    self.io_pool, self._pipeline_spec
+                    self.io_pool, pipeline_spec, self.store, self.session_id, self.prepared
                 )
             request = FrameRequest(
                 self.session_id, self.next_index, job.timestamp_ns, job.left, job.right,
@@ -406,43 +347,12 @@ class LiveSession:
                 self.pipeline_ready = False
             if not (isinstance(outcome, FrameFailure) and outcome.kind == "pipeline_missing"):
                 break
-        return _WorkerRun(outcome, spec, resume_message, sent, answered)
-
-    def _refuse_failed(self, job: FrameJob, outcome: FrameFailure, take: ImuTake) -> NoReturn:
-        """Turn a worker's failure into the client's refusal; the IMU samples count as used
-        when the estimator saw them, so they are not fed twice."""
-        if outcome.kind not in ("bad_image", "worker_died", "worker_timeout",
-                                "pipeline_missing", "cpu_budget"):
-            self.imu.consume(take)  # the estimator saw these samples
-        if outcome.trace:
-            logger.error("frame %s of session %s failed in its worker:\n%s",
-                         job.timestamp_ns, self.session_id, outcome.trace.rstrip())
-        kind = "internal" if outcome.kind == "pipeline_missing" else outcome.kind
-        raise FrameRejected(outcome.status_code, outcome.detail, kind)
-
-    @staticmethod
-    def _answer_of(
-        run: _WorkerRun, outcome: FrameProcessed, timings: dict[str, float]
-    ) -> FrameAnswer:
-        """The worker's answer with the session's timings and the resume note added;
-        ``timings`` gains the worker's stages and the transfer time."""
-        worked = outcome.answer.timings_s
-        timings.update(worked)
-        timings["transfer"] = max(
-            0.0, run.answered - run.sent - worked["decode"] - worked["odometry"]
-        )
-        resumed = outcome.created and run.spec is not None and run.spec.initial_pose is not None
-        message = "; ".join(
-            m for m in (run.resume_message if resumed else "", outcome.answer.message) if m
-        )
-        return outcome.answer.model_copy(
-            update={"timings_s": dict(timings), "message": message, "resumed": resumed}
-        )
+        return WorkerRun(outcome, spec, resume_message, sent, answered)
 
     async def _persist(self, answer: FrameAnswer, state: dict[str, Any] | None) -> None:
         """Store the pose (and the estimator state) before anyone sees it; a failed write
         marks the pipeline stale so the stored trajectory stays the source of truth."""
-        fence = self.lease.fence if self.lease is not None else None
+        fence = self.lease.fence
         try:
             await self.pose_writer.add(PendingPose(
                 answer, fence, state,
@@ -452,7 +362,7 @@ class LiveSession:
             # Another replica took the session over: this one must not write, and its
             # pipeline is out of date; the client resends the frame to the new owner.
             self.pipeline_ready = False
-            self.lease = None
+            self.lease.drop()
             logger.warning("%s", error)
             raise FrameRejected(503, f"{error}; resend the frame", "lease_lost", 0.2) from error
         except Exception as error:
@@ -471,8 +381,7 @@ class LiveSession:
         """Advance the session past a stored frame and record its latency metrics."""
         self.next_index += 1
         self.last_processed_ns = timestamp_ns
-        if self.lease is not None and self.leases is not None:
-            self.lease = self.leases.held(self.lease.fence)  # the write renewed it
+        self.lease.renewed()  # the write renewed it
         self.stored_at.append(time.time())
         for stage, seconds in timings.items():
             self.metrics.stage_latency.labels(stage).observe(seconds)
