@@ -48,7 +48,8 @@ class SessionManager:
         self.metrics = metrics
         self.runner: Runner = (
             ProcessRunner(
-                settings.workers, factory, metrics.worker_restarts.inc, settings.frame_timeout_s
+                settings.workers, factory, metrics.worker_restarts.inc, settings.frame_timeout_s,
+                settings.image_slots, settings.image_slot_bytes,
             )
             if settings.executor == "process"
             else ThreadRunner(settings.workers, factory)
