@@ -211,4 +211,5 @@ class SessionManager:
                 await asyncio.get_running_loop().run_in_executor(self.io_pool,
                                                                  live.release_lease)
         await self.runner.shutdown()
+        await self.pose_writer.drained()  # a batch still waiting for its commit is stored
         self.io_pool.shutdown(wait=True, cancel_futures=False)
