@@ -5,10 +5,13 @@ from __future__ import annotations
 from multiprocessing import shared_memory
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from test_service_units import (
+    HEIGHT,
+    WIDTH,
     PidPipeline,
     ProcessFactory,
     new_session,
@@ -90,6 +93,14 @@ class SumFactory(ProcessFactory):
         return SumPipeline(initial_pose, first_index, 0.0)
 
 
+def _noise_png(seed: int) -> bytes:
+    """Incompressible pixels: a few KB per image, more than the small slot of the test."""
+    image = np.random.default_rng(seed).integers(0, 256, (HEIGHT, WIDTH), dtype=np.uint8)
+    ok, data = cv2.imencode(".png", image)
+    assert ok and len(data) > 1024
+    return data.tobytes()
+
+
 def _sums(answer) -> tuple[int, int]:
     left, right = answer.json()["message"].split(";", 1)[0].split(",")
     return int(left), int(right)
@@ -107,7 +118,7 @@ def test_frames_reach_the_worker_intact_and_every_slot_comes_back(
         name = runner.images.name
         session = new_session(c)
         for t, value in ((10, 1), (20, 5), (30, 9)):
-            left, right = png(value=value), png(value=value + 2)
+            left, right = _noise_png(value), _noise_png(value + 100)
             answer = send(c, session, t, left=left, right=right)
             assert answer.status_code == 200, answer.text
             want = (int(decode_image(left, "l", LIMITS).sum()),
