@@ -11,6 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 from test_service_units import (
     HEIGHT,
+    KEY_A,
     WIDTH,
     PidPipeline,
     ProcessFactory,
@@ -142,3 +143,23 @@ def test_no_slots_means_the_pipe(tmp_path: Path) -> None:
         assert c.app.state.swarmvo.manager.runner.images is None
         session = new_session(c)
         assert send(c, session, 10).status_code == 200
+
+
+def test_raw8_pixels_over_the_websocket_reach_the_worker_through_a_slot(tmp_path: Path) -> None:
+    settings = settings_for(tmp_path, executor="process", workers=1, image_slots=1)
+    left = np.random.default_rng(1).integers(0, 256, WIDTH * HEIGHT, dtype=np.uint8)
+    right = (left // 2).astype(np.uint8)
+    header = {"type": "frame", "timestamp_ns": 10, "encoding": "raw8", "width": WIDTH,
+              "height": HEIGHT, "left_bytes": left.size, "right_bytes": right.size}
+    with TestClient(create_app(settings, SumFactory())) as c:
+        runner = c.app.state.swarmvo.manager.runner
+        session = new_session(c)
+        with c.websocket_connect(f"/v1/sessions/{session}/stream",
+                                 headers={"Authorization": f"Bearer {KEY_A}"}) as ws:
+            ws.receive_json()
+            ws.send_json(header)
+            ws.send_bytes(left.tobytes() + right.tobytes())
+            pose = ws.receive_json()
+        assert pose["type"] == "pose", pose
+        assert pose["message"].split(";")[0] == f"{int(left.sum())},{int(right.sum())}"
+        assert (runner.images.handed, runner.images.free) == (1, 1)
