@@ -25,6 +25,7 @@ from estimator.types import ImuBatch, StereoFrame
 from service.answer import FrameAnswer, OdometryOut, SmoothedPose
 from service.estimator_adapter import Pipeline, PipelineFactory, PreparedSession
 from service.images import ImageError, ImageLimits, decode_pair, decode_raw_pair
+from service.shared_images import SharedPair
 from service.storage import SmoothedPose as StoredSmoothedPose
 
 logger = logging.getLogger("swarmvo.service")
@@ -43,19 +44,24 @@ class PipelineSpec:
 
 @dataclass(frozen=True)
 class FrameRequest:
-    """One frame for one session, as sent to a worker (encoded images, not arrays)."""
+    """One frame for one session, as sent to a worker (encoded images, not arrays).
+
+    The images are either in ``left``/``right`` or, with ``shared``, in a shared-memory slot
+    (``left``/``right`` then empty until the worker reads them; :mod:`service.shared_images`).
+    """
 
     session_id: str
     frame_index: int
     timestamp_ns: int
-    left: bytes
-    right: bytes
+    left: bytes | memoryview
+    right: bytes | memoryview
     limits: ImageLimits
     image_size: tuple[int, int]
     imu: ImuBatch | None = None
     raw: bool = False  # 8-bit grey pixels, row-major, image_size; no PNG/JPEG container
     create: PipelineSpec | None = None  # build the pipeline first (new, resumed or lost)
     cpu_budget_s: float = 0.0  # CPU seconds for decode + odometry; 0 = unlimited
+    shared: SharedPair | None = None
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ class ImageLimits:
     max_pixels: int
 
 
-def _png_size(data: bytes, name: str) -> tuple[int, int]:
+def _png_size(data: bytes | memoryview, name: str) -> tuple[int, int]:
     if len(data) < 33 or data[12:16] != b"IHDR":
         raise ImageError(f"{name}: truncated PNG (no IHDR header)")
     width, height = struct.unpack(">II", data[16:24])
@@ -43,7 +43,7 @@ def _png_size(data: bytes, name: str) -> tuple[int, int]:
     return width, height
 
 
-def _png_complete(data: bytes) -> bool:
+def _png_complete(data: bytes | memoryview) -> bool:
     """Walk the chunks (length, type, data, CRC) to IEND; bytes after it are ignored."""
     position = len(PNG_SIGNATURE)
     while position + 12 <= len(data):
@@ -80,18 +80,19 @@ def _jpeg_size(data: bytes, name: str) -> tuple[int, int]:
     raise ImageError(f"{name}: truncated or corrupt JPEG (no frame header)")
 
 
-def image_size(data: bytes, name: str) -> tuple[int, int]:
-    """(width, height) from the header of a PNG or JPEG file."""
-    if data.startswith(PNG_SIGNATURE):
+def image_size(data: bytes | memoryview, name: str) -> tuple[int, int]:
+    """(width, height) from the header of a PNG or JPEG file (bytes, or a view of them)."""
+    head = bytes(data[:len(PNG_SIGNATURE)])
+    if head.startswith(PNG_SIGNATURE):
         return _png_size(data, name)
-    if data.startswith(JPEG_SOI):
-        return _jpeg_size(data, name)
+    if head.startswith(JPEG_SOI):
+        return _jpeg_size(bytes(data), name)
     if not data:
         raise ImageError(f"{name}: empty file")
     raise ImageError(f"{name}: not a PNG or JPEG image (unrecognised file signature)")
 
 
-def decode_image(data: bytes, name: str, limits: ImageLimits) -> np.ndarray:
+def decode_image(data: bytes | memoryview, name: str, limits: ImageLimits) -> np.ndarray:
     """Decode one image as stored: 8/16-bit grey, or colour (BGR; alpha is dropped)."""
     width, height = image_size(data, name)
     if width == 0 or height == 0:
@@ -129,7 +130,10 @@ def decode_image(data: bytes, name: str, limits: ImageLimits) -> np.ndarray:
 
 
 def decode_pair(
-    left: bytes, right: bytes, limits: ImageLimits, expected_size: tuple[int, int]
+    left: bytes | memoryview,
+    right: bytes | memoryview,
+    limits: ImageLimits,
+    expected_size: tuple[int, int],
 ) -> tuple[np.ndarray, np.ndarray]:
     """Both images of a stereo pair, checked against each other and the calibration."""
     left_image = decode_image(left, "left", limits)
@@ -148,7 +152,7 @@ def decode_pair(
 
 
 def decode_raw_pair(
-    left: bytes, right: bytes, expected_size: tuple[int, int]
+    left: bytes | memoryview, right: bytes | memoryview, expected_size: tuple[int, int]
 ) -> tuple[np.ndarray, np.ndarray]:
     """A raw 8-bit grey pair (row-major, no container): nothing to decode, only sizes to check."""
     width, height = expected_size

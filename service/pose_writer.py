@@ -26,6 +26,7 @@ class PoseWriter:
         self.pool = pool
         self._pending: list[tuple[PendingPose, asyncio.Future[None]]] = []
         self._draining = False
+        self._task: asyncio.Task[None] | None = None  # the running drain (kept: no lost task)
 
     async def add(self, pose: PendingPose) -> None:
         """Return once ``pose`` is committed; raise the storage error (or ``LeaseLost``)."""
@@ -33,8 +34,15 @@ class PoseWriter:
         self._pending.append((pose, done))
         if not self._draining:
             self._draining = True
-            asyncio.get_running_loop().create_task(self._drain())
+            self._task = asyncio.get_running_loop().create_task(self._drain())
         await done
+
+    async def drained(self) -> None:
+        """Return once every pose handed in so far is committed or has failed: called at
+        shutdown before the I/O pool stops, so that no pose waiting for a batch is lost even
+        when the frame that handed it in no longer waits for it."""
+        while self._task is not None and not self._task.done():
+            await asyncio.wait({self._task})  # never raises, even for a cancelled drain
 
     async def _drain(self) -> None:
         loop = asyncio.get_running_loop()

@@ -17,7 +17,7 @@ import signal
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol, TypeVar
 
 from service.estimator_adapter import Pipeline, PipelineFactory, PreparedSession
@@ -30,6 +30,7 @@ from service.frame_work import (
     session_problem,
 )
 from service.settings import Executor
+from service.shared_images import ImageSlots
 from service.storage import SmoothedPose as StoredSmoothedPose
 from service.worker_process import (
     worker_check,
@@ -153,11 +154,14 @@ class ProcessRunner:
         factory: PipelineFactory,
         on_restart: Callable[[], None] | None = None,
         frame_timeout_s: float = 60.0,
+        image_slots: int = 0,
+        image_slot_bytes: int = 1 << 20,
     ) -> None:
         self.factory = factory
         self.frame_timeout_s = frame_timeout_s
         self.on_restart = on_restart
         self.context = worker_context()
+        self.images = _image_slots(image_slots, image_slot_bytes)
         self.slots = [_Slot(self._executor()) for _ in range(workers)]
         self.restarts = 0
         self._closing = False
@@ -244,12 +248,29 @@ class ProcessRunner:
             return  # a dead or replaced worker holds nothing any more
         future.add_done_callback(_ignore_outcome)
 
+    def _submit_frame(self, executor: ProcessPoolExecutor,
+                      request: FrameRequest) -> Future[FrameProcessed | FrameFailure]:
+        """Submit a frame, its images in a shared slot when one is free (given back once the
+        worker's call is over, whatever its outcome), else pickled with the request."""
+        images = self.images
+        if images is None or (pair := images.put(request.left, request.right)) is None:
+            return executor.submit(worker_frame, request)
+        try:
+            future = executor.submit(
+                worker_frame, replace(request, left=b"", right=b"", shared=pair)
+            )
+        except BaseException:
+            images.release(pair)
+            raise
+        future.add_done_callback(lambda _future: images.release(pair))
+        return future
+
     async def run(self, slot: int, request: FrameRequest) -> FrameProcessed | FrameFailure:
         for _attempt in range(2):
             state = self.slots[slot]
             generation = state.generation
             try:
-                future = state.executor.submit(worker_frame, request)
+                future = self._submit_frame(state.executor, request)
             except BrokenProcessPool:
                 # It died while idle: this frame never reached it, so a fresh worker may take it
                 # (the session's pipeline is gone there and gets rebuilt).
@@ -331,6 +352,19 @@ class ProcessRunner:
             *(asyncio.to_thread(slot.executor.shutdown, True, cancel_futures=True)
               for slot in self.slots)
         )
+        if self.images is not None:  # the workers are gone: nobody reads the slots any more
+            self.images.close()
+
+
+def _image_slots(count: int, slot_bytes: int) -> ImageSlots | None:
+    """The shared image slots, or None (off, or no shared memory here: images are pickled)."""
+    if count <= 0:
+        return None
+    try:
+        return ImageSlots(count, slot_bytes)
+    except OSError as error:
+        logger.warning("no shared memory for the images (%r); they go through the pipe", error)
+        return None
 
 
 def _done(value: Any) -> asyncio.Future[Any]:

@@ -51,6 +51,12 @@ class ServiceSettings(BaseSettings):
     # with a 422 and only its own session restarts from its last stored pose; the other
     # sessions of the worker keep their state. 0 = no budget.
     frame_cpu_budget_s: float = Field(0.5, ge=0, le=3600)
+    # Process mode: shared-memory slots that carry a frame's encoded images to its worker
+    # instead of pickling them through the pool's pipe (service.shared_images), and the bytes
+    # of one slot (both images). A frame finding no free slot, or larger than one, goes
+    # through the pipe. 0 slots = always the pipe.
+    image_slots: int = Field(16, ge=0, le=4096)
+    image_slot_bytes: int = Field(1 << 20, ge=1024, le=1 << 30)
     # Connections: idle keep-alive, request headers, and the gap between two body chunks.
     timeout_keep_alive_s: int = Field(5, ge=1, le=3600)
     request_header_timeout_s: float = Field(10.0, gt=0, le=3600)

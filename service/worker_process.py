@@ -14,6 +14,7 @@ import multiprocessing.connection
 import os
 import signal
 import threading
+from dataclasses import replace
 from multiprocessing.context import BaseContext
 
 from service.estimator_adapter import Pipeline, PipelineFactory, PreparedSession
@@ -26,6 +27,7 @@ from service.frame_work import (
     session_problem,
 )
 from service.memory import trim_free_memory
+from service.shared_images import read_pair
 from service.storage import SmoothedPose as StoredSmoothedPose
 
 _factory: PipelineFactory | None = None
@@ -73,6 +75,10 @@ def worker_init(factory: PipelineFactory) -> None:
 
 def worker_frame(request: FrameRequest) -> FrameProcessed | FrameFailure:
     assert _factory is not None
+    if request.shared is not None:
+        # Read in place: the server keeps the slot until this call has returned.
+        left, right = read_pair(request.shared)
+        request = replace(request, left=left, right=right, shared=None)
     return compute_frame(_pipelines, _factory, request)
 
 

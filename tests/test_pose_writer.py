@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -71,3 +72,40 @@ def test_a_bad_pose_fails_only_its_own_frame(tmp_path: Path) -> None:
     for sid in sessions[1:]:
         stored = store.get_session(sid, "o")
         assert stored is not None and stored.frame_count == 1
+
+
+def test_poses_waiting_for_a_batch_are_stored_at_shutdown_even_if_nobody_waits(
+    tmp_path: Path,
+) -> None:
+    """A commit is running, a batch of three waits behind it, and the frames that handed those
+    poses in are cancelled (their sessions closed): ``drained`` still stores every pose before
+    the I/O pool stops."""
+    store, sessions = _store(tmp_path)
+    add_poses = store.add_poses
+    batches: list[int] = []
+
+    def slow(poses: list[PendingPose]) -> None:
+        time.sleep(0.2)
+        batches.append(len(poses))
+        add_poses(poses)
+
+    store.add_poses = slow  # type: ignore[method-assign]
+
+    async def main() -> None:
+        pool = ThreadPoolExecutor(2)
+        writer = PoseWriter(store, pool)
+        first = asyncio.ensure_future(writer.add(PendingPose(_pose(sessions[0], 0))))
+        await asyncio.sleep(0.05)  # its commit is running now
+        waiting = [asyncio.ensure_future(writer.add(PendingPose(_pose(sid, 1))))
+                   for sid in sessions]
+        await asyncio.sleep(0)
+        for frame in (first, *waiting):
+            frame.cancel()
+        await writer.drained()
+        pool.shutdown(wait=True, cancel_futures=False)
+
+    asyncio.run(main())
+    assert batches == [1, 3]
+    for sid in sessions:
+        last = store.last_pose(sid)
+        assert last is not None and (last.index, last.timestamp_ns) == (1, 1001)

@@ -48,7 +48,8 @@ class SessionManager:
         self.metrics = metrics
         self.runner: Runner = (
             ProcessRunner(
-                settings.workers, factory, metrics.worker_restarts.inc, settings.frame_timeout_s
+                settings.workers, factory, metrics.worker_restarts.inc, settings.frame_timeout_s,
+                settings.image_slots, settings.image_slot_bytes,
             )
             if settings.executor == "process"
             else ThreadRunner(settings.workers, factory)
@@ -210,4 +211,5 @@ class SessionManager:
                 await asyncio.get_running_loop().run_in_executor(self.io_pool,
                                                                  live.release_lease)
         await self.runner.shutdown()
+        await self.pose_writer.drained()  # a batch still waiting for its commit is stored
         self.io_pool.shutdown(wait=True, cancel_futures=False)
