@@ -59,6 +59,18 @@ def _pair(source, target, source_cov, target_cov, rotation, translation, n, resi
 
 
 @numba.njit(cache=True, nogil=True)
+def _quadratic_form(info, residual):
+    """r^T W r for one pair's 3x3 information matrix."""
+    value = 0.0
+    for i in range(3):
+        whitened = 0.0
+        for j in range(3):
+            whitened += info[i, j] * residual[j]
+        value += residual[i] * whitened
+    return value
+
+
+@numba.njit(cache=True, nogil=True)
 def squared_distances(source, target, source_cov, target_cov, rotation, translation):
     """(N,) squared Mahalanobis distances and whether every pair's covariance is regular."""
     count = source.shape[0]
@@ -69,12 +81,7 @@ def squared_distances(source, target, source_cov, target_cov, rotation, translat
         if not _pair(source, target, source_cov, target_cov, rotation, translation, n,
                      residual, info):  # fmt: skip
             return squared, False
-        value = 0.0
-        for i in range(3):
-            whitened = 0.0
-            for j in range(3):
-                whitened += info[i, j] * residual[j]
-            value += residual[i] * whitened
+        value = _quadratic_form(info, residual)
         squared[n] = value
     return squared, True
 
@@ -100,12 +107,7 @@ def linearise_pairs(
         if not _pair(source, target, source_cov, target_cov, rotation, translation, n,
                      residual, info):  # fmt: skip
             return 0.0, hessian, gradient, squared, False
-        value = 0.0
-        for i in range(3):
-            whitened = 0.0
-            for j in range(3):
-                whitened += info[i, j] * residual[j]
-            value += residual[i] * whitened
+        value = _quadratic_form(info, residual)
         squared[n] = value
         if robust_code == 1:
             cost += c2 * np.log1p(value / c2)
