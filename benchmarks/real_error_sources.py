@@ -13,6 +13,8 @@ relates. Against the ground truth each relative pose is then taken apart:
 - against calibration-like explanations: a disparity offset (a stereo extrinsic error about
   the vertical axis), a baseline scale, and a linear per-axis rotation gain;
 - against a time offset of the reference's positions;
+- against the gyro (an independent sensor, its bias fitted as one constant): is the rotation
+  error the vision's or the ground truth's;
 - against the noise model: the rotation NEES (3 DOF) under the refinement's covariance, and the
   refit after dropping the pairs with the largest residuals against the ground truth.
 
@@ -30,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from estimator import odometry as odometry_module
@@ -226,6 +229,48 @@ def time_offset_scan(raw: list[tuple], problems: list[Problem], sequence) -> lis
     return lines
 
 
+def gyro_rotation(sequence, start_ns: int, end_ns: int, bias: np.ndarray) -> np.ndarray:
+    """Body rotation from the gyro over [start, end] (1 ms steps, linear interpolation)."""
+    imu = sequence.imu
+    steps = max(int((end_ns - start_ns) / 1e6), 2)
+    edges = np.linspace(start_ns, end_ns, steps + 1)
+    middle = (edges[:-1] + edges[1:]) / 2
+    stamps = imu.timestamps_ns.astype(float)
+    rates = np.column_stack([np.interp(middle, stamps, imu.gyro[:, k]) for k in range(3)])
+    increments = Rotation.from_rotvec((rates - bias) * (edges[1] - edges[0]) / 1e9)
+    rotation = Rotation.identity()
+    for increment in increments:
+        rotation = rotation * increment
+    return rotation.as_matrix()
+
+
+def against_gyro(raw: list[tuple], problems: list[Problem], sequence) -> list[str]:
+    """Rotation RMS of the gyro (constant bias fitted) against the ground truth and vision."""
+    if sequence.imu is None:
+        return ["No IMU in this dataset."]
+    camera_to_body = sequence.rig.left.T_BS[:3, :3]
+    rect = sequence.rig.rectification.R_left
+    to_camera = rect @ camera_to_body.T
+
+    def residuals(bias: np.ndarray, targets: list[np.ndarray]) -> np.ndarray:
+        return np.concatenate([
+            Rotation.from_matrix(
+                (to_camera @ gyro_rotation(sequence, r[0], r[1], bias) @ to_camera.T).T @ target
+            ).as_rotvec()
+            for r, target in zip(raw, targets, strict=True)
+        ])  # fmt: skip
+
+    lines = ["| gyro against | fitted bias rad/s | rotation RMS deg |", "|---|---|---|"]
+    for name, targets in (
+        ("ground truth", [x.truth[:3, :3] for x in problems]),
+        ("vision", [x.estimate[:3, :3] for x in problems]),
+    ):
+        fit = least_squares(residuals, np.zeros(3), args=(targets,))
+        error = np.degrees(rms(fit.fun.reshape(-1, 3)))
+        lines.append(f"| {name} | {np.round(fit.x, 4)} | {error:.4f} |")
+    return lines
+
+
 def noise_model(problems: list[Problem], camera: Camera) -> list[str]:
     nees, predicted, actual = [], [], []
     for x in problems:
@@ -273,6 +318,7 @@ def main() -> int:
         ("Which pixel component carries the error", oracle_components(problems, camera)),
         ("Calibration-like explanations", calibration_scan(problems, camera)),
         ("Time offset of the reference's positions", time_offset_scan(raw, problems, sequence)),
+        ("Against the gyro", against_gyro(raw, problems, sequence)),
         ("Noise model", noise_model(problems, camera)),
     ):
         print(f"### {title}\n")
