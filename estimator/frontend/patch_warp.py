@@ -5,8 +5,9 @@ keyframe and a frame several steps later the patch has also turned (a roll of th
 grown or shrunk (the camera moved towards or away from a point under a metre away): a
 translation cannot fit that, and the best translation of a corner that is not symmetric lands
 off the corner by a fraction of a pixel, the same way for every frame measured against that
-keyframe. On the real MH_01 clip that pixel error grows from 0.2 px (one frame apart) to
-0.6 px (five frames and more) and carries almost all of the relative-pose error.
+keyframe. (On the real MH_01 clip the pixel error against the ground truth grows with the
+keyframe's age, 0.2 px one frame apart to 0.6 px five frames apart, but warping did not
+reduce it: the option stays off; docs/frontend.md.)
 
 Here each reference patch is resampled through the local affine map that the predicted motion
 induces at its pixel (its point taken on a plane facing the reference camera), so the
