@@ -137,6 +137,9 @@ class FrontendConfig(_Section):
     track_min_distance_px: float = Field(12.0, gt=0)  # new corners this far from live tracks
     temporal_refine: bool = True  # sub-pixel current positions by Lucas-Kanade
     temporal_refine_window: int = Field(5, ge=1, le=15)  # half size of the LK window
+    # Warp each reference patch by the predicted motion (roll, change of scale) before the
+    # LK refinement (estimator/frontend/patch_warp.py).
+    temporal_refine_warp: bool = False
     min_matches: int = Field(12, ge=3)  # fewer 3D-3D pairs: the frame is not estimated
     min_inlier_ratio: float = Field(0.25, ge=0, le=1)  # fewer inliers per match: failed
     # Without an estimate the pose coasts at the last velocity (status degraded) for at most

@@ -24,6 +24,7 @@ from estimator.config import FrontendConfig
 from estimator.formats.calibration import Rectification
 from estimator.frontend.features import MatchSet, descriptor_distances, match_candidates
 from estimator.frontend.match_kernels import as_words, window_matches
+from estimator.frontend.patch_warp import local_affine, warped_templates
 from estimator.frontend.stereo import StereoPoints, triangulate
 from estimator.geometry import transform_points
 
@@ -235,12 +236,19 @@ def match_temporal(
     reference_index, current_index = matches.a, matches.b
     current_points = current.points[current_index]
     if images is not None and config.temporal_refine and len(matches):
+        affine = None
+        if config.temporal_refine_warp and predicted_current_from_reference is not None:
+            affine = local_affine(
+                reference.pixels[reference_index], reference.points[reference_index],
+                predicted_current_from_reference, rect,
+            )  # fmt: skip
         pixels, found = refine_pixels(
             images[0],
             images[1],
             reference.pixels[reference_index],
             current.pixels[current_index],
             config.temporal_refine_window,
+            affine,
         )
         reference_index, current_index = reference_index[found], current_index[found]
         current_points = triangulate(pixels[found], current.disparity[current_index], rect)
@@ -315,6 +323,7 @@ def refine_pixels(
     reference_pixels: np.ndarray,
     current_pixels: np.ndarray,
     half_window: int,
+    affine: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel positions in the current image of the reference pixels (Lucas-Kanade).
 
@@ -323,14 +332,23 @@ def refine_pixels(
     scale of a standstill. LK, started at the descriptor match, aligns the reference patch in
     the current image continuously. Returns the refined pixels and a mask of those that
     converged within 1.5 px of the match; the disparity measured at the match is reused (it
-    varies smoothly over such a shift).
+    varies smoothly over such a shift). With ``affine`` ((N, 2, 2), see
+    :func:`~estimator.frontend.patch_warp.local_affine`) each reference patch is first warped
+    into the current view.
     """
     size = 2 * half_window + 1
     start = current_pixels.astype(np.float32)
+    source_image, source_pixels = reference_image, reference_pixels.astype(np.float32)
+    if affine is not None:
+        warped = warped_templates(
+            reference_image, reference_pixels, affine, half_window, current_image.shape[:2]
+        )
+        if warped is not None:
+            source_image, source_pixels = warped
     refined, status, _ = cv2.calcOpticalFlowPyrLK(
-        reference_image,
+        source_image,
         current_image,
-        reference_pixels.astype(np.float32),
+        source_pixels,
         start.copy(),
         winSize=(size, size),
         maxLevel=0,
