@@ -72,7 +72,10 @@ class FrontendConfig(_Section):
     normalise_contrast: bool = True
     normalised_mean: float = Field(128.0, gt=0, lt=255)
     normalised_std: float = Field(64.0, gt=0)
-    detector: Literal["orb", "sift"] = "orb"
+    # "fast-brief": ORB's one-level corners (FAST-9, Harris, intensity-centroid angle) and
+    # steered binary descriptors in compiled kernels with array output (frontend/fast_kernels.py,
+    # frontend/steered_brief.py); the same 32-byte descriptors, matched the same way.
+    detector: Literal["orb", "sift", "fast-brief"] = "orb"
     max_features: int = Field(1200, gt=0)
     # Detection: over-sample, then keep the best corners cell by cell (docs/frontend.md).
     detection_oversampling: float = Field(2.0, ge=1.0)

@@ -19,8 +19,10 @@ import numba
 import numpy as np
 
 from estimator.config import FrontendConfig
+from estimator.frontend.fast_kernels import fast_corners, harris_response
 from estimator.frontend.fast_threshold import AdaptiveFastThreshold
 from estimator.frontend.match_kernels import as_words
+from estimator.frontend.steered_brief import DESCRIPTOR_BORDER, describe, orientation, smoothed
 
 __all__ = [
     "FeatureDetector",
@@ -32,6 +34,8 @@ __all__ = [
 ]
 
 _RESPONSE = attrgetter("response")  # cheaper per keypoint than a generator expression
+# ORB's edge threshold: its corners keep 31 px to the image's edge (more than the descriptor needs).
+CORNER_BORDER = max(31, DESCRIPTOR_BORDER)
 
 
 @dataclass(frozen=True)
@@ -108,11 +112,14 @@ def _round_robin(cell: np.ndarray, strongest: np.ndarray, cells: int) -> np.ndar
 
 
 class FeatureDetector:
-    """ORB (default) or SIFT corners with descriptors, bucketed over a grid."""
+    """ORB (default), compiled FAST + steered BRIEF, or SIFT corners with descriptors,
+    bucketed over a grid."""
 
     def __init__(self, config: FrontendConfig) -> None:
         self.config = config
         candidates = int(np.ceil(config.max_features * config.detection_oversampling))
+        # fast-brief works on one level (orb_levels and orb_scale_factor are ORB's alone).
+        self._detector: cv2.Feature2D | None = None
         if config.detector == "orb":
             self._detector = cv2.ORB_create(
                 nfeatures=candidates,
@@ -120,15 +127,16 @@ class FeatureDetector:
                 nlevels=config.orb_levels,
                 fastThreshold=config.fast_threshold,
             )
-        else:
+        elif config.detector == "sift":
             self._detector = cv2.SIFT_create(nfeatures=candidates)
-        self.binary = config.detector == "orb"
+        self.binary = config.detector != "sift"
         self._candidates = candidates
         # ORB on one level looks at the 2 x candidates best FAST corners (fast_threshold.py).
         self.fast_threshold: AdaptiveFastThreshold | None = None
-        if self.binary and config.orb_levels == 1 and config.adaptive_fast_threshold:
+        orb = config.detector == "orb"
+        if orb and config.orb_levels == 1 and config.adaptive_fast_threshold:
             self.fast_threshold = AdaptiveFastThreshold(
-                config.fast_threshold, 2 * candidates, self._detector.getEdgeThreshold()
+                config.fast_threshold, 2 * candidates, CORNER_BORDER
             )
 
     def detect(self, image: np.ndarray, same_scene: bool = False) -> Features:
@@ -142,6 +150,8 @@ class FeatureDetector:
         """
         if not self.binary:  # SIFT's compute rebuilds its scale space: one call is cheaper
             return self._detect_and_compute(image)
+        if self._detector is None:
+            return self._fast_brief(image)
         keypoints = self._orb_corners(image, same_scene)
         if not keypoints:
             return self._empty()
@@ -152,6 +162,24 @@ class FeatureDetector:
             keypoints = [keypoints[i] for i in keep]
             points, response = points[keep], response[keep]
         return self._describe(image, keypoints, points, response)
+
+    def _fast_brief(self, image: np.ndarray) -> Features:
+        """ORB's selection on arrays: FAST-9 corners, the ``2 n`` best by FAST score, the
+        ``n`` best of those by Harris, the grid's share of them; angles and descriptors only
+        for the corners kept (n = ``max_features`` x ``detection_oversampling``)."""
+        xs, ys, score = fast_corners(image, self.config.fast_threshold, CORNER_BORDER)
+        best = _best(score, 2 * self._candidates)
+        xs, ys = xs[best], ys[best]
+        response = harris_response(image, xs, ys)
+        best = _best(response, self._candidates)
+        xs, ys, response = xs[best], ys[best], response[best]
+        if len(xs) == 0:
+            return self._empty()
+        points = np.column_stack((xs, ys)).astype(float)
+        keep = self._select(points, response, image.shape)
+        xs, ys = xs[keep], ys[keep]
+        descriptors = describe(smoothed(image), xs, ys, orientation(image, xs, ys))
+        return Features(points[keep], descriptors, response[keep], True)
 
     def _orb_corners(self, image: np.ndarray, same_scene: bool = False) -> list:
         """ORB's corners, found at the adaptive FAST threshold when there is one.
@@ -206,6 +234,14 @@ class FeatureDetector:
         width = 32 if self.binary else 128
         dtype = np.uint8 if self.binary else np.float32
         return Features(np.zeros((0, 2)), np.zeros((0, width), dtype), np.zeros(0), self.binary)
+
+
+def _best(values: np.ndarray, count: int) -> np.ndarray:
+    """Indices (ascending) of the ``count`` largest values, and of any tied with the last."""
+    if len(values) <= count:
+        return np.arange(len(values))
+    cut = np.partition(values, len(values) - count)[len(values) - count]
+    return np.flatnonzero(values >= cut)
 
 
 def _described_index(points: np.ndarray, described: np.ndarray) -> np.ndarray:

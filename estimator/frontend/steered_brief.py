@@ -1,0 +1,148 @@
+"""Intensity-centroid orientation and steered binary descriptors, compiled, for kept corners.
+
+The ``fast-brief`` detector (features.py) describes only the corners its grid keeps. Each gets
+an orientation from the intensity centroid of the disc of radius ``PATCH_RADIUS`` around it
+(the angle of (m10, m01), the first moments about the corner), and 256 binary tests on the
+Gaussian-smoothed image: bit k is 1 when the smoothed grey value at the first point of pair k,
+rotated by the corner's angle, is below the one at the second point. The descriptor is the 32
+bytes of those bits (bit k in byte k // 8 at position k % 8), the same format as ORB's, so the
+Hamming matching further on is unchanged.
+
+The test pairs are this project's own, drawn once from a seeded generator: both points of a pair
+isotropic Gaussian around the corner with sigma = patch / 5 (the sampling the BRIEF authors found
+best), inside the 31 x 31 patch. Rotated, a point stays within 15 sqrt(2) < 22 px of the corner,
+and the smoothing reaches 3 px further: corners need ``DESCRIPTOR_BORDER`` px to the edge.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numba
+import numpy as np
+
+__all__ = [
+    "DESCRIPTOR_BORDER",
+    "PATCH_RADIUS",
+    "PATTERN",
+    "describe",
+    "orientation",
+    "smoothed",
+    "test_pattern",
+]
+
+PATCH_RADIUS = 15  # the orientation disc and the half size of the test patch (31 x 31)
+DESCRIPTOR_BORDER = 25  # 15 sqrt(2) rotated + 3 smoothing, rounded up
+PATTERN_SEED = 20261203
+BITS = 256
+SMOOTHING_KERNEL = 7  # Gaussian, sigma 2: the tests compare smoothed values, not single pixels
+SMOOTHING_SIGMA = 2.0
+
+
+def test_pattern(seed: int = PATTERN_SEED, bits: int = BITS) -> np.ndarray:
+    """(bits, 4) int32 rows (x1, y1, x2, y2): the point pairs of the binary tests.
+
+    Gaussian points (sigma = patch size / 5) rounded to pixels, redrawn outside the patch;
+    a pair of one point twice tests nothing and is redrawn too.
+    """
+    rng = np.random.default_rng(seed)
+    sigma = (2 * PATCH_RADIUS + 1) / 5.0
+    pairs = np.empty((bits, 4), dtype=np.int32)
+    count = 0
+    while count < bits:
+        draw = np.rint(rng.normal(0.0, sigma, size=4)).astype(np.int32)
+        if np.abs(draw).max() > PATCH_RADIUS or (draw[0] == draw[2] and draw[1] == draw[3]):
+            continue
+        pairs[count] = draw
+        count += 1
+    return pairs
+
+
+PATTERN = test_pattern()
+
+
+def _disc_half_widths(radius: int) -> np.ndarray:
+    """Half width of the disc's row at each offset 0..radius (pixels with u^2 + v^2 <= r^2)."""
+    offsets = np.arange(radius + 1)
+    return np.floor(np.sqrt(radius * radius - offsets * offsets)).astype(np.int64)
+
+
+_HALF_WIDTHS = _disc_half_widths(PATCH_RADIUS)
+
+
+def smoothed(image: np.ndarray) -> np.ndarray:
+    """The image the binary tests read: Gaussian-smoothed against pixel noise."""
+    return cv2.GaussianBlur(
+        image,
+        (SMOOTHING_KERNEL, SMOOTHING_KERNEL),
+        SMOOTHING_SIGMA,
+        sigmaY=SMOOTHING_SIGMA,
+        borderType=cv2.BORDER_REFLECT_101,
+    )
+
+
+def orientation(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """Angle (radians) of each corner's intensity centroid, from the raw (unsmoothed) image."""
+    return _orientation(image, xs, ys, _HALF_WIDTHS)
+
+
+def describe(
+    smooth: np.ndarray, xs: np.ndarray, ys: np.ndarray, angle: np.ndarray
+) -> np.ndarray:
+    """(N, 32) uint8 descriptors of the corners (x, y), the tests rotated by ``angle``."""
+    return _describe(smooth, xs, ys, angle, PATTERN)
+
+
+@numba.njit(cache=True, nogil=True)
+def _orientation(
+    image: np.ndarray, xs: np.ndarray, ys: np.ndarray, half_widths: np.ndarray
+) -> np.ndarray:
+    radius = len(half_widths) - 1
+    angle = np.empty(len(xs), dtype=np.float64)
+    for k in range(len(xs)):
+        x, y = xs[k], ys[k]
+        m10 = np.int64(0)
+        m01 = np.int64(0)
+        for v in range(-radius, radius + 1):
+            half = half_widths[abs(v)]
+            row = image[y + v, x - half : x + half + 1]
+            row_sum = np.int64(0)
+            row_moment = np.int64(0)
+            for j in range(2 * half + 1):
+                value = np.int64(row[j])
+                row_sum += value
+                row_moment += (j - half) * value
+            m10 += row_moment
+            m01 += v * row_sum
+        angle[k] = np.arctan2(float(m01), float(m10))
+    return angle
+
+
+@numba.njit(cache=True, nogil=True)
+def _describe(
+    smooth: np.ndarray, xs: np.ndarray, ys: np.ndarray, angle: np.ndarray, pattern: np.ndarray
+) -> np.ndarray:
+    bits = len(pattern)
+    descriptors = np.zeros((len(xs), bits // 8), dtype=np.uint8)
+    first = np.empty(bits, dtype=np.int64)
+    second = np.empty(bits, dtype=np.int64)
+    width = smooth.shape[1]
+    flat = smooth.ravel()
+    for k in range(len(xs)):
+        cos, sin = np.cos(angle[k]), np.sin(angle[k])
+        centre = ys[k] * width + xs[k]
+        for i in range(bits):  # rotate the pattern, round to pixels, as flat offsets
+            u1 = np.floor(pattern[i, 0] * cos - pattern[i, 1] * sin + 0.5)
+            v1 = np.floor(pattern[i, 0] * sin + pattern[i, 1] * cos + 0.5)
+            u2 = np.floor(pattern[i, 2] * cos - pattern[i, 3] * sin + 0.5)
+            v2 = np.floor(pattern[i, 2] * sin + pattern[i, 3] * cos + 0.5)
+            first[i] = centre + np.int64(v1) * width + np.int64(u1)
+            second[i] = centre + np.int64(v2) * width + np.int64(u2)
+        row = descriptors[k]
+        for byte in range(bits // 8):
+            packed = 0
+            for bit in range(8):
+                i = 8 * byte + bit
+                if flat[first[i]] < flat[second[i]]:
+                    packed |= 1 << bit
+            row[byte] = packed
+    return descriptors
