@@ -50,6 +50,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--mode", choices=("detect", "track"), default=None,
         help="front end: detect every frame or follow tracks (default: the config's)",
     )  # fmt: skip
+    parser.add_argument(
+        "--detector", choices=("orb", "fast-brief", "sift"), default=None,
+        help="feature detector (default: the config's)",
+    )  # fmt: skip
     parser.add_argument("--backend", action="store_true", help="include the GTSAM back end")
     parser.add_argument("--repeat", type=int, default=3, help="passes over the sequence")
     parser.add_argument("--frames", type=int, default=None, help="use only the first N frames")
@@ -72,6 +76,7 @@ def _config(args: argparse.Namespace) -> SwarmvoConfig:
             ("tracking", args.tracking),
             ("temporal_matcher", args.temporal_matcher),
             ("mode", args.mode),
+            ("detector", args.detector),
         )
         if value is not None
     }
@@ -313,6 +318,7 @@ def _markdown(result: dict) -> str:
         f"(method {config['registration']['method']}, tracking {config['frontend']['tracking']}, "
         f"temporal matcher {config['frontend']['temporal_matcher']}, "
         f"{'front end mode track, ' if config['frontend'].get('mode') == 'track' else ''}"
+        f"detector {config['frontend']['detector']}, "
         f"back end {'on' if config['backend']['enabled'] else 'off'}, "
         f"OMP_NUM_THREADS={result['environment']['OMP_NUM_THREADS']}, "
         f"load average {result['environment']['load_average']})",

@@ -14,6 +14,8 @@ sums of the Sobel gradient products over a 7 x 7 block around the corner.
 
 from __future__ import annotations
 
+import threading
+
 import numba
 import numpy as np
 
@@ -34,32 +36,37 @@ _HARRIS_SCALE = 1.0 / (4.0 * HARRIS_BLOCK * 255.0)
 
 @numba.njit(cache=True, nogil=True)
 def _ring_masks(
-    image: np.ndarray, y: int, low_x: int, threshold: int,
+    image: np.ndarray, y: int, low_x: int, threshold: np.uint8,
     above: np.ndarray, below: np.ndarray, high: np.ndarray, low: np.ndarray,
 ) -> None:
     """Bit i of above[k] / below[k]: circle pixel i of (low_x + k, y) is brighter / darker
-    than the centre by more than ``threshold``; then only the masks with a 9-arc are kept.
+    than the centre by more than ``threshold``; then each mask is replaced by its 9-arcs
+    (non-zero: a corner).
 
-    Loops over row slices with non-negative indices only: numba compiles them to SIMD (signed
-    offsets into the image would add a wrap-around branch per access and stop that).
+    Loops over row slices with non-negative indices only, in 8 and 16 bits: numba compiles
+    them to SIMD (signed offsets into the image would add a wrap-around branch per access).
+    The bounds saturate at 255 and 0, where no grey value can pass them anyway.
     """
     n = len(above)
     centre = image[y, low_x : low_x + n]
+    top = np.uint8(255 - threshold)
     for k in range(n):
-        high[k] = np.int16(centre[k]) + threshold
-        low[k] = np.int16(centre[k]) - threshold
+        value = centre[k]
+        high[k] = value + threshold if value < top else np.uint8(255)
+        low[k] = value - threshold if value > threshold else np.uint8(0)
         above[k] = 0
         below[k] = 0
     for i in range(16):
-        bit = np.uint32(1 << i)
+        bit = np.uint16(1 << i)
+        none = np.uint16(0)
         ring = image[y + CIRCLE[i, 1], low_x + CIRCLE[i, 0] : low_x + CIRCLE[i, 0] + n]
         for k in range(n):
-            value = np.int16(ring[k])
-            above[k] |= bit if value > high[k] else np.uint32(0)
-            below[k] |= bit if value < low[k] else np.uint32(0)
+            value = ring[k]
+            above[k] |= bit if value > high[k] else none
+            below[k] |= bit if value < low[k] else none
     for k in range(n):
-        above[k] = _arcs(above[k])
-        below[k] = _arcs(below[k])
+        above[k] = _arcs(np.uint32(above[k]))
+        below[k] = _arcs(np.uint32(below[k]))
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -74,110 +81,126 @@ def _arcs(bits: np.uint32) -> np.uint32:
 
 
 @numba.njit(cache=True, nogil=True)
-def _row_scores(
-    image: np.ndarray, y: int, low_x: int, index: np.ndarray, sign: np.ndarray,
-    diff: np.ndarray, pair: np.ndarray, out: np.ndarray,
-) -> None:
-    """FAST scores of the row's corners at x = low_x + index[j] (``sign`` +1 for a bright
-    arc, -1 for a dark one): the best 9-arc's smallest difference, minus one.
+def _scores(image: np.ndarray, xs: np.ndarray, ys: np.ndarray, sign: np.ndarray) -> np.ndarray:
+    """FAST scores of corners (``sign`` +1 for a bright arc, -1 for a dark one): the best
+    9-arc's smallest difference, minus one.
 
-    Column j of ``diff`` holds the 16 circle differences and the first 8 again; the sliding
-    minimum over 9 is built from pairs, then runs of 4 and 8, each a loop over the corners.
+    Row i of ``diff`` holds circle pixel i's difference for every corner (and rows 16-23
+    the first 8 again); the sliding minimum over 9 is built from pairs, then runs of 4 and 8,
+    each a loop over all corners (long loops: SIMD).
     """
-    m = len(index)
-    centre = image[y, low_x:]
+    count = len(xs)
+    width = image.shape[1]
+    flat = image.ravel()
+    # Unsigned flat indices from 4 rows above the corner: no wrap-around test per access.
+    above = 4 * width
+    offsets = np.empty(16, dtype=np.uint64)
     for i in range(16):
-        ring = image[y + CIRCLE[i, 1], low_x + CIRCLE[i, 0] :]
-        row = diff[i]
-        for j in range(m):
-            row[j] = sign[j] * (np.int16(ring[index[j]]) - np.int16(centre[index[j]]))
+        offsets[i] = np.uint64(CIRCLE[i, 1] * width + CIRCLE[i, 0] + above)
+    diff = np.empty((24, count), dtype=np.int16)
+    for j in range(count):
+        base = np.uint64(ys[j] * width + xs[j] - above)
+        centre = np.int16(flat[base + np.uint64(above)])
+        for i in range(16):
+            diff[i, j] = sign[j] * (np.int16(flat[base + offsets[i]]) - centre)
     for i in range(16, 24):
-        diff[i, :m] = diff[i - 16, :m]
+        diff[i] = diff[i - 16]
+    pair = np.empty((23, count), dtype=np.int16)
     for i in range(23):
         a, b, p = diff[i], diff[i + 1], pair[i]
-        for j in range(m):
+        for j in range(count):
             p[j] = min(a[j], b[j])
-    for j in range(m):
-        out[j] = -32768
+    best = np.full(count, -32768, dtype=np.int16)
     for i in range(16):
         a, b, c, d, e = pair[i], pair[i + 2], pair[i + 4], pair[i + 6], diff[i + 8]
-        for j in range(m):
-            out[j] = max(out[j], min(min(min(a[j], b[j]), min(c[j], d[j])), e[j]))
-    for j in range(m):
-        out[j] -= 1
+        for j in range(count):
+            best[j] = max(best[j], min(min(min(a[j], b[j]), min(c[j], d[j])), e[j]))
+    return best - np.int16(1)
 
 
 @numba.njit(cache=True, nogil=True)
-def _score_image(
+def _raw_corners(
     image: np.ndarray, threshold: int, border: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """FAST score of every corner with at least ``border`` - 1 pixels to the image's edge
-    (0 elsewhere), and those corners' x, y in raster order (the first ``count`` entries)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """x, y (raster order) and arc sign of every FAST corner with at least ``border`` - 1
+    pixels to the image's edge, before the suppression."""
     height, width = image.shape
-    score = np.zeros((height, width), dtype=np.int16)
     low_y, high_y = max(border - 1, 3), min(height - border + 1, height - 3)
     low_x, high_x = max(border - 1, 3), min(width - border + 1, width - 3)
     n = max(high_x - low_x, 0)
-    above = np.empty(n, dtype=np.uint32)
-    below = np.empty(n, dtype=np.uint32)
-    high = np.empty(n, dtype=np.int16)
-    low = np.empty(n, dtype=np.int16)
-    index = np.empty(n, dtype=np.int64)
-    sign = np.empty(n, dtype=np.int16)
-    diff = np.empty((24, n), dtype=np.int16)
-    pair = np.empty((23, n), dtype=np.int16)
-    row_score = np.empty(n, dtype=np.int16)
+    above = np.empty(n, dtype=np.uint16)
+    below = np.empty(n, dtype=np.uint16)
+    high = np.empty(n, dtype=np.uint8)
+    low = np.empty(n, dtype=np.uint8)
+    index = np.empty(n + 1, dtype=np.int64)
     xs = np.empty(4096, dtype=np.int64)
     ys = np.empty(4096, dtype=np.int64)
+    sign = np.empty(4096, dtype=np.int16)
     count = 0
     for y in range(low_y, high_y):
-        _ring_masks(image, y, low_x, np.int16(threshold), above, below, high, low)
+        _ring_masks(image, y, low_x, np.uint8(threshold), above, below, high, low)
         m = 0
-        for k in range(n):
-            if above[k] != 0 or below[k] != 0:
-                index[m] = k
-                sign[m] = 1 if above[k] != 0 else -1
-                m += 1
-        if m == 0:
-            continue
-        _row_scores(image, y, low_x, index[:m], sign, diff, pair, row_score)
+        for k in range(n):  # branch-free compaction of the row's corners
+            index[m] = k
+            m += (above[k] | below[k]) != 0
         if count + m > len(xs):
-            xs, ys = _grown(xs, 2 * (count + m)), _grown(ys, 2 * (count + m))
+            xs, ys, sign = _grown(xs, 2 * (count + m)), _grown(ys, 2 * (count + m)), _grown(sign, 2 * (count + m))
         for j in range(m):
-            score[y, low_x + index[j]] = row_score[j]
-            xs[count], ys[count] = low_x + index[j], y
-            count += 1
-    return score, xs, ys, count
+            k = index[j]
+            xs[count + j] = low_x + k
+            ys[count + j] = y
+            sign[count + j] = 1 if above[k] != 0 else -1
+        count += m
+    return xs[:count], ys[:count], sign[:count]
 
 
-@numba.njit(cache=True, nogil=True)
 def fast_corners(
     image: np.ndarray, threshold: int, border: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """FAST-9 corners at least ``border`` pixels inside the image, after 3 x 3 suppression.
 
-    Returns (x, y, score) in raster order. A pixel at exactly ``border`` counts as inside, one
-    at ``size - border`` does not. ``border`` >= 3 (the circle's radius).
+    Returns (x, y, score) int64 arrays in raster order. A pixel at exactly ``border`` counts as
+    inside, one at ``size - border`` does not. ``image``: 8-bit grey, ``border`` >= 3 (the
+    circle's radius), ``threshold`` in 1..254.
     """
+    if image.dtype != np.uint8 or image.ndim != 2:
+        raise ValueError(f"FAST needs an 8-bit grey image, got {image.dtype} {image.shape}")
+    if not 1 <= threshold <= 254 or border < 3:
+        raise ValueError(f"FAST threshold must be in 1..254 and border >= 3, got {threshold}, {border}")
+    scratch = getattr(_SCRATCH, "scores", None)
+    if scratch is None or scratch.shape != image.shape:
+        scratch = _SCRATCH.scores = np.zeros(image.shape, dtype=np.int16)
+    return _fast_corners(np.ascontiguousarray(image), threshold, border, scratch)
+
+
+# Per thread: int16 zeros of the last image's shape for the suppression's scores, zeroed again
+# after each use (a fresh array per image costs its page faults, ~0.2 ms on 752 x 480).
+_SCRATCH = threading.local()
+
+
+@numba.njit(cache=True, nogil=True)
+def _fast_corners(
+    image: np.ndarray, threshold: int, border: int, scratch: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     height, width = image.shape
-    score, xs, ys, count = _score_image(image, threshold, border)
-    keep = np.empty(count, dtype=np.bool_)
-    for j in range(count):
-        x, y = xs[j], ys[j]
-        value = score[y, x]
+    xs, ys, sign = _raw_corners(image, threshold, border)
+    scores = _scores(image, xs, ys, sign)
+    for j in range(len(xs)):
+        scratch[ys[j], xs[j]] = scores[j]
+    keep = np.empty(len(xs), dtype=np.bool_)
+    for j in range(len(xs)):
+        x, y, value = xs[j], ys[j], scores[j]
         keep[j] = (
             border <= x < width - border and border <= y < height - border
-            and value > score[y - 1, x - 1] and value > score[y - 1, x]
-            and value > score[y - 1, x + 1] and value > score[y, x - 1]
-            and value > score[y, x + 1] and value > score[y + 1, x - 1]
-            and value > score[y + 1, x] and value > score[y + 1, x + 1]
+            and value > scratch[y - 1, x - 1] and value > scratch[y - 1, x]
+            and value > scratch[y - 1, x + 1] and value > scratch[y, x - 1]
+            and value > scratch[y, x + 1] and value > scratch[y + 1, x - 1]
+            and value > scratch[y + 1, x] and value > scratch[y + 1, x + 1]
         )  # fmt: skip
+    for j in range(len(xs)):
+        scratch[ys[j], xs[j]] = 0
     kept = np.flatnonzero(keep)
-    out_x, out_y = xs[kept], ys[kept]
-    out_score = np.empty(len(kept), dtype=np.int64)
-    for j in range(len(kept)):
-        out_score[j] = score[out_y[j], out_x[j]]
-    return out_x, out_y, out_score
+    return xs[kept], ys[kept], scores[kept].astype(np.int64)
 
 
 @numba.njit(cache=True, nogil=True)
