@@ -46,7 +46,8 @@ CONFIG_BOUNDS: tuple[Bound, ...] = (
 )
 
 # SIFT costs about 16x ORB per EuRoC frame (440 ms against 27 ms): not offered on shared workers.
-ALLOWED_DETECTORS = ("orb",)
+# fast-brief costs less than ORB (docs/performance.md).
+ALLOWED_DETECTORS = ("orb", "fast-brief")
 
 # registration.options of each estimator that scale its work (other options are checked by the
 # estimator itself when the session is created). Every estimator of the registry has an entry

@@ -144,7 +144,8 @@ def _raw_corners(
             index[m] = k
             m += (above[k] | below[k]) != 0
         if count + m > len(xs):
-            xs, ys, sign = _grown(xs, 2 * (count + m)), _grown(ys, 2 * (count + m)), _grown(sign, 2 * (count + m))
+            size = 2 * (count + m)
+            xs, ys, sign = _grown(xs, size), _grown(ys, size), _grown(sign, size)
         for j in range(m):
             k = index[j]
             xs[count + j] = low_x + k
@@ -166,7 +167,9 @@ def fast_corners(
     if image.dtype != np.uint8 or image.ndim != 2:
         raise ValueError(f"FAST needs an 8-bit grey image, got {image.dtype} {image.shape}")
     if not 1 <= threshold <= 254 or border < 3:
-        raise ValueError(f"FAST threshold must be in 1..254 and border >= 3, got {threshold}, {border}")
+        raise ValueError(
+            f"FAST threshold must be in 1..254 and border >= 3, got {threshold}, {border}"
+        )
     scratch = getattr(_SCRATCH, "scores", None)
     if scratch is None or scratch.shape != image.shape:
         scratch = _SCRATCH.scores = np.zeros(image.shape, dtype=np.int16)

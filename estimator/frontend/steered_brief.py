@@ -28,8 +28,8 @@ __all__ = [
     "PATTERN",
     "describe",
     "orientation",
+    "seeded_pattern",
     "smoothed",
-    "test_pattern",
 ]
 
 PATCH_RADIUS = 15  # the orientation disc and the half size of the test patch (31 x 31)
@@ -44,7 +44,7 @@ SMOOTHING_SIGMA = 2.0
 ANGLE_STEPS = 256
 
 
-def test_pattern(seed: int = PATTERN_SEED, bits: int = BITS) -> np.ndarray:
+def seeded_pattern(seed: int = PATTERN_SEED, bits: int = BITS) -> np.ndarray:
     """(bits, 4) int32 rows (x1, y1, x2, y2): the point pairs of the binary tests.
 
     Gaussian points (sigma = patch size / 5) rounded to pixels, redrawn outside the patch;
@@ -63,7 +63,7 @@ def test_pattern(seed: int = PATTERN_SEED, bits: int = BITS) -> np.ndarray:
     return pairs
 
 
-PATTERN = test_pattern()
+PATTERN = seeded_pattern()
 
 
 def _disc_half_widths(radius: int) -> np.ndarray:

@@ -1,0 +1,204 @@
+"""The fast-brief detector: compiled FAST, Harris, orientation and descriptors against slow
+references, the rotation behaviour of the descriptor, and the same corners as ORB."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from estimator.config import FrontendConfig
+from estimator.frontend import steered_brief
+from estimator.frontend.fast_kernels import CIRCLE, HARRIS_K, fast_corners, harris_response
+from estimator.frontend.features import FeatureDetector
+from estimator.frontend.steered_brief import (
+    ANGLE_STEPS,
+    PATCH_RADIUS,
+    PATTERN,
+    describe,
+    orientation,
+    seeded_pattern,
+    smoothed,
+)
+
+
+def _texture(shape: tuple[int, int], seed: int, blur: float = 1.5) -> np.ndarray:
+    """Smoothed random blocks with contrast: many corners, grey values from 0 to 255."""
+    rng = np.random.default_rng(seed)
+    small = rng.integers(0, 256, size=(shape[0] // 4 + 1, shape[1] // 4 + 1)).astype(np.uint8)
+    image = cv2.resize(small, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
+    image = cv2.GaussianBlur(image, (0, 0), blur)
+    return cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX)
+
+
+def _slow_fast(image: np.ndarray, threshold: int, border: int) -> dict[tuple[int, int], int]:
+    """FAST-9 by its definition: score = largest t with a 9-arc beyond t, minus one; kept
+    when above all 8 neighbours' scores (0 for no corner)."""
+    height, width = image.shape
+    score = np.zeros((height, width), dtype=int)
+    for y in range(3, height - 3):
+        for x in range(3, width - 3):
+            centre = int(image[y, x])
+            diff = [int(image[y + dy, x + dx]) - centre for dx, dy in CIRCLE]
+            best = max(
+                min(sign * diff[(start + k) % 16] for k in range(9))
+                for start in range(16)
+                for sign in (1, -1)
+            )
+            if best - 1 >= threshold:
+                score[y, x] = best - 1
+    kept = {}
+    for y in range(border, height - border):
+        for x in range(border, width - border):
+            around = score[y - 1 : y + 2, x - 1 : x + 2].copy()
+            around[1, 1] = -1
+            if score[y, x] > 0 and score[y, x] > around.max():
+                kept[(x, y)] = int(score[y, x])
+    return kept
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("threshold", [5, 12, 40])
+def test_fast_matches_the_definition(seed: int, threshold: int) -> None:
+    image = _texture((48, 56), seed)
+    image[10:14, 20:24] = 255  # saturated bright and dark spots: the bounds clip at 0 and 255
+    image[30:33, 8:11] = 0
+    xs, ys, score = fast_corners(image, threshold, 4)
+    found = dict(zip(zip(xs.tolist(), ys.tolist(), strict=True), score.tolist(), strict=True))
+    expected = _slow_fast(image, threshold, 4)
+    assert found == expected
+    assert len(expected) > 5  # the test image has corners to compare
+    raster = list(zip(ys.tolist(), xs.tolist(), strict=True))
+    assert raster == sorted(raster)
+
+
+def test_fast_matches_opencv_on_a_large_image() -> None:
+    image = _texture((240, 320), 7, blur=1.0)
+    xs, ys, score = fast_corners(image, 12, 31)
+    reference = cv2.FastFeatureDetector_create(12, True).detect(image)
+    expected = {
+        (round(k.pt[0]), round(k.pt[1])): round(k.response)
+        for k in reference
+        if 31 <= k.pt[0] < 320 - 31 and 31 <= k.pt[1] < 240 - 31
+    }
+    assert len(expected) > 200
+    corners = zip(xs.tolist(), ys.tolist(), strict=True)
+    assert dict(zip(corners, score.tolist(), strict=True)) == expected
+
+
+def test_fast_rejects_bad_input() -> None:
+    with pytest.raises(ValueError, match="8-bit grey"):
+        fast_corners(np.zeros((40, 40), dtype=np.float32), 12, 4)
+    with pytest.raises(ValueError, match="threshold"):
+        fast_corners(np.zeros((40, 40), dtype=np.uint8), 0, 4)
+    xs, _, _ = fast_corners(np.zeros((5, 5), dtype=np.uint8), 12, 3)  # too small: no corner
+    assert len(xs) == 0
+
+
+def test_harris_matches_a_slow_reference() -> None:
+    image = _texture((60, 60), 3)
+    xs, ys = np.array([10, 30, 45, 20]), np.array([12, 30, 20, 47])
+    gx = cv2.Sobel(image.astype(np.float64), cv2.CV_64F, 1, 0, ksize=3)
+    gy = cv2.Sobel(image.astype(np.float64), cv2.CV_64F, 0, 1, ksize=3)
+    expected = []
+    for x, y in zip(xs, ys, strict=True):
+        bx, by = gx[y - 3 : y + 4, x - 3 : x + 4], gy[y - 3 : y + 4, x - 3 : x + 4]
+        a, b, c = (bx * bx).sum(), (by * by).sum(), (bx * by).sum()
+        expected.append((a * b - c * c - HARRIS_K * (a + b) ** 2) / (4 * 7 * 255.0) ** 4)
+    np.testing.assert_allclose(harris_response(image, xs, ys), expected, rtol=1e-12)
+
+
+def _slow_angle(image: np.ndarray, x: int, y: int) -> float:
+    m10 = m01 = 0.0
+    for v in range(-PATCH_RADIUS, PATCH_RADIUS + 1):
+        for u in range(-PATCH_RADIUS, PATCH_RADIUS + 1):
+            if u * u + v * v <= PATCH_RADIUS * PATCH_RADIUS:
+                m10 += u * float(image[y + v, x + u])
+                m01 += v * float(image[y + v, x + u])
+    return math.atan2(m01, m10)
+
+
+def _slow_descriptor(smooth: np.ndarray, x: int, y: int, angle: float) -> np.ndarray:
+    step = round(angle * ANGLE_STEPS / (2 * math.pi)) % ANGLE_STEPS
+    theta = step * 2 * math.pi / ANGLE_STEPS
+    cos, sin = math.cos(theta), math.sin(theta)
+    bits = []
+    for x1, y1, x2, y2 in PATTERN.tolist():
+        u1, v1 = math.floor(x1 * cos - y1 * sin + 0.5), math.floor(x1 * sin + y1 * cos + 0.5)
+        u2, v2 = math.floor(x2 * cos - y2 * sin + 0.5), math.floor(x2 * sin + y2 * cos + 0.5)
+        bits.append(int(smooth[y + v1, x + u1] < smooth[y + v2, x + u2]))
+    return np.packbits(np.array(bits, dtype=np.uint8), bitorder="little")
+
+
+def test_orientation_and_descriptor_match_slow_references() -> None:
+    image = _texture((90, 100), 4)
+    xs, ys = np.array([30, 50, 66, 40]), np.array([30, 45, 58, 60])
+    angle = orientation(image, xs, ys)
+    expected = [_slow_angle(image, x, y) for x, y in zip(xs, ys, strict=True)]
+    np.testing.assert_allclose(angle, expected)
+    smooth = smoothed(image)
+    descriptors = describe(smooth, xs, ys, angle)
+    assert descriptors.shape == (4, 32) and descriptors.dtype == np.uint8
+    for k in range(4):
+        np.testing.assert_array_equal(
+            descriptors[k], _slow_descriptor(smooth, int(xs[k]), int(ys[k]), float(angle[k]))
+        )
+
+
+def _hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.unpackbits(np.bitwise_xor(a, b), axis=-1).sum(axis=-1)
+
+
+@pytest.mark.parametrize("degrees", [90, 30, -135])
+def test_descriptor_follows_a_rotated_patch(degrees: int) -> None:
+    """Rotating the image about a corner turns its angle by as much and keeps its descriptor
+    close; unrelated corners stay far apart."""
+    size = 161
+    image = _texture((size, size), 5, blur=2.0)
+    centre = size // 2
+    rotation = cv2.getRotationMatrix2D((centre, centre), degrees, 1.0)  # counter-clockwise
+    turned = cv2.warpAffine(image, rotation, (size, size), flags=cv2.INTER_LINEAR)
+    offsets = [(-12, -8), (0, 0), (10, 14), (-15, 11), (13, -12), (5, -3)]
+    xs = np.array([centre + dx for dx, _ in offsets])
+    ys = np.array([centre + dy for _, dy in offsets])
+    a = rotation[:, :2]
+    moved = (a @ np.stack([xs - centre, ys - centre])).round().astype(int) + centre
+    before = orientation(image, xs, ys)
+    after = orientation(turned, moved[0], moved[1])
+    # Image rows point down: a counter-clockwise turn on screen lowers the angle.
+    turn = np.angle(np.exp(1j * (before - after - np.radians(degrees))))
+    # Off the right angles the turned corner lands up to 0.7 px off a pixel and is resampled.
+    assert np.abs(turn).max() < np.radians(0.01 if degrees == 90 else 10)
+    d_before = describe(smoothed(image), xs, ys, before)
+    d_after = describe(smoothed(turned), moved[0], moved[1], after)
+    same = _hamming(d_before, d_after)
+    unrelated = _hamming(d_before, np.roll(d_after, 1, axis=0))
+    assert same.max() <= (0 if degrees == 90 else 40)  # a right angle moves pixels exactly
+    assert unrelated.min() > 64
+
+
+def test_pattern_is_seeded_and_inside_the_patch() -> None:
+    np.testing.assert_array_equal(seeded_pattern(), PATTERN)
+    assert not np.array_equal(seeded_pattern(seed=1), PATTERN)
+    assert PATTERN.shape == (256, 4)
+    assert np.abs(PATTERN).max() <= PATCH_RADIUS
+    assert not np.any((PATTERN[:, 0] == PATTERN[:, 2]) & (PATTERN[:, 1] == PATTERN[:, 3]))
+    # Rotated, every test point stays within the descriptor border (smoothing included).
+    radius = np.hypot(PATTERN[:, [0, 2]], PATTERN[:, [1, 3]]).max()
+    assert radius + 0.5 + steered_brief.SMOOTHING_KERNEL // 2 <= steered_brief.DESCRIPTOR_BORDER
+
+
+def test_detector_keeps_orbs_corners_and_is_reproducible() -> None:
+    image = _texture((480, 752), 6, blur=1.2)
+    orb = FeatureDetector(FrontendConfig()).detect(image)
+    compiled = FeatureDetector(FrontendConfig(detector="fast-brief"))
+    first, second = compiled.detect(image), compiled.detect(image.copy())
+    assert first.binary and first.descriptors.shape == (len(first), 32)
+    assert len(first) == FrontendConfig().max_features
+    assert set(map(tuple, first.points.tolist())) == set(map(tuple, orb.points.tolist()))
+    np.testing.assert_array_equal(first.points, second.points)
+    np.testing.assert_array_equal(first.descriptors, second.descriptors)
+    blank = compiled.detect(np.full((480, 752), 128, dtype=np.uint8))
+    assert len(blank) == 0 and blank.descriptors.shape == (0, 32)
