@@ -202,3 +202,22 @@ def test_detector_keeps_orbs_corners_and_is_reproducible() -> None:
     np.testing.assert_array_equal(first.descriptors, second.descriptors)
     blank = compiled.detect(np.full((480, 752), 128, dtype=np.uint8))
     assert len(blank) == 0 and blank.descriptors.shape == (0, 32)
+
+
+def test_raised_threshold_keeps_the_same_corners() -> None:
+    """On wide street images (a surplus of corners) the threshold is raised from the last
+    image's cut; every image gives what a fresh detector at the configured threshold gives."""
+    root_images = []
+    for seed in (0, 1, 2):
+        image = _texture((376, 1241), seed, blur=0.8)
+        root_images += [image, np.roll(image, 3, axis=1)]
+    config = FrontendConfig(detector="fast-brief", max_features=600)
+    running = FeatureDetector(config)
+    raised = 0
+    for index, image in enumerate(root_images):
+        features = running.detect(image, same_scene=index % 2 == 1)
+        raised += running._raised_threshold > config.fast_threshold
+        fresh = FeatureDetector(config).detect(image)
+        np.testing.assert_array_equal(features.points, fresh.points)
+        np.testing.assert_array_equal(features.descriptors, fresh.descriptors)
+    assert raised >= 4  # the raised threshold was in use for most images

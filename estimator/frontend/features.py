@@ -36,6 +36,8 @@ __all__ = [
 _RESPONSE = attrgetter("response")  # cheaper per keypoint than a generator expression
 # ORB's edge threshold: its corners keep 31 px to the image's edge (more than the descriptor needs).
 CORNER_BORDER = max(31, DESCRIPTOR_BORDER)
+# fast-brief raises FAST's threshold to this many grey levels below the last image's cut.
+FAST_CUT_MARGIN = 6
 
 
 @dataclass(frozen=True)
@@ -131,6 +133,9 @@ class FeatureDetector:
             self._detector = cv2.SIFT_create(nfeatures=candidates)
         self.binary = config.detector != "sift"
         self._candidates = candidates
+        # fast-brief: the last left image's 2 n-th best FAST score, when it had a surplus.
+        self._last_cut: int | None = None
+        self._raised_threshold = config.fast_threshold
         # ORB on one level looks at the 2 x candidates best FAST corners (fast_threshold.py).
         self.fast_threshold: AdaptiveFastThreshold | None = None
         orb = config.detector == "orb"
@@ -151,7 +156,7 @@ class FeatureDetector:
         if not self.binary:  # SIFT's compute rebuilds its scale space: one call is cheaper
             return self._detect_and_compute(image)
         if self._detector is None:
-            return self._fast_brief(image)
+            return self._fast_brief(image, same_scene)
         keypoints = self._orb_corners(image, same_scene)
         if not keypoints:
             return self._empty()
@@ -163,23 +168,54 @@ class FeatureDetector:
             points, response = points[keep], response[keep]
         return self._describe(image, keypoints, points, response)
 
-    def _fast_brief(self, image: np.ndarray) -> Features:
+    def _fast_corners(
+        self, image: np.ndarray, same_scene: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """FAST corners for the ``2 n`` best, at a threshold raised to just below the last
+        image's ``2 n``-th best score when there was a surplus (a wide street image: 16 000
+        corners for 4 800).
+
+        The same corners as at the configured threshold whenever at least ``2 n`` remain: a
+        corner's score is the highest threshold it passes, and a neighbour under the raised
+        threshold scored below the corner anyway, so the suppression keeps what it kept.
+        Fewer than ``2 n`` means the guess was too high: the image is detected again at the
+        configured threshold. ``same_scene`` (the right image of the pair) reuses the guess.
+        """
+        base = self.config.fast_threshold
+        if not same_scene:
+            self._raised_threshold = base if self._last_cut is None else max(
+                base, min(self._last_cut - FAST_CUT_MARGIN, 254)
+            )  # fmt: skip
+        threshold = self._raised_threshold
+        xs, ys, score = fast_corners(image, threshold, CORNER_BORDER)
+        wanted = 2 * self._candidates
+        if threshold > base and len(xs) < wanted:
+            xs, ys, score = fast_corners(image, base, CORNER_BORDER)
+        if not same_scene:
+            surplus = len(xs) >= wanted
+            self._last_cut = int(np.partition(score, -wanted)[-wanted]) if surplus else None
+        return xs, ys, score
+
+    def _fast_brief(self, image: np.ndarray, same_scene: bool = False) -> Features:
         """ORB's selection on arrays: FAST-9 corners, the ``2 n`` best by FAST score, the
         ``n`` best of those by Harris, the grid's share of them; angles and descriptors only
         for the corners kept (n = ``max_features`` x ``detection_oversampling``)."""
-        xs, ys, score = fast_corners(image, self.config.fast_threshold, CORNER_BORDER)
-        best = _best(score, 2 * self._candidates)
-        xs, ys = xs[best], ys[best]
+        xs, ys, score = self._fast_corners(image, same_scene)
+        if len(xs) > 2 * self._candidates:  # never on EuRoC: < 4 000 corners (performance.md)
+            best = _best(score, 2 * self._candidates)
+            xs, ys = xs[best], ys[best]
         response = harris_response(image, xs, ys)
-        best = _best(response, self._candidates)
-        xs, ys, response = xs[best], ys[best], response[best]
+        if len(xs) > self._candidates:
+            best = _best(response, self._candidates)
+            xs, ys, response = xs[best], ys[best], response[best]
         if len(xs) == 0:
             return self._empty()
         points = np.column_stack((xs, ys)).astype(float)
         keep = self._select(points, response, image.shape)
-        xs, ys = xs[keep], ys[keep]
+        if len(keep) < len(xs):
+            xs, ys, points, response = xs[keep], ys[keep], points[keep], response[keep]
         descriptors = describe(smoothed(image), xs, ys, orientation(image, xs, ys))
-        return Features(points[keep], descriptors, response[keep], True)
+        return Features(points, descriptors, response, True)
 
     def _orb_corners(self, image: np.ndarray, same_scene: bool = False) -> list:
         """ORB's corners, found at the adaptive FAST threshold when there is one.

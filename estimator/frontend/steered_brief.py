@@ -120,23 +120,27 @@ def rotated_offsets(width: int) -> tuple[np.ndarray, np.ndarray]:
 def _orientation(
     image: np.ndarray, xs: np.ndarray, ys: np.ndarray, half_widths: np.ndarray
 ) -> np.ndarray:
+    """Rows v and -v of the disc are summed together (the same columns): m10 takes their sum,
+    m01 their difference; integer sums, so the result does not depend on the order."""
     radius = len(half_widths) - 1
     angle = np.empty(len(xs), dtype=np.float64)
     for k in range(len(xs)):
         x, y = xs[k], ys[k]
-        m10 = np.int64(0)
-        m01 = np.int64(0)
-        for v in range(-radius, radius + 1):
-            half = half_widths[abs(v)]
-            row = image[y + v, x - half : x + half + 1]
-            row_sum = np.int64(0)
-            row_moment = np.int64(0)
+        centre = image[y, x - radius : x + radius + 1]
+        m10 = np.int32(0)
+        for j in range(2 * radius + 1):
+            m10 += np.int32(j - radius) * np.int32(centre[j])
+        m01 = np.int32(0)
+        for v in range(1, radius + 1):
+            half = half_widths[v]
+            top = image[y - v, x - half : x + half + 1]
+            bottom = image[y + v, x - half : x + half + 1]
+            difference = np.int32(0)
             for j in range(2 * half + 1):
-                value = np.int64(row[j])
-                row_sum += value
-                row_moment += (j - half) * value
-            m10 += row_moment
-            m01 += v * row_sum
+                a, b = np.int32(top[j]), np.int32(bottom[j])
+                difference += b - a
+                m10 += np.int32(j - half) * (a + b)
+            m01 += np.int32(v) * difference
         angle[k] = np.arctan2(float(m01), float(m10))
     return angle
 
