@@ -138,10 +138,10 @@ class FeatureDetector:
         self._raised_threshold = config.fast_threshold
         # ORB on one level looks at the 2 x candidates best FAST corners (fast_threshold.py).
         self.fast_threshold: AdaptiveFastThreshold | None = None
-        orb = config.detector == "orb"
+        orb = config.detector == "orb" and self._detector is not None
         if orb and config.orb_levels == 1 and config.adaptive_fast_threshold:
             self.fast_threshold = AdaptiveFastThreshold(
-                config.fast_threshold, 2 * candidates, CORNER_BORDER
+                config.fast_threshold, 2 * candidates, self._detector.getEdgeThreshold()
             )
 
     def detect(self, image: np.ndarray, same_scene: bool = False) -> Features:
