@@ -97,6 +97,16 @@ def test_fast_rejects_bad_input() -> None:
     assert len(xs) == 0
 
 
+def test_kernels_refuse_points_near_the_edge() -> None:
+    image = _texture((80, 80), 8)
+    with pytest.raises(ValueError, match="inside"):
+        harris_response(image, np.array([2]), np.array([40]))
+    with pytest.raises(ValueError, match="edge"):
+        orientation(image, np.array([40]), np.array([70]))
+    with pytest.raises(ValueError, match="edge"):
+        describe(smoothed(image), np.array([10]), np.array([40]), np.zeros(1))
+
+
 def test_harris_matches_a_slow_reference() -> None:
     image = _texture((60, 60), 3)
     xs, ys = np.array([10, 30, 45, 20]), np.array([12, 30, 20, 47])

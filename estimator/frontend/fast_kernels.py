@@ -213,13 +213,22 @@ def _grown(values: np.ndarray, capacity: int) -> np.ndarray:
     return grown
 
 
-@numba.njit(cache=True, nogil=True)
 def harris_response(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
     """Harris response of each (x, y): Sobel gradients over the 7 x 7 block centred on it.
+    Points must keep 4 px to the image's edge (FAST's border does)."""
+    margin = HARRIS_BLOCK // 2 + 1
+    if len(xs) and (
+        min(xs.min(), ys.min()) < margin
+        or xs.max() >= image.shape[1] - margin
+        or ys.max() >= image.shape[0] - margin
+    ):
+        raise ValueError(f"Harris needs points {margin} px inside the image")
+    return _harris_response(image, xs, ys)
 
-    The block and its gradients reach 4 pixels from the point: callers keep points that far
-    inside the image (FAST's border does).
-    """
+
+@numba.njit(cache=True, nogil=True)
+def _harris_response(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """The block and its gradients reach 4 pixels from the point: no bounds checks here."""
     radius = HARRIS_BLOCK // 2
     scale4 = _HARRIS_SCALE**4
     response = np.empty(len(xs), dtype=np.float64)

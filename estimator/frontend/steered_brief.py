@@ -26,6 +26,7 @@ __all__ = [
     "DESCRIPTOR_BORDER",
     "PATCH_RADIUS",
     "PATTERN",
+    "check_inside",
     "describe",
     "orientation",
     "seeded_pattern",
@@ -88,13 +89,29 @@ def smoothed(image: np.ndarray) -> np.ndarray:
 
 def orientation(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
     """Angle (radians) of each corner's intensity centroid, from the raw (unsmoothed) image."""
+    check_inside(xs, ys, image.shape, PATCH_RADIUS)
     return _orientation(image, xs, ys, _HALF_WIDTHS)
+
+
+def check_inside(xs: np.ndarray, ys: np.ndarray, shape: tuple, margin: int) -> None:
+    """The compiled kernels read around each point without bounds checks: refuse points
+    closer than ``margin`` to the image's edge."""
+    if len(xs) == 0:
+        return
+    height, width = shape[:2]
+    if (
+        min(xs.min(), ys.min()) < margin
+        or xs.max() >= width - margin
+        or ys.max() >= height - margin
+    ):
+        raise ValueError(f"points must keep {margin} px to the edge of a {width} x {height} image")
 
 
 def describe(
     smooth: np.ndarray, xs: np.ndarray, ys: np.ndarray, angle: np.ndarray
 ) -> np.ndarray:
     """(N, 32) uint8 descriptors of the corners (x, y), the tests rotated by ``angle``."""
+    check_inside(xs, ys, smooth.shape, DESCRIPTOR_BORDER)
     if not smooth.flags.c_contiguous:
         smooth = np.ascontiguousarray(smooth)
     first, second = rotated_offsets(smooth.shape[1])
