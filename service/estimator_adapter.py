@@ -178,6 +178,7 @@ class EstimatorFactory:
         try:
             synthetic_run(self)
             registration_kernels()
+            detector_kernels()
         except Exception:
             logger.debug("warm-up run failed", exc_info=True)
         # Minutes instead of seconds here mean an empty or unreadable JIT cache (docker/).
@@ -359,6 +360,22 @@ def registration_kernels() -> None:
     everyone = np.ones(len(points), dtype=bool)
     degenerate_points(points, np.flatnonzero(everyone))
     fit_pose(points, points + 1.0, everyone, np.ones(len(points)), np.ones(len(points)))
+
+
+def detector_kernels() -> None:
+    """Run the compiled detector (``frontend.detector: fast-brief``), which the default
+    configuration of the synthetic frames does not use, for the reason given above: a session
+    that picks it must not compile its kernels inside a frame's CPU budget."""
+    import cv2
+
+    from estimator.config import FrontendConfig
+    from estimator.frontend.features import FeatureDetector
+
+    noise = (np.random.default_rng(0).random((120, 160)) * 255).astype(np.uint8)
+    image = cv2.GaussianBlur(noise, (0, 0), 1.2)
+    detector = FeatureDetector(FrontendConfig(detector="fast-brief", max_features=50))
+    detector.detect(image)
+    detector.detect(image, same_scene=True)
 
 
 def _short_validation(error: ValueError) -> str:

@@ -43,11 +43,17 @@ def cached_kernels() -> dict[str, tuple[int, int]]:
 def warm_up() -> WarmUp:
     """The workers' own warm-up run (synthetic frames and the registration kernels they do
     not reach), failing loudly."""
-    from service.estimator_adapter import EstimatorFactory, registration_kernels, synthetic_run
+    from service.estimator_adapter import (
+        EstimatorFactory,
+        detector_kernels,
+        registration_kernels,
+        synthetic_run,
+    )
 
     start = time.perf_counter()
     synthetic_run(EstimatorFactory())
     registration_kernels()
+    detector_kernels()
     seconds = time.perf_counter() - start
     counts = cached_kernels().values()
     return WarmUp(seconds, sum(m for m, _h in counts), sum(h for _m, h in counts))
