@@ -18,6 +18,7 @@ import threading
 from dataclasses import replace
 from multiprocessing.connection import Connection
 from multiprocessing.context import BaseContext
+from typing import TYPE_CHECKING
 
 from service.estimator_adapter import Pipeline, PipelineFactory, PreparedSession
 from service.frame_work import (
@@ -30,7 +31,9 @@ from service.frame_work import (
 )
 from service.memory import trim_free_memory
 from service.shared_images import read_pair
-from service.storage import SmoothedPose as StoredSmoothedPose
+
+if TYPE_CHECKING:  # a type alias only: the storage package would load SQLAlchemy (28 MB)
+    from service.storage import SmoothedPose as StoredSmoothedPose
 
 _factory: PipelineFactory | None = None
 _pipelines: dict[str, Pipeline] = {}
