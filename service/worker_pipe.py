@@ -242,10 +242,13 @@ class WorkerPipe:
 
     async def stop(self, grace_s: float) -> None:
         """Let the open calls finish, then close the pipe (the worker leaves on its end of
-        file); SIGKILL if it is still there after ``grace_s``."""
-        while self._calls and self.alive:  # their futures may be cancelled: wait for the worker
-            self._drained = self.loop.create_future()
-            await self._drained
+        file). A worker still busy after ``grace_s`` (a stuck call nobody waits for any more),
+        or still there ``grace_s`` after its pipe closed, is killed: a stop never hangs."""
+        try:
+            await asyncio.wait_for(self._drain(), grace_s)
+        except TimeoutError:
+            logger.error("worker process %s still busy after %g s; killing it", self.pid, grace_s)
+            self.kill()
         self._close_pipe()
         if self.alive:
             try:
@@ -254,9 +257,16 @@ class WorkerPipe:
                 self.kill()
                 await self.exited
 
+    async def _drain(self) -> None:
+        """Until the worker has no open call (their futures may be cancelled: the worker is
+        what is waited for) or is gone."""
+        while self._calls and self.alive:
+            self._drained = self.loop.create_future()
+            await self._drained
+
     def kill(self) -> None:
+        """SIGKILL the worker (the caller says why); its sentinel then ends it here."""
         if self.alive and self.pid is not None:
-            logger.error("killing worker process %s", self.pid)
             with contextlib.suppress(ProcessLookupError):
                 os.kill(self.pid, signal.SIGKILL)
 

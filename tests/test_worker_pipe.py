@@ -101,3 +101,14 @@ def test_a_cancelled_call_is_over_only_when_the_worker_is_done_and_stop_waits_fo
         assert exits == [worker] and not worker.alive
 
     asyncio.run(_with_worker(test))
+
+
+def test_a_stop_kills_a_worker_stuck_in_a_call_nobody_waits_for() -> None:
+    async def test(worker: WorkerPipe, exits: list) -> None:
+        stuck = worker.call(pause, 3600.0)
+        stuck.cancel()
+        started = time.monotonic()
+        await worker.stop(1.0)
+        assert time.monotonic() - started < 30 and exits == [worker] and not worker.alive
+
+    asyncio.run(_with_worker(test))
