@@ -1,8 +1,9 @@
 """What handing a frame to a worker process costs: the process pool against the worker's pipe.
 
 One spawn worker reads a V1_01 stereo pair from a shared image slot (as ``worker_frame`` does,
-without the odometry) and answers; the server side awaits each call from an asyncio loop (uvloop
-when installed, as the service runs). Per call: CPU of the server process (all its threads:
+without the odometry; ``--pickled``: sent with the request, as when no slot is free) and
+answers; the server side awaits each call from an asyncio loop (uvloop when installed, as the
+service runs). Per call: CPU of the server process (all its threads:
 the pool's manager and feeder threads count), CPU of the worker, wall time. Rounds alternate
 between the two hand-offs; each line is one round.
 
@@ -37,7 +38,8 @@ class NoFactory:
 
 def read_frame(request: FrameRequest) -> tuple[float, int]:
     """The worker's side: the images where they lie, and this process's CPU time so far."""
-    assert request.shared is not None
+    if request.shared is None:  # pickled with the request
+        return time.process_time(), len(request.left) + len(request.right)
     left, right = read_pair(request.shared)
     return time.process_time(), len(left) + len(right)
 
@@ -53,8 +55,11 @@ def a_pair() -> tuple[bytes, bytes]:
 
 
 async def measure(call: Callable[[FrameRequest], Awaitable[tuple[float, int]]],
-                  request: FrameRequest, slots: ImageSlots, calls: int) -> tuple[float, ...]:
+                  request: FrameRequest, slots: ImageSlots | None,
+                  calls: int) -> tuple[float, ...]:
     async def one() -> tuple[float, int]:
+        if slots is None:
+            return await call(request)
         pair = slots.put(request.left, request.right)
         assert pair is not None
         try:
@@ -70,7 +75,8 @@ async def measure(call: Callable[[FrameRequest], Awaitable[tuple[float, int]]],
     return 1e3 * cpu / calls, 1e3 * (worker_end - worker_start) / calls, 1e3 * wall / calls
 
 
-async def pool_round(request: FrameRequest, slots: ImageSlots, calls: int) -> tuple[float, ...]:
+async def pool_round(request: FrameRequest, slots: ImageSlots | None,
+                     calls: int) -> tuple[float, ...]:
     pool = ProcessPoolExecutor(1, mp_context=worker_context(), initializer=pool_init,
                                initargs=(NoFactory(),))
     try:
@@ -80,7 +86,8 @@ async def pool_round(request: FrameRequest, slots: ImageSlots, calls: int) -> tu
         pool.shutdown()
 
 
-async def pipe_round(request: FrameRequest, slots: ImageSlots, calls: int) -> tuple[float, ...]:
+async def pipe_round(request: FrameRequest, slots: ImageSlots | None,
+                     calls: int) -> tuple[float, ...]:
     worker = WorkerPipe(worker_context(), NoFactory(), lambda _pipe: None)
     await worker.ready
     try:
@@ -94,6 +101,8 @@ def main() -> None:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--calls", type=int, default=1000)
     parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--pickled", action="store_true",
+                        help="the images pickled with the request (no free slot), not in a slot")
     args = parser.parse_args()
     with contextlib.suppress(ImportError):
         import uvloop
@@ -103,13 +112,16 @@ def main() -> None:
     request = FrameRequest("handoff", 0, 0, left, right, ImageLimits(4096, 4096, 1 << 24),
                            (752, 480))
     slots = ImageSlots(2, 1 << 20)
-    print(f"load average {os.getloadavg()[0]:.2f}; {len(left) + len(right)} bytes per pair")
+    where = "pickled with the request" if args.pickled else "in a shared slot"
+    print(f"load average {os.getloadavg()[0]:.2f}; {len(left) + len(right)} bytes per pair, "
+          f"{where}")
     print("| hand-off | server CPU ms/call | worker CPU ms/call | wall ms/call |")
     print("|---|---:|---:|---:|")
     try:
         for _ in range(args.rounds):
             for name, run in (("process pool", pool_round), ("worker pipe", pipe_round)):
-                server, worker, wall = asyncio.run(run(request, slots, args.calls))
+                server, worker, wall = asyncio.run(
+                    run(request, None if args.pickled else slots, args.calls))
                 print(f"| {name} | {server:.3f} | {worker:.3f} | {wall:.3f} |")
     finally:
         slots.close()

@@ -46,11 +46,16 @@ class _Call:
     over: list[Callable[[], None]] = field(default_factory=list)  # once the worker is done
 
 
+def frame_header(size: int) -> bytes:
+    """What precedes a message of ``size`` bytes for ``Connection.recv_bytes``: its length."""
+    if size > 0x7FFFFFFF:
+        return _SHORT.pack(-1) + _LONG.pack(size)
+    return _SHORT.pack(size)
+
+
 def frame_bytes(payload: bytes) -> bytes:
     """A message as ``Connection.recv_bytes`` expects it: its length, then the bytes."""
-    if len(payload) > 0x7FFFFFFF:
-        return _SHORT.pack(-1) + _LONG.pack(len(payload)) + payload
-    return _SHORT.pack(len(payload)) + payload
+    return frame_header(len(payload)) + payload
 
 
 def split_frames(buffer: bytearray) -> list[bytes]:
@@ -130,11 +135,14 @@ class WorkerPipe:
         if over is not None:
             call.over.append(over)
         self._calls[self._next_id] = call
-        self._write(frame_bytes(bytes(payload)))
+        if len(payload) < _READ_SIZE:  # one write
+            self._write(memoryview(frame_bytes(bytes(payload))))
+        else:  # no copy of a large payload (a frame's images when no slot was free)
+            self._write(memoryview(frame_header(len(payload))))
+            self._write(memoryview(payload))
         return call.future
 
-    def _write(self, data: bytes) -> None:
-        view = memoryview(data)
+    def _write(self, view: memoryview) -> None:
         if not self._outbox:
             try:
                 view = view[os.write(self._fd, view):]
