@@ -112,3 +112,23 @@ def test_a_stop_kills_a_worker_stuck_in_a_call_nobody_waits_for() -> None:
         assert time.monotonic() - started < 30 and exits == [worker] and not worker.alive
 
     asyncio.run(_with_worker(test))
+
+
+def test_frames_reach_a_worker_without_any_thread_of_the_server(tmp_path: Path) -> None:
+    """No process pool: its manager and call-queue feeder threads woke on every frame."""
+    import threading
+    from concurrent.futures.process import _ExecutorManagerThread
+
+    from fastapi.testclient import TestClient
+    from test_service_units import ProcessFactory, new_session, send, settings_for
+
+    from service.app import create_app
+
+    settings = settings_for(tmp_path, executor="process", workers=2)
+    with TestClient(create_app(settings, ProcessFactory())) as c:
+        session = new_session(c)
+        assert send(c, session, 10).status_code == 200
+        assert send(c, session, 20).status_code == 200
+        pool_threads = [t.name for t in threading.enumerate()
+                        if isinstance(t, _ExecutorManagerThread) or t.name == "QueueFeederThread"]
+    assert pool_threads == []
