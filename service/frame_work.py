@@ -16,7 +16,7 @@ import time
 import traceback
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -26,7 +26,9 @@ from service.answer import FrameAnswer, OdometryOut, SmoothedPose
 from service.estimator_adapter import Pipeline, PipelineFactory, PreparedSession
 from service.images import ImageError, ImageLimits, decode_pair, decode_raw_pair
 from service.shared_images import SharedPair
-from service.storage import SmoothedPose as StoredSmoothedPose
+
+if TYPE_CHECKING:  # a type alias only: the storage package would load SQLAlchemy in workers
+    from service.storage import SmoothedPose as StoredSmoothedPose
 
 logger = logging.getLogger("swarmvo.service")
 

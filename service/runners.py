@@ -1,7 +1,8 @@
 """Runners: where a session's frames are executed, a pinned worker process or a thread.
 
-:class:`ProcessRunner` keeps one single-process executor per worker, pins each session to one
-(least-loaded first), replaces a worker that dies or gets stuck, and drains them at shutdown.
+:class:`ProcessRunner` keeps one worker process per slot, each behind a pipe the event loop
+reads and writes itself, pins each session to one (least-loaded first), replaces a worker that
+dies or gets stuck, and drains them at shutdown.
 :class:`ThreadRunner` has the same interface in-process, for factories that only make sense
 there (test doubles whose state the caller inspects). The work of a frame itself is in
 :mod:`service.frame_work`; what runs inside a worker process, in :mod:`service.worker_process`.
@@ -10,13 +11,12 @@ there (test doubles whose state the caller inspects). The work of a frame itself
 from __future__ import annotations
 
 import asyncio
+import atexit
 import contextlib
 import logging
 import os
-import signal
 from collections.abc import Callable
-from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol, TypeVar
 
@@ -32,14 +32,13 @@ from service.frame_work import (
 from service.settings import Executor
 from service.shared_images import ImageSlots
 from service.storage import SmoothedPose as StoredSmoothedPose
+from service.worker_pipe import WorkerDied, WorkerPipe
 from service.worker_process import (
     worker_check,
     worker_context,
     worker_drop,
     worker_finish,
     worker_frame,
-    worker_init,
-    worker_pid,
     worker_prepare,
 )
 
@@ -137,14 +136,15 @@ class ThreadRunner:
 
 @dataclass
 class _Slot:
-    executor: ProcessPoolExecutor
+    worker: WorkerPipe | None = None  # None: not started, or could not be started
     generation: int = 0
     sessions: set[str] = field(default_factory=set)
-    pid: int | None = None
+    pid: int | None = None  # known once the worker is warmed up
 
 
 class ProcessRunner:
-    """``workers`` single-process executors; a session's frames always go to its own one."""
+    """``workers`` worker processes, each behind its own pipe that the event loop reads and
+    writes (:mod:`service.worker_pipe`); a session's frames always go to its own worker."""
 
     mode: Executor = "process"
 
@@ -162,36 +162,85 @@ class ProcessRunner:
         self.on_restart = on_restart
         self.context = worker_context()
         self.images = _image_slots(image_slots, image_slot_bytes)
-        self.slots = [_Slot(self._executor()) for _ in range(workers)]
+        self.slots = [_Slot() for _ in range(workers)]
         self.restarts = 0
         self._closing = False
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._warming: set[asyncio.Task[None]] = set()
 
-    def _executor(self) -> ProcessPoolExecutor:
-        return ProcessPoolExecutor(
-            1, mp_context=self.context, initializer=worker_init, initargs=(self.factory,)
-        )
-
-    async def _warm(self, slot: _Slot) -> None:
-        """Start the process and let it import the estimator before frames wait on it."""
+    def _spawn(self, index: int) -> None:
+        """Start a worker process for slot ``index`` and warm it up in the background."""
+        state = self.slots[index]
+        generation = state.generation
         try:
-            slot.pid = await asyncio.wrap_future(slot.executor.submit(worker_pid))
+            state.worker = WorkerPipe(
+                self.context, self.factory,
+                lambda pipe: self._exited(index, generation, pipe),
+            )
+        except Exception as error:
+            state.worker = None
+            logger.error(
+                "a worker process failed to start: %r (in process mode the pipeline factory "
+                "must be picklable and its warm_up must succeed)", error
+            )
+            return
+        warm = asyncio.get_running_loop().create_task(self._warm(state, state.worker))
+        warm.add_done_callback(_ignore_outcome)
+        self._warming.add(warm)
+        warm.add_done_callback(self._warming.discard)
+
+    async def _warm(self, state: _Slot, worker: WorkerPipe) -> None:
+        try:
+            pid = await worker.ready
         except Exception as error:
             logger.error(
                 "a worker process failed to start: %r (in process mode the pipeline factory "
                 "must be picklable and its warm_up must succeed)", error
             )
+            return
+        if state.worker is worker:
+            state.pid = pid
 
     async def start(self) -> None:
-        await asyncio.gather(*(self._warm(slot) for slot in self.slots))
+        """Start the workers and let them import the estimator before frames wait on them."""
+        self._loop = asyncio.get_running_loop()
+        atexit.register(self._close_pipes)  # else multiprocessing's exit would wait for them
+        for index in range(len(self.slots)):
+            self._spawn(index)
+        if self._warming:
+            await asyncio.gather(*self._warming)
         if any(slot.pid is None for slot in self.slots):
             await self.shutdown()
             raise RuntimeError("worker processes could not be started (see the log)")
 
     def assign(self, session_id: str) -> int:
         """Pin the session to the least-loaded worker (fewest live sessions, lowest index)."""
-        slot = min(range(len(self.slots)), key=lambda i: (len(self.slots[i].sessions), i))
+        slot = self._least_loaded()
         self.slots[slot].sessions.add(session_id)
         return slot
+
+    def _least_loaded(self) -> int:
+        return min(range(len(self.slots)), key=lambda i: (len(self.slots[i].sessions), i))
+
+    def _blocking_call(self, function: Callable[..., T], *args: Any) -> T:
+        """``function(*args)`` in the least-loaded worker, from a thread other than the loop's
+        (blocking). Raises what the function raised, or another error if no worker could."""
+        loop = self._loop
+        if loop is None or loop.is_closed() or _on_loop(loop):
+            raise RuntimeError("no worker reachable from here")
+
+        async def on_loop() -> T:
+            worker = self.slots[self._least_loaded()].worker
+            if worker is None or not worker.alive:
+                raise WorkerDied("the worker process is gone")
+            return await worker.call(function, *args)
+
+        future = asyncio.run_coroutine_threadsafe(on_loop(), loop)
+        try:
+            return future.result(timeout=self.frame_timeout_s)
+        except TimeoutError:
+            future.cancel()
+            raise
 
     def prepare_session(self, request: PrepareRequest) -> PreparedSession:
         """Validate a new session in a worker (blocking; call it from a thread).
@@ -200,25 +249,21 @@ class ProcessRunner:
         has them loaded anyway, the server process stays without them (docs/performance.md). A
         worker that cannot answer is not a reason to refuse: the preparation then runs here.
         """
-        slot = min(range(len(self.slots)), key=lambda i: (len(self.slots[i].sessions), i))
         try:
-            future = self.slots[slot].executor.submit(worker_prepare, request)
-            return future.result(timeout=self.frame_timeout_s)
+            return self._blocking_call(worker_prepare, request)
         except ValueError:
             raise  # the session's own problem, with its message
-        except Exception:  # broken, replaced or stuck worker
+        except Exception:  # dead, replaced or stuck worker
             return self.factory.prepare(*request)
 
     def call(self, function: Callable[..., T], *args: Any) -> T:
         """``function(*args)`` in a worker (blocking): the calibration file readers, which
         import OpenCV and SciPy, as ``prepare_session``. Module-level functions only."""
-        slot = min(range(len(self.slots)), key=lambda i: (len(self.slots[i].sessions), i))
         try:
-            future = self.slots[slot].executor.submit(function, *args)
-            return future.result(timeout=self.frame_timeout_s)
+            return self._blocking_call(function, *args)
         except ValueError:
             raise
-        except Exception:  # broken, replaced or stuck worker
+        except Exception:  # dead, replaced or stuck worker
             return function(*args)
 
     def check_session(self, prepared: PreparedSession) -> None:
@@ -228,55 +273,50 @@ class ProcessRunner:
         the server process stays free of it (a few hundred MB less, docs/performance.md). A
         worker that cannot answer is not a reason to refuse: the check then runs here.
         """
-        slot = min(range(len(self.slots)), key=lambda i: (len(self.slots[i].sessions), i))
         try:
-            future = self.slots[slot].executor.submit(worker_check, prepared)
-            problem = future.result(timeout=self.frame_timeout_s)
-        except Exception:  # broken, replaced or stuck worker
+            problem = self._blocking_call(worker_check, prepared)
+        except Exception:  # dead, replaced or stuck worker
             problem = session_problem(self.factory, prepared)
         if problem is not None:
             raise ValueError(problem)
 
     def release(self, slot: int, session_id: str) -> None:
         """Forget the session and free its pipeline's memory in the worker."""
-        self.slots[slot].sessions.discard(session_id)
-        if self._closing:
-            return
-        try:
-            future = self.slots[slot].executor.submit(worker_drop, session_id)
-        except (BrokenProcessPool, RuntimeError):
+        state = self.slots[slot]
+        state.sessions.discard(session_id)
+        if self._closing or state.worker is None or not state.worker.alive:
             return  # a dead or replaced worker holds nothing any more
-        future.add_done_callback(_ignore_outcome)
+        state.worker.call(worker_drop, session_id).add_done_callback(_ignore_outcome)
 
-    def _submit_frame(self, executor: ProcessPoolExecutor,
-                      request: FrameRequest) -> Future[FrameProcessed | FrameFailure]:
-        """Submit a frame, its images in a shared slot when one is free (given back once the
-        worker's call is over, whatever its outcome), else pickled with the request."""
+    def _send_frame(self, worker: WorkerPipe,
+                    request: FrameRequest) -> asyncio.Future[FrameProcessed | FrameFailure]:
+        """Send a frame, its images in a shared slot when one is free (given back once the
+        worker is done with the call, whatever its outcome), else pickled with the request."""
         images = self.images
         if images is None or (pair := images.put(request.left, request.right)) is None:
-            return executor.submit(worker_frame, request)
+            return worker.call(worker_frame, request)
         try:
-            future = executor.submit(
-                worker_frame, replace(request, left=b"", right=b"", shared=pair)
-            )
+            return worker.call(worker_frame, replace(request, left=b"", right=b"", shared=pair),
+                               over=lambda: images.release(pair))
         except BaseException:
             images.release(pair)
             raise
-        future.add_done_callback(lambda _future: images.release(pair))
-        return future
 
     async def run(self, slot: int, request: FrameRequest) -> FrameProcessed | FrameFailure:
         for _attempt in range(2):
             state = self.slots[slot]
             generation = state.generation
-            try:
-                future = self._submit_frame(state.executor, request)
-            except BrokenProcessPool:
-                # It died while idle: this frame never reached it, so a fresh worker may take it
-                # (the session's pipeline is gone there and gets rebuilt).
+            worker = state.worker
+            if worker is None or not worker.alive:
+                # It died before this frame (or never started): this frame never reached it,
+                # so a fresh worker may take it (the session's pipeline is rebuilt there).
                 self._replace(slot, generation)
                 continue
-            answer = asyncio.wrap_future(future)
+            try:
+                answer = self._send_frame(worker, request)
+            except WorkerDied:  # its pipe closed just now: the frame did not reach it either
+                self._replace(slot, generation)
+                continue
             try:
                 while True:
                     try:
@@ -286,12 +326,10 @@ class ProcessRunner:
                         if self._kill(slot, generation):
                             break
                         # Its process id is not known yet (still starting): wait once more.
-            except BrokenProcessPool:
-                self._replace(slot, generation)
+            except WorkerDied:
                 break
             with contextlib.suppress(Exception):
-                await answer  # fails (the process is gone) or completed just now
-            self._replace(slot, generation)
+                await answer  # fails once the process is gone, or completed just now
             return FrameFailure(
                 503,
                 f"the frame was not done after {self.frame_timeout_s:g} s; the worker process "
@@ -310,50 +348,62 @@ class ProcessRunner:
 
     def finish(self, slot: int, session_id: str) -> asyncio.Future[list[StoredSmoothedPose]]:
         """Flush the session's back end in its worker, queued before any later frame of it."""
-        try:
-            future = self.slots[slot].executor.submit(worker_finish, session_id)
-        except (BrokenProcessPool, RuntimeError):
+        worker = self.slots[slot].worker
+        if worker is None or not worker.alive or self._closing:
             return _done([])  # a dead or replaced worker holds nothing any more
-        return asyncio.wrap_future(future)
+        return worker.call(worker_finish, session_id)
 
     def _kill(self, slot: int, generation: int) -> bool:
         """SIGKILL a stuck worker (a thread cannot be stopped; a process can)."""
         state = self.slots[slot]
-        if state.generation != generation or state.pid is None:
+        if state.generation != generation or state.pid is None or state.worker is None:
             return False
         logger.error("worker process %s (pid %s) is stuck; killing it", slot, state.pid)
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(state.pid, signal.SIGKILL)
+        state.worker.kill()
         return True
 
+    def _exited(self, slot: int, generation: int, worker: WorkerPipe) -> None:
+        """A worker process ended: replace it at once if it had been working (one that died
+        while warming up is replaced by the next frame that needs it, so no start-up loop)."""
+        state = self.slots[slot]
+        if state.generation == generation and state.worker is worker and state.pid is not None:
+            self._replace(slot, generation)
+
     def _replace(self, slot: int, generation: int) -> None:
-        """Swap a broken executor for a fresh process (once, however many frames noticed)."""
+        """Swap a dead worker for a fresh process (once, however many frames noticed)."""
         state = self.slots[slot]
         if state.generation != generation or self._closing:
             return
         logger.error("worker process %s (pid %s) died; starting a new one", slot, state.pid)
-        old = state.executor
-        state.executor = self._executor()
         state.generation += 1
         state.pid = None
         self.restarts += 1
         if self.on_restart is not None:
             self.on_restart()
-        old.shutdown(wait=False, cancel_futures=True)
-        warm = asyncio.get_running_loop().create_task(self._warm(state))
-        warm.add_done_callback(_ignore_outcome)
+        self._spawn(slot)
 
     def worker_pids(self) -> list[int | None]:
         return [slot.pid for slot in self.slots]
 
     async def shutdown(self) -> None:
+        """Let every worker finish the calls it has, then stop it (pipe closed, SIGKILL after
+        ``frame_timeout_s``)."""
         self._closing = True
+        for task in list(self._warming):
+            task.cancel()
         await asyncio.gather(
-            *(asyncio.to_thread(slot.executor.shutdown, True, cancel_futures=True)
-              for slot in self.slots)
+            *(slot.worker.stop(self.frame_timeout_s) for slot in self.slots
+              if slot.worker is not None)
         )
+        atexit.unregister(self._close_pipes)
         if self.images is not None:  # the workers are gone: nobody reads the slots any more
             self.images.close()
+
+    def _close_pipes(self) -> None:
+        """At interpreter exit without a shutdown: close the pipes so the workers leave."""
+        for slot in self.slots:
+            if slot.worker is not None:
+                slot.worker.close_pipe_now()
 
 
 def _image_slots(count: int, slot_bytes: int) -> ImageSlots | None:
@@ -365,6 +415,13 @@ def _image_slots(count: int, slot_bytes: int) -> ImageSlots | None:
     except OSError as error:
         logger.warning("no shared memory for the images (%r); they go through the pipe", error)
         return None
+
+
+def _on_loop(loop: asyncio.AbstractEventLoop) -> bool:
+    try:
+        return asyncio.get_running_loop() is loop
+    except RuntimeError:
+        return False
 
 
 def _done(value: Any) -> asyncio.Future[Any]:

@@ -52,7 +52,7 @@ class ServiceSettings(BaseSettings):
     # sessions of the worker keep their state. 0 = no budget.
     frame_cpu_budget_s: float = Field(0.5, ge=0, le=3600)
     # Process mode: shared-memory slots that carry a frame's encoded images to its worker
-    # instead of pickling them through the pool's pipe (service.shared_images), and the bytes
+    # instead of pickling them through the worker's pipe (service.shared_images), and the bytes
     # of one slot (both images). A frame finding no free slot, or larger than one, goes
     # through the pipe. 0 slots = always the pipe.
     image_slots: int = Field(16, ge=0, le=4096)

@@ -1,8 +1,8 @@
 """A frame's encoded images handed to a worker process through shared memory.
 
-Pickling a request through the process pool's pipe copies the two images (about 0.7 MB for a
-752x480 PNG pair) several times, on both sides, and the pool's feeder thread takes the server's
-GIL for it (docs/performance.md, "Service: where a frame's CPU goes"). Here the server copies
+Pickling a request through the worker's pipe copies the two images (about 0.7 MB for a
+752x480 PNG pair) on both sides and takes several writes and reads of the pipe
+(docs/performance.md, "Service: where a frame's CPU goes"). Here the server copies
 them once into a slot of one shared segment and sends only the slot's place; the worker reads
 them where they are. A slot is given back once the worker's call is over (answered, failed,
 cancelled or the worker died), never earlier, so a worker never reads a slot being refilled.
@@ -36,7 +36,7 @@ class SharedPair:
 class ImageSlots:
     """``count`` slots of ``slot_bytes`` in one shared segment, owned by the server process.
 
-    Thread-safe: slots are taken on the event loop and given back from the pool's threads.
+    Thread-safe (slots are taken and given back on the event loop; a lock costs little).
     The most recently freed slot is taken first, so that only as many slots as are in use at
     once are ever touched (pages of unused slots are never mapped in).
     """

@@ -1,8 +1,9 @@
 """The inside of a worker process: its one pipeline factory, its pipelines, its entry points.
 
 A worker holds the pipelines of the sessions pinned to it in a module-level dict; the server
-calls the small functions below through a single-process executor (they must be importable by
-name, hence module level).
+calls the small functions below through the worker's pipe (``worker_serve`` reads the calls;
+they must be importable by name, hence module level; the server side is
+:mod:`service.worker_pipe`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,9 @@ import os
 import signal
 import threading
 from dataclasses import replace
+from multiprocessing.connection import Connection
 from multiprocessing.context import BaseContext
+from typing import TYPE_CHECKING
 
 from service.estimator_adapter import Pipeline, PipelineFactory, PreparedSession
 from service.frame_work import (
@@ -28,7 +31,9 @@ from service.frame_work import (
 )
 from service.memory import trim_free_memory
 from service.shared_images import read_pair
-from service.storage import SmoothedPose as StoredSmoothedPose
+
+if TYPE_CHECKING:  # a type alias only: the storage package would load SQLAlchemy (28 MB)
+    from service.storage import SmoothedPose as StoredSmoothedPose
 
 _factory: PipelineFactory | None = None
 _pipelines: dict[str, Pipeline] = {}
@@ -73,6 +78,37 @@ def worker_init(factory: PipelineFactory) -> None:
         warm_up()
 
 
+def worker_serve(connection: Connection, factory: PipelineFactory) -> None:
+    """The worker's main loop: warm up, say so, then answer ``(id, function, args)`` calls in
+    order until the server closes the pipe. Answers are ``(id, ok, value)``; id 0 is the
+    warm-up's (the pid, or the error that stops the worker)."""
+    try:
+        worker_init(factory)
+    except BaseException as error:  # the server logs it and gives up on this worker
+        connection.send((0, False, f"the worker's warm-up failed: {error!r}"))
+        raise
+    try:
+        connection.send((0, True, os.getpid()))
+    except OSError:  # the server is gone already
+        return
+    while True:
+        try:
+            call_id, function, args = connection.recv()
+        except (EOFError, OSError):  # the server closed the pipe: stopping
+            return
+        try:
+            answer = (call_id, True, function(*args))
+        except Exception as error:
+            answer = (call_id, False, error)
+        try:
+            connection.send(answer)
+        except OSError:  # the server is gone or stopped us: nobody reads the answer
+            return
+        except Exception as error:  # an answer or an error that cannot be pickled
+            connection.send((call_id, False, RuntimeError(
+                f"the worker could not send its answer back: {error!r}")))
+
+
 def worker_frame(request: FrameRequest) -> FrameProcessed | FrameFailure:
     assert _factory is not None
     if request.shared is not None:
@@ -108,7 +144,3 @@ def release_memory() -> None:
     (a worker otherwise keeps the memory of every session it ever held; docs/performance.md)."""
     gc.collect()
     trim_free_memory()
-
-
-def worker_pid() -> int:
-    return os.getpid()

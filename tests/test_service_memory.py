@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import ctypes
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -83,3 +85,35 @@ def test_the_server_trims_on_its_interval_and_stops_at_shutdown(
 def test_a_negative_trim_interval_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ValidationError):
         ServiceSettings(data_dir=tmp_path, api_keys="k", memory_trim_interval_s=-1)
+
+
+# A fresh interpreter, as a worker is: what a worker does for an EuRoC session with IMU (read
+# the rig, the IMU noise and the rate; warm up; a frame of the default pipeline) must not pull
+# in scipy.spatial (with scipy.sparse and scipy.special about 25 MB per process; only the SIFT
+# and KLT matchers and the ground-truth readers need it), nor the server's database layer
+# (SQLAlchemy, about 28 MB).
+WORKER_IMPORTS = """
+import sys
+from pathlib import Path
+from service.estimator_adapter import (
+    EstimatorFactory, euroc_calibration, euroc_frame_rate, euroc_imu_noise, synthetic_run,
+)
+import service.worker_pipe
+import service.worker_process
+mav0 = Path(sys.argv[1]) / "mav0"
+cam0 = (mav0 / "cam0" / "sensor.yaml").read_bytes()
+euroc_calibration(cam0, (mav0 / "cam1" / "sensor.yaml").read_bytes())
+euroc_imu_noise((mav0 / "imu0" / "sensor.yaml").read_bytes())
+euroc_frame_rate(cam0)
+synthetic_run(EstimatorFactory())
+print(sorted(m for m in sys.modules if m.startswith(("scipy.spatial", "sqlalchemy"))))
+"""
+
+
+def test_a_worker_imports_neither_scipy_spatial_nor_sqlalchemy(euroc_v101_micro: Path) -> None:
+    done = subprocess.run(
+        [sys.executable, "-c", WORKER_IMPORTS, str(euroc_v101_micro)],
+        cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True, timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.strip().splitlines()[-1] == "[]"

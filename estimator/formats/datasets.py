@@ -17,7 +17,6 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from estimator.formats.calibration import StereoRig
 from estimator.formats.calibration_files import load_euroc_rig, load_kitti_rig, read_opencv_yaml
@@ -94,6 +93,10 @@ class GroundTruth:
         if len(self.timestamps_ns) == 1:
             result[:, :3, :3] = self.poses[0, :3, :3]
         else:
+            # Imported here: reading a rig or IMU noise (what the service's workers do) needs
+            # no SciPy, and scipy.spatial costs a process about 25 MB.
+            from scipy.spatial.transform import Rotation, Slerp
+
             slerp = Slerp(gt_s, Rotation.from_matrix(self.poses[:, :3, :3]))
             result[:, :3, :3] = slerp(query_s).as_matrix()
         # Where the query hits a row exactly, return that row untouched (no float round trip).
@@ -294,6 +297,8 @@ def read_euroc_ground_truth(csv: Path) -> GroundTruth:
     norms = np.linalg.norm(quats_wxyz, axis=1)
     if (norms < 1e-6).any():
         raise ValueError(f"{csv}: zero quaternion in row {int(np.argmax(norms < 1e-6)) + 1}")
+    from scipy.spatial.transform import Rotation  # here: see GroundTruth.interpolate
+
     poses = np.tile(np.eye(4), (len(timestamps), 1, 1))
     poses[:, :3, :3] = Rotation.from_quat(quats_wxyz[:, [1, 2, 3, 0]]).as_matrix()
     poses[:, :3, 3] = values[:, 0:3]

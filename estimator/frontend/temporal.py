@@ -18,7 +18,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from estimator.config import FrontendConfig
 from estimator.formats.calibration import Rectification
@@ -115,6 +114,9 @@ def _candidate_pairs(
     if len(finite) == 0 or len(observed) == 0:
         empty = np.zeros(0, dtype=np.intp)
         return empty, empty
+    # Imported here: SciPy (about 50 MB per process) serves only the SIFT and KLT paths.
+    from scipy.spatial import cKDTree
+
     pairs = cKDTree(expected[finite]).sparse_distance_matrix(
         cKDTree(observed), radius, output_type="ndarray"
     )
@@ -298,6 +300,8 @@ def track_klt(
         & (backward.ravel() == 1)
         & (np.linalg.norm(back - start, axis=1) < _KLT_ROUND_TRIP_PX)
     )
+    from scipy.spatial import cKDTree  # only this path needs SciPy (see _candidate_pairs)
+
     distance, nearest = cKDTree(current.pixels).query(
         tracked.astype(float), distance_upper_bound=config.klt_association_px
     )
