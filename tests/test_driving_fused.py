@@ -42,3 +42,33 @@ def test_fused_drive_rotation_is_no_worse_than_vision_alone(euroc_drive):
     assert vision["fused"] < 0.01  # the drive's vision is precise: a meaningful comparison
     assert fused["fused"] <= 1.1 * vision["fused"]
     assert fused["smoothed"] <= 1.1 * vision["smoothed"]
+
+
+def _summary(rotation: float) -> dict[str, float]:
+    return {
+        "final_drift_pct": 0.1,
+        "rpe_rot_rmse_deg": rotation,
+        "frames_failed": 0,
+        "matches_median": 400.0,
+        "fps": 10.0,
+        "path_length_m": 520.0,
+    }
+
+
+def test_bench_driving_table_has_a_row_per_mode_and_compares_fused_with_vision():
+    from estimator.bench.driving import _table
+
+    results = {
+        "pso-robust": {
+            "vision": {"0": _summary(0.0025), "1": _summary(0.0026)},
+            "fused": {"0": _summary(0.0024), "1": _summary(0.0040)},
+        }
+    }
+    table = _table(results)
+    assert "| pso-robust vision seed 0 |" in table and "| pso-robust fused seed 1 |" in table
+    assert "**pso-robust fused mean**" in table
+    assert "fused rotation worse than vision alone on seeds 1: MISS" in table
+    results["pso-robust"]["fused"]["1"] = _summary(0.0026)
+    assert "no worse than vision alone on every seed: PASS" in _table(results)
+    # Vision alone only: no comparison line.
+    assert "fused rotation" not in _table({"msac": {"vision": {"0": _summary(0.003)}}})
