@@ -239,10 +239,12 @@ class BackendConfig(_Section):
     max_rotation_sigma_rad: float = Field(0.2, gt=0)
     fallback_residual_m: float = Field(0.05, gt=0)  # when no residuals are given
     # Full covariance of the fit when the front end hands over the inlier points: a scale on it
-    # and floors added to its diagonal (the max sigmas above act as a weak prior).
+    # and floors added to its diagonal (the max sigmas above act as a weak prior). None: from
+    # the rig (estimator/rig_settings.py): 0.1 mrad and 0.5 mm for a real rig, a fifth of that
+    # for one whose calibration is exact (backend/systematic_noise.py, ``fit_floor``).
     fit_covariance_scale: float = Field(1.0, gt=0)
-    fit_min_rotation_sigma_rad: float = Field(1e-4, ge=0)
-    fit_min_translation_sigma_m: float = Field(5e-4, ge=0)
+    fit_min_rotation_sigma_rad: float | None = Field(None, ge=0)
+    fit_min_translation_sigma_m: float | None = Field(None, ge=0)
     # Reported covariances (backend/covariance_scale.py): a per-session factor on them, measured
     # online from the gyro ("gyro"; 1 without an IMU) or none ("off"); within
     # [1 / max, max]; over the last ``window`` measurements; allowing for a gyro bias error

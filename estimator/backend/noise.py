@@ -19,6 +19,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from estimator.backend.systematic_noise import fit_floor_covariance
 from estimator.config import BackendConfig
 from estimator.geometry import skew
 
@@ -86,8 +87,8 @@ def fit_covariance(
     information += np.diag(
         [config.max_rotation_sigma_rad**-2] * 3 + [config.max_translation_sigma_m**-2] * 3
     )
-    floor = [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
-    covariance = config.fit_covariance_scale**2 * np.linalg.inv(information) + np.diag(floor)
+    floor = fit_floor_covariance(config)
+    covariance = config.fit_covariance_scale**2 * np.linalg.inv(information) + floor
     return 0.5 * (covariance + covariance.T)
 
 
@@ -96,8 +97,7 @@ def measured_covariance(covariance: np.ndarray, config: BackendConfig) -> np.nda
     covariance = np.asarray(covariance, dtype=float)
     if covariance.shape != (6, 6) or not np.all(np.isfinite(covariance)):
         raise ValueError("covariance must be a finite 6x6 matrix")
-    floor = [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
-    covariance = config.fit_covariance_scale**2 * covariance + np.diag(floor)
+    covariance = config.fit_covariance_scale**2 * covariance + fit_floor_covariance(config)
     return 0.5 * (covariance + covariance.T)
 
 
