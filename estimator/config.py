@@ -250,6 +250,12 @@ class BackendConfig(_Section):
     # [1 / max, max]; over the last ``window`` measurements; allowing for a gyro bias error
     # of ``gyro_bias_sigma`` rad/s. The back end's factor noise does not change.
     covariance_scale: Literal["gyro", "off"] = "gyro"
+    # Correlation of the errors of consecutive measurements against one keyframe (they share
+    # its stereo points; half of each fit's error is the keyframe's when both frames' points
+    # are equally noisy). The graph counts them as independent, so its pose covariance grows
+    # too slowly: the reported growth is multiplied by 1 + 2 x this (the variance of a sum of
+    # errors with that lag-1 correlation; backend/systematic_noise.py, ``shared_error_growth``).
+    keyframe_error_correlation: float = Field(0.5, ge=0, lt=1)
     covariance_scale_max: float = Field(16.0, ge=1)
     covariance_scale_window: int = Field(400, ge=5)
     covariance_scale_gyro_bias_sigma: float = Field(2e-4, ge=0)

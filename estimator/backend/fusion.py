@@ -43,6 +43,7 @@ from estimator.backend.smoother import (
 )
 from estimator.backend.standstill import StartupRest
 from estimator.backend.step import Step
+from estimator.backend.systematic_noise import shared_error_growth
 from estimator.backend.vision_factors import PreviousFrame, VisionFactors
 from estimator.backend.window import FrameWindow, OpenFrame
 from estimator.config import BackendConfig
@@ -69,6 +70,7 @@ class FusionBackend:
         self.use_imu = bool(config.use_imu and imu_noise is not None)
         self._use_accel = bool(self.use_imu and config.use_accelerometer)
         self._calibration = GyroCalibration(config, self.body_from_camera) if self.use_imu else None
+        self._shared_error_growth = shared_error_growth(config)
         self._imu: ImuTerms | None = None
         if self.use_imu:
             assert imu_noise is not None
@@ -391,6 +393,8 @@ class FusionBackend:
             self._gravity = self._smoother.vector(GRAVITY_KEY)
             self._accel_bias = self._smoother.vector(ACCEL_BIAS_KEY)
         covariance, motion_covariance = self._smoother.marginals(self._index, motion)
+        if covariance is not None and self.use_imu:
+            covariance = self._shared_error_growth * covariance
         return FusedEstimate(
             pose=self._body_pose @ self.body_from_camera,
             body_pose=self._body_pose.copy(),
