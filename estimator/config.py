@@ -225,7 +225,13 @@ class BackendConfig(_Section):
     extra_iterations: int = Field(1, ge=0, le=10)  # extra iSAM2 steps per frame
     # Robust kernel on the front-end relative poses (threshold on the whitened 6-DOF error).
     robust_kernel: Literal["huber", "cauchy", "none"] = "cauchy"
-    robust_parameter: float = Field(3.0, gt=0)
+    # The online answer (backend/answer.py): the previous answer moved on by the newest motion,
+    # pulled towards the smoother's newest pose with this time constant (s), so the revisions
+    # of past frames reach it gradually. None: the smoother's lag; 0: the newest pose itself.
+    answer_smoothing_s: float | None = Field(None, ge=0)
+    # None: from the chi-square of 6 DOF, so that a consistent measurement keeps nearly full
+    # weight (backend/noise.py, ``kernel_scale``: Cauchy 12.3, Huber 4.1).
+    robust_parameter: float | None = Field(None, gt=0)
     # Relative poses further than this (squared Mahalanobis distance, 6 DOF) from the
     # prediction (gyro rotation, constant-velocity translation) are not added; None: keep all.
     outlier_gate_chi2: float | None = Field(30.0, gt=0)
