@@ -227,10 +227,12 @@ class BackendConfig(_Section):
     robust_kernel: Literal["huber", "cauchy", "none"] = "cauchy"
     # The online answer (backend/answer.py): the previous answer moved on by the newest motion,
     # pulled towards the smoother's newest pose with this time constant (s), so the revisions
-    # of past frames reach it gradually. None: the smoother's lag; 0: the newest pose itself.
+    # of past frames reach it gradually; 0: the newest pose itself. None: from the rig
+    # (estimator/rig_settings.py): the smoother's lag for a rig whose calibration is exact, else 0.
     answer_smoothing_s: float | None = Field(None, ge=0)
-    # None: from the chi-square of 6 DOF, so that a consistent measurement keeps nearly full
-    # weight (backend/noise.py, ``kernel_scale``: Cauchy 12.3, Huber 4.1).
+    # None: from the rig (estimator/rig_settings.py; backend/noise.py, ``kernel_scale``): 3 for
+    # a real rig; for one whose calibration is exact, from the chi-square of 6 DOF so that a
+    # consistent measurement keeps nearly full weight (Cauchy 12.3, Huber 4.1).
     robust_parameter: float | None = Field(None, gt=0)
     # Relative poses further than this (squared Mahalanobis distance, 6 DOF) from the
     # prediction (gyro rotation, constant-velocity translation) are not added; None: keep all.

@@ -72,8 +72,7 @@ class FusionBackend:
         self._use_accel = bool(self.use_imu and config.use_accelerometer)
         self._calibration = GyroCalibration(config, self.body_from_camera) if self.use_imu else None
         self._shared_error_growth = shared_error_growth(config)
-        tau = config.answer_smoothing_s
-        self._answer = SmoothedAnswer(config.smoother_lag_s if tau is None else tau)
+        self._answer = SmoothedAnswer(config.answer_smoothing_s or 0.0)
         self._imu: ImuTerms | None = None
         if self.use_imu:
             assert imu_noise is not None
