@@ -31,6 +31,7 @@ from service.app import create_app
 
 GAINS = ("calibration_rotation_gain", "calibration_translation_gain")
 FLOORS = ("fit_min_rotation_sigma_rad", "fit_min_translation_sigma_m")
+WEIGHTS = ("robust_parameter", "answer_smoothing_s")
 
 
 def _gains(config: SwarmvoConfig) -> tuple[float | None, float | None]:
@@ -62,7 +63,10 @@ def test_a_synthesized_flight_opened_from_disk_is_exact_and_has_zero_gains(
     assert _gains(config) == (0.0, 0.0)
     assert _floors(config) == EXACT_RIG_FIT_FLOOR
     backend = {s.name: s for s in derived if s.section == "backend"}
-    assert set(backend) == {*GAINS, *FLOORS}
+    assert set(backend) == {*GAINS, *FLOORS, *WEIGHTS}
+    # Consistent covariances: the chi-square kernel and the answer spread over the lag.
+    assert config.backend.robust_parameter == pytest.approx(12.3, abs=0.01)
+    assert config.backend.answer_smoothing_s == config.backend.smoother_lag_s
     assert all(not s.overridden and "exact" in s.reason for s in backend.values())
     # The flag survives the plain form (what the service stores and load_rig reads).
     assert StereoRig.from_dict(rig.to_dict()).calibration_exact is True
@@ -80,6 +84,8 @@ def test_the_real_mh01_rig_gets_the_default_gains(euroc_mh01_moving) -> None:
     # The real rig keeps the graph's floor it was tuned with; unset, the floor is the same.
     assert _floors(config) == REAL_RIG_FIT_FLOOR == (1e-4, 5e-4)
     assert fit_floor(BackendConfig()) == REAL_RIG_FIT_FLOOR
+    # ... and the kernel and the answer it was tuned with.
+    assert (config.backend.robust_parameter, config.backend.answer_smoothing_s) == (3.0, 0.0)
 
 
 def test_an_explicit_fit_floor_wins_on_an_exact_rig(synthesized) -> None:
