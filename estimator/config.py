@@ -228,7 +228,15 @@ class BackendConfig(_Section):
     extra_iterations: int = Field(1, ge=0, le=10)  # extra iSAM2 steps per frame
     # Robust kernel on the front-end relative poses (threshold on the whitened 6-DOF error).
     robust_kernel: Literal["huber", "cauchy", "none"] = "cauchy"
-    robust_parameter: float = Field(3.0, gt=0)
+    # The online answer (backend/answer.py): the previous answer moved on by the newest motion,
+    # pulled towards the smoother's newest pose with this time constant (s), so the revisions
+    # of past frames reach it gradually; 0: the newest pose itself. None: from the rig
+    # (estimator/rig_settings.py): the smoother's lag for a rig whose calibration is exact, else 0.
+    answer_smoothing_s: float | None = Field(None, ge=0)
+    # None: from the rig (estimator/rig_settings.py; backend/noise.py, ``kernel_scale``): 3 for
+    # a real rig; for one whose calibration is exact, from the chi-square of 6 DOF so that a
+    # consistent measurement keeps nearly full weight (Cauchy 12.3, Huber 4.1).
+    robust_parameter: float | None = Field(None, gt=0)
     # Relative poses further than this (squared Mahalanobis distance, 6 DOF) from the
     # prediction (gyro rotation, constant-velocity translation) are not added; None: keep all.
     outlier_gate_chi2: float | None = Field(30.0, gt=0)
@@ -242,15 +250,23 @@ class BackendConfig(_Section):
     max_rotation_sigma_rad: float = Field(0.2, gt=0)
     fallback_residual_m: float = Field(0.05, gt=0)  # when no residuals are given
     # Full covariance of the fit when the front end hands over the inlier points: a scale on it
-    # and floors added to its diagonal (the max sigmas above act as a weak prior).
+    # and floors added to its diagonal (the max sigmas above act as a weak prior). None: from
+    # the rig (estimator/rig_settings.py): 0.1 mrad and 0.5 mm for a real rig, a fifth of that
+    # for one whose calibration is exact (backend/systematic_noise.py, ``fit_floor``).
     fit_covariance_scale: float = Field(1.0, gt=0)
-    fit_min_rotation_sigma_rad: float = Field(1e-4, ge=0)
-    fit_min_translation_sigma_m: float = Field(5e-4, ge=0)
+    fit_min_rotation_sigma_rad: float | None = Field(None, ge=0)
+    fit_min_translation_sigma_m: float | None = Field(None, ge=0)
     # Reported covariances (backend/covariance_scale.py): a per-session factor on them, measured
     # online from the gyro ("gyro"; 1 without an IMU) or none ("off"); within
     # [1 / max, max]; over the last ``window`` measurements; allowing for a gyro bias error
     # of ``gyro_bias_sigma`` rad/s. The back end's factor noise does not change.
     covariance_scale: Literal["gyro", "off"] = "gyro"
+    # Correlation of the errors of consecutive measurements against one keyframe (they share
+    # its stereo points; half of each fit's error is the keyframe's when both frames' points
+    # are equally noisy). The graph counts them as independent, so its pose covariance grows
+    # too slowly: the reported growth is multiplied by 1 + 2 x this (the variance of a sum of
+    # errors with that lag-1 correlation; backend/systematic_noise.py, ``shared_error_growth``).
+    keyframe_error_correlation: float = Field(0.5, ge=0, lt=1)
     covariance_scale_max: float = Field(16.0, ge=1)
     covariance_scale_window: int = Field(400, ge=5)
     covariance_scale_gyro_bias_sigma: float = Field(2e-4, ge=0)

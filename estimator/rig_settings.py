@@ -28,9 +28,19 @@ interval, with constants chosen so that the real EuRoC rig (436 px after rectifi
   1 % and 2 % of the motion for a real rig, 0 for one whose calibration declares itself exact
   (``StereoRig.calibration_exact``: a rendered rig), whose covariances they made ~100x too
   large.
+- ``backend.fit_min_rotation_sigma_rad`` / ``fit_min_translation_sigma_m``: the floor of the
+  graph's relative-pose covariance (``estimator.backend.systematic_noise.fit_floor``): 0.1 mrad
+  and 0.5 mm for a real rig, a fifth of that for an exact one, whose vision the real-rig floor
+  weighed below the gyro (fused drives worse than vision alone, docs/backend.md).
+- ``backend.robust_parameter`` / ``answer_smoothing_s``: the robust kernel's scale and the
+  online answer's time constant (``estimator.backend.noise.kernel_scale``,
+  ``estimator.backend.answer.answer_time_constant``): 3 and 0 for a real rig; for an exact one,
+  whose measurement covariances are consistent, a kernel that leaves a consistent 6-DOF
+  measurement at nearly full weight (Cauchy 12.3) and the smoother's lag.
 
 Explicit configuration always wins: a frontend field the user set (``model_fields_set`` of the
-frontend section) or a backend gain that is not None is never replaced.
+frontend section) or a backend gain, floor, kernel scale or time constant that is not None is
+never replaced.
 """
 
 from __future__ import annotations
@@ -40,7 +50,9 @@ from typing import Literal
 
 import numpy as np
 
-from estimator.backend.systematic_noise import calibration_gains
+from estimator.backend.answer import answer_time_constant
+from estimator.backend.noise import kernel_scale
+from estimator.backend.systematic_noise import calibration_gains, fit_floor
 from estimator.config import BackendConfig, FrontendConfig, SwarmvoConfig
 from estimator.formats.calibration import StereoRig
 
@@ -70,6 +82,9 @@ RIG_SETTINGS_KEY = "rig_settings"
 _INTERVAL_SETTINGS = ("search_radius_px",)
 # Back-end fields whose None means "from the rig's calibration accuracy".
 _GAIN_FIELDS = ("calibration_rotation_gain", "calibration_translation_gain")
+_FLOOR_FIELDS = ("fit_min_rotation_sigma_rad", "fit_min_translation_sigma_m")
+# The robust kernel's scale and the online answer's time constant (consistent covariances).
+_WEIGHT_FIELDS = ("robust_parameter", "answer_smoothing_s")
 
 # Depth error / depth at the farthest point kept (EuRoC: 30 m with sigma_d = 0.5 px).
 MAX_RELATIVE_DEPTH_ERROR = 0.3125  # d_min = 1.6 px at the default sigma_d of 0.5 px
@@ -158,15 +173,22 @@ def _configured(value: float | None) -> float | None:
 
 
 def derive_calibration_settings(rig: StereoRig, backend: BackendConfig) -> list[DerivedSetting]:
-    """The back end's calibration gains: configured (not None), else from the rig."""
-    unset = backend.model_copy(update=dict.fromkeys(_GAIN_FIELDS))
-    suggested = calibration_gains(unset, rig.calibration_exact)
+    """The back end's calibration gains and fit floors: configured (not None), else from
+    the rig."""
+    fields = _GAIN_FIELDS + _FLOOR_FIELDS + _WEIGHT_FIELDS
+    unset = backend.model_copy(update=dict.fromkeys(fields))
+    suggested = (
+        *calibration_gains(unset, rig.calibration_exact),
+        *fit_floor(unset, rig.calibration_exact),
+        kernel_scale(unset.robust_kernel, None, rig.calibration_exact),
+        answer_time_constant(unset, rig.calibration_exact),
+    )
     if rig.calibration_exact:
         reason = "the rig's calibration is exact"
     else:
         reason = "the rig's calibration is not declared exact"
     settings = []
-    for name, value in zip(_GAIN_FIELDS, suggested, strict=True):
+    for name, value in zip(fields, suggested, strict=True):
         configured = getattr(backend, name)
         if configured is None:
             settings.append(DerivedSetting(name, value, reason, section="backend"))

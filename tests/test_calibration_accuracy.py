@@ -15,7 +15,10 @@ from test_service_units import A, FakeFactory, settings_for
 from estimator.backend.systematic_noise import (
     CALIBRATION_ROTATION_GAIN,
     CALIBRATION_TRANSLATION_GAIN,
+    EXACT_RIG_FIT_FLOOR,
+    REAL_RIG_FIT_FLOOR,
     calibration_gains,
+    fit_floor,
 )
 from estimator.cli.main import main
 from estimator.config import BackendConfig, SwarmvoConfig
@@ -27,10 +30,16 @@ from estimator.rig_settings import apply_rig_settings
 from service.app import create_app
 
 GAINS = ("calibration_rotation_gain", "calibration_translation_gain")
+FLOORS = ("fit_min_rotation_sigma_rad", "fit_min_translation_sigma_m")
+WEIGHTS = ("robust_parameter", "answer_smoothing_s")
 
 
 def _gains(config: SwarmvoConfig) -> tuple[float | None, float | None]:
     return tuple(getattr(config.backend, name) for name in GAINS)  # type: ignore[return-value]
+
+
+def _floors(config: SwarmvoConfig) -> tuple[float | None, float | None]:
+    return tuple(getattr(config.backend, name) for name in FLOORS)  # type: ignore[return-value]
 
 
 @pytest.fixture(scope="module")
@@ -52,8 +61,12 @@ def test_a_synthesized_flight_opened_from_disk_is_exact_and_has_zero_gains(
     assert rig.calibration_exact is True
     config, derived = apply_rig_settings(SwarmvoConfig(), rig, 0.05)
     assert _gains(config) == (0.0, 0.0)
+    assert _floors(config) == EXACT_RIG_FIT_FLOOR
     backend = {s.name: s for s in derived if s.section == "backend"}
-    assert set(backend) == set(GAINS)
+    assert set(backend) == {*GAINS, *FLOORS, *WEIGHTS}
+    # Consistent covariances: the chi-square kernel and the answer spread over the lag.
+    assert config.backend.robust_parameter == pytest.approx(12.3, abs=0.01)
+    assert config.backend.answer_smoothing_s == config.backend.smoother_lag_s
     assert all(not s.overridden and "exact" in s.reason for s in backend.values())
     # The flag survives the plain form (what the service stores and load_rig reads).
     assert StereoRig.from_dict(rig.to_dict()).calibration_exact is True
@@ -68,6 +81,22 @@ def test_the_real_mh01_rig_gets_the_default_gains(euroc_mh01_moving) -> None:
     config, _ = apply_rig_settings(SwarmvoConfig(), rig, 0.05)
     assert _gains(config) == (0.01, 0.02)
     assert (CALIBRATION_ROTATION_GAIN, CALIBRATION_TRANSLATION_GAIN) == (0.01, 0.02)
+    # The real rig keeps the graph's floor it was tuned with; unset, the floor is the same.
+    assert _floors(config) == REAL_RIG_FIT_FLOOR == (1e-4, 5e-4)
+    assert fit_floor(BackendConfig()) == REAL_RIG_FIT_FLOOR
+    # ... and the kernel and the answer it was tuned with.
+    assert (config.backend.robust_parameter, config.backend.answer_smoothing_s) == (3.0, 0.0)
+
+
+def test_an_explicit_fit_floor_wins_on_an_exact_rig(synthesized) -> None:
+    rig = open_sequence(synthesized["euroc"]).rig
+    backend = BackendConfig(fit_min_rotation_sigma_rad=3e-4)
+    config, derived = apply_rig_settings(SwarmvoConfig(backend=backend), rig, 0.05)
+    assert _floors(config) == (3e-4, EXACT_RIG_FIT_FLOOR[1])
+    rotation = next(s for s in derived if s.name == "fit_min_rotation_sigma_rad")
+    assert rotation.overridden and "configured" in rotation.reason
+    # The exact rig's floor is smaller in both rotation and translation.
+    assert all(e < r for e, r in zip(EXACT_RIG_FIT_FLOOR, REAL_RIG_FIT_FLOOR, strict=True))
 
 
 def test_an_explicit_config_value_wins(synthesized) -> None:

@@ -60,9 +60,11 @@ def test_synth_then_run_writes_trajectory_metrics_and_plot(rendered, tmp_path, c
         assert set(metrics[section]) >= {"ate_rmse_m", "rpe_rot_rmse_deg"}, section
     smoothed_times, smoothed = read_tum(out / "trajectory_smoothed.tum")
     np.testing.assert_array_equal(smoothed_times, timestamps)  # every frame, once, in order
-    # The newest frame's smoothed estimate is its online answer (nothing came after it); the
+    # The newest frame's smoothed estimate is the smoother's pose when its answer was given
+    # (nothing came after it); on this exact rig the answer takes the smoother's revisions over
+    # its lag (docs/backend.md, Smoothed output), so it stays within a millimetre of it. The
     # earlier ones were revised by later frames.
-    np.testing.assert_allclose(smoothed[-1], poses[-1], atol=1e-6)
+    np.testing.assert_allclose(smoothed[-1], poses[-1], atol=1e-3)
     assert not np.allclose(smoothed[:-2], poses[:-2], atol=1e-6)
     assert metrics["median_stage_time_s"]["total"] > 0
     assert (out / "trajectory.png").read_bytes().startswith(PNG_MAGIC)

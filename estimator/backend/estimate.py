@@ -30,7 +30,9 @@ class FusedEstimate:
     gravity: np.ndarray | None = None
     accel_bias: np.ndarray | None = None
     # Marginal covariances (GTSAM tangent: rotation then translation, right perturbation in
-    # the body frame) of ``body_pose`` and of ``body_motion``, from the smoother's Bayes tree.
+    # the body frame) of ``body_pose`` and of ``body_motion``, from the smoother's Bayes tree;
+    # with the IMU the pose's is widened for the keyframe-shared error the graph does not
+    # model (``systematic_noise.shared_error_growth``).
     body_covariance: np.ndarray | None = None
     body_motion_covariance: np.ndarray | None = None
     # The frame's relative pose failed the outlier gate: the front end must not learn from it

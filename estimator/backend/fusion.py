@@ -26,6 +26,7 @@ import gtsam
 import numpy as np
 
 from estimator.backend.anchor import Anchor, InertialPrior
+from estimator.backend.answer import SmoothedAnswer
 from estimator.backend.covariance_scale import GyroCalibration
 from estimator.backend.estimate import FusedEstimate, check_pose
 from estimator.backend.imu import GRAVITY, SpecificForceDelta, gravity_aligned_rotation
@@ -43,6 +44,7 @@ from estimator.backend.smoother import (
 )
 from estimator.backend.standstill import StartupRest
 from estimator.backend.step import Step
+from estimator.backend.systematic_noise import shared_error_growth
 from estimator.backend.vision_factors import PreviousFrame, VisionFactors
 from estimator.backend.window import FrameWindow, OpenFrame
 from estimator.config import BackendConfig
@@ -69,6 +71,8 @@ class FusionBackend:
         self.use_imu = bool(config.use_imu and imu_noise is not None)
         self._use_accel = bool(self.use_imu and config.use_accelerometer)
         self._calibration = GyroCalibration(config, self.body_from_camera) if self.use_imu else None
+        self._shared_error_growth = shared_error_growth(config)
+        self._answer = SmoothedAnswer(config.answer_smoothing_s or 0.0)
         self._imu: ImuTerms | None = None
         if self.use_imu:
             assert imu_noise is not None
@@ -348,6 +352,7 @@ class FusionBackend:
         """A fresh smoother anchored at ``body_pose``: the trajectory goes on from here."""
         self._smoother.reset()
         self._vision.reset()
+        self._answer.reset()
         gyro_bias = (self._bias, self.config.gyro_bias_prior_sigma) if self.use_imu else None
         inertial = (
             self._inertial_prior(self.config.gravity_prior_sigma) if self._use_accel else None
@@ -391,9 +396,12 @@ class FusionBackend:
             self._gravity = self._smoother.vector(GRAVITY_KEY)
             self._accel_bias = self._smoother.vector(ACCEL_BIAS_KEY)
         covariance, motion_covariance = self._smoother.marginals(self._index, motion)
+        answer = self._answer.update(self._body_pose, motion, self._previous_dt)
+        if covariance is not None and self.use_imu:
+            covariance = self._shared_error_growth * covariance
         return FusedEstimate(
-            pose=self._body_pose @ self.body_from_camera,
-            body_pose=self._body_pose.copy(),
+            pose=answer @ self.body_from_camera,
+            body_pose=answer,
             status=status,
             message=message,
             gyro_bias=bias,

@@ -16,14 +16,19 @@ information.
 
 from __future__ import annotations
 
+import math
+
 import gtsam
 import numpy as np
 
+from estimator.backend.systematic_noise import fit_floor_covariance
 from estimator.config import BackendConfig
 from estimator.geometry import skew
 
 __all__ = [
+    "CHI2_6DOF_99",
     "fit_covariance",
+    "kernel_scale",
     "measured_covariance",
     "pose_noise",
     "relative_pose_covariance",
@@ -31,6 +36,12 @@ __all__ = [
     "robust",
     "sigma_covariance",
 ]
+
+# 99 % quantile of chi-square with 6 DOF, and the weight the default Cauchy kernel leaves a
+# measurement there (``kernel_scale``).
+CHI2_6DOF_99 = 16.812
+REAL_RIG_KERNEL_SCALE = 3.0
+CONSISTENT_WEIGHT = 0.9
 
 
 def relative_pose_sigmas(
@@ -86,8 +97,8 @@ def fit_covariance(
     information += np.diag(
         [config.max_rotation_sigma_rad**-2] * 3 + [config.max_translation_sigma_m**-2] * 3
     )
-    floor = [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
-    covariance = config.fit_covariance_scale**2 * np.linalg.inv(information) + np.diag(floor)
+    floor = fit_floor_covariance(config)
+    covariance = config.fit_covariance_scale**2 * np.linalg.inv(information) + floor
     return 0.5 * (covariance + covariance.T)
 
 
@@ -96,8 +107,7 @@ def measured_covariance(covariance: np.ndarray, config: BackendConfig) -> np.nda
     covariance = np.asarray(covariance, dtype=float)
     if covariance.shape != (6, 6) or not np.all(np.isfinite(covariance)):
         raise ValueError("covariance must be a finite 6x6 matrix")
-    floor = [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
-    covariance = config.fit_covariance_scale**2 * covariance + np.diag(floor)
+    covariance = config.fit_covariance_scale**2 * covariance + fit_floor_covariance(config)
     return 0.5 * (covariance + covariance.T)
 
 
@@ -114,10 +124,38 @@ def pose_noise(rotation_sigma: float, translation_sigma: float) -> gtsam.noiseMo
     )
 
 
-def robust(base: gtsam.noiseModel.Base, kernel: str, parameter: float) -> gtsam.noiseModel.Base:
-    """Wrap ``base`` in an M-estimator so one wrong relative pose cannot tear the trajectory."""
+def kernel_scale(
+    kernel: str, parameter: float | None = None, calibration_exact: bool = False
+) -> float:
+    """The kernel's threshold on the whitened 6-DOF error norm: ``parameter`` when given, else
+    the rig's.
+
+    A rig not known to be exact: 3, chosen on a real rig whose measurement covariances miss
+    its calibration error (MH_01: NEES 2-4 per DOF), which the kernel then also absorbs. A rig
+    whose calibration is exact has consistent covariances: the squared norm of a 6-DOF error is
+    chi-square with 6 DOF (mean 6, 99 % below 16.8) and a consistent measurement keeps nearly
+    full weight. Huber: its threshold at the 99 % quantile (weight 1 below). Cauchy, weight
+    1 / (1 + e^2 / k^2): k^2 = 16.8 x 9, weight 0.9 at the 99 % quantile, 0.96 at the mean,
+    0.6 at 10 sigma, 0.13 at 30 sigma (a scale of 3 weighed a consistent measurement 0.6 and
+    set vision below the gyro on the rendered drives; docs/backend.md).
+    """
+    if parameter is not None:
+        return parameter
+    if not calibration_exact:
+        return REAL_RIG_KERNEL_SCALE
+    if kernel == "huber":
+        return math.sqrt(CHI2_6DOF_99)
+    return math.sqrt(CHI2_6DOF_99 * CONSISTENT_WEIGHT / (1.0 - CONSISTENT_WEIGHT))
+
+
+def robust(
+    base: gtsam.noiseModel.Base, kernel: str, parameter: float | None = None
+) -> gtsam.noiseModel.Base:
+    """Wrap ``base`` in an M-estimator so one wrong relative pose cannot tear the trajectory
+    (threshold: ``kernel_scale``)."""
     if kernel == "none":
         return base
+    parameter = kernel_scale(kernel, parameter)
     if kernel == "huber":
         estimator = gtsam.noiseModel.mEstimator.Huber.Create(parameter)
     elif kernel == "cauchy":

@@ -1,13 +1,17 @@
 """``swarmvo bench driving``: the pipeline on rendered KITTI-like drives.
 
-Renders (once, reused afterwards) one drive per seed (``swarmvo synth --scenario driving
---layout kitti``: 1241x376, 718.9 px, 0.54 m baseline, 10 Hz, 8-15 m/s with turns, street
-structure from 3 m to beyond 80 m; no IMU, as KITTI's odometry benchmark) and runs each
-estimator through ``swarmvo run``'s pipeline with the default configuration (settings derived
-from the rig). Per run: final drift (% of path), RPE rotation (deg per frame), frames not
-tracked, median temporal matches per frame, frames/s, and KITTI's segment errors. Writes
-``driving.json`` and ``driving.md`` (the printed table) and checks the targets (final drift
-<= 1 %, <= 0.03 deg/frame, no frame lost, median >= 300 matches/frame, >= 30 frames/s).
+Renders (once, reused afterwards) one drive per seed (``swarmvo synth --scenario driving``:
+1241x376, 718.9 px, 0.54 m baseline, 10 Hz, 8-15 m/s with turns, street structure from 3 m to
+beyond 80 m, a simulated 100 Hz IMU) and runs each estimator through ``swarmvo run``'s
+pipeline with the default configuration (settings derived from the rig), in each ``--modes``:
+``vision`` alone (no IMU, as KITTI's odometry benchmark) and ``fused`` with the IMU. With a
+fused mode the drives are written in the EuRoC layout (which has the IMU) and both modes run
+on the same files; vision alone uses KITTI's layout (no IMU; its poses also in KITTI's format).
+Per run: final drift (% of path), RPE rotation (deg per frame), frames not tracked, median
+temporal matches per frame, frames/s, and KITTI's segment errors. Writes ``driving.json``
+(estimator -> mode -> seed) and ``driving.md`` (the printed table) and checks the targets
+(final drift <= 1 %, <= 0.03 deg/frame, no frame lost, median >= 300 matches/frame, >= 30
+frames/s) and that fused is no worse than vision in rotation.
 """
 
 from __future__ import annotations
@@ -23,9 +27,11 @@ import numpy as np
 from estimator.formats.datasets import open_sequence
 from estimator.pipeline import ESTIMATORS, build_config, run_sequence, write_outputs
 from estimator.registration.methods import Estimator
-from estimator.rendered.synthetic import SynthOptions, synthesize
+from estimator.rendered.synthetic import Layout, SynthOptions, synthesize
 
-__all__ = ["add_arguments", "run"]
+__all__ = ["MODES", "add_arguments", "run"]
+
+MODES = ("vision", "fused")
 
 TARGETS = {
     "final_drift_pct": 1.0,
@@ -65,6 +71,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--quick", action="store_true", help="40 frames / 44 m, one seed")
     parser.add_argument(
+        "--modes",
+        nargs="+",
+        choices=MODES,
+        default=list(MODES),
+        help="vision alone and/or fused with the rendered IMU (the EuRoC layout then)",
+    )
+    parser.add_argument(
         "--no-rig-settings",
         dest="rig_settings",
         action="store_false",
@@ -72,11 +85,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _rendered(args: argparse.Namespace, seed: int) -> Path:
+def _layout(modes: list[str]) -> Layout:
+    """KITTI's layout for vision alone (as KITTI has no IMU), EuRoC's when fused runs too."""
+    return "euroc" if "fused" in modes else "kitti"
+
+
+def _rendered(args: argparse.Namespace, seed: int, layout: Layout) -> Path:
     frames, length = (40, 44.0) if args.quick else (args.frames, args.length_m)
-    root = args.data / f"driving_{frames}f_{length:g}m_seed{seed}"
-    if not (root / "image_0").is_dir():
-        options = SynthOptions.driving(frames=frames, length_m=length, seed=seed, layout="kitti")
+    suffix = "" if layout == "kitti" else "_euroc"
+    root = args.data / f"driving_{frames}f_{length:g}m_seed{seed}{suffix}"
+    if not (root / ("image_0" if layout == "kitti" else "mav0")).is_dir():
+        options = SynthOptions.driving(frames=frames, length_m=length, seed=seed, layout=layout)
         synthesize(root, options)
     return root
 
@@ -100,13 +119,39 @@ def _verdict(metrics: dict[str, Any]) -> str:
     return ", ".join(checks)
 
 
-def _table(results: dict[str, dict[str, dict[str, Any]]]) -> str:
-    header = "| estimator / seed | " + " | ".join(title for _, title, _ in COLUMNS) + " |"
+def _fused_verdict(estimator: str, by_mode: dict[str, dict[str, dict[str, Any]]]) -> str | None:
+    """Seeds where fused is worse in rotation than vision alone (beyond 5 %), if both ran."""
+    vision, fused = by_mode.get("vision"), by_mode.get("fused")
+    if not vision or not fused:
+        return None
+    worse = [
+        seed
+        for seed in fused
+        if seed in vision
+        and fused[seed]["rpe_rot_rmse_deg"] > 1.05 * vision[seed]["rpe_rot_rmse_deg"]
+    ]
+    if not worse:
+        return f"{estimator}: fused rotation no worse than vision alone on every seed: PASS"
+    return f"{estimator}: fused rotation worse than vision alone on seeds {', '.join(worse)}: MISS"
+
+
+def _table(results: dict[str, dict[str, dict[str, dict[str, Any]]]]) -> str:
+    header = "| estimator / mode / seed | " + " | ".join(t for _, t, _ in COLUMNS) + " |"
     lines = [header, "|" + "---|" * (len(COLUMNS) + 1)]
     verdicts = []
-    for estimator, runs in results.items():
-        for seed, summary in runs.items():
-            lines.append(_row(f"{estimator} seed {seed}", summary))
+    for estimator, by_mode in results.items():
+        for mode, runs in by_mode.items():
+            lines.extend(_lane_rows(f"{estimator} {mode}", runs, verdicts))
+        fused_verdict = _fused_verdict(estimator, by_mode)
+        if fused_verdict is not None:
+            verdicts.append(fused_verdict)
+    return "\n".join([*lines, "", *verdicts]) + "\n"
+
+
+def _lane_rows(label: str, runs: dict[str, dict[str, Any]], verdicts: list[str]) -> list[str]:
+    """One lane's rows (a seed each, then the mean) and its worst-seed verdict."""
+    lines = [_row(f"{label} seed {seed}", summary) for seed, summary in runs.items()]
+    if runs:
         worst = {
             key: (
                 min(r[key] for r in runs.values() if r.get(key) is not None)
@@ -121,26 +166,35 @@ def _table(results: dict[str, dict[str, dict[str, Any]]]) -> str:
             if any(r.get(key) is not None for r in runs.values())
         }
         mean["frames_failed"] = int(sum(r["frames_failed"] for r in runs.values()))
-        lines.append(_row(f"**{estimator} mean** (lost: total)", mean))
-        verdicts.append(f"{estimator}, worst seed: {_verdict(worst)}")
-    return "\n".join([*lines, "", *verdicts]) + "\n"
+        lines.append(_row(f"**{label} mean** (lost: total)", mean))
+        verdicts.append(f"{label}, worst seed: {_verdict(worst)}")
+    return lines
 
 
 def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     seeds = args.seeds[:1] if args.quick else args.seeds
-    results: dict[str, dict[str, dict[str, Any]]] = {e: {} for e in args.estimators}
+    modes = [mode for mode in MODES if mode in args.modes]
+    layout = _layout(modes)
+    results: dict[str, dict[str, dict[str, dict[str, Any]]]] = {
+        estimator: {mode: {} for mode in modes} for estimator in args.estimators
+    }
     for seed in seeds:
-        sequence = open_sequence(_rendered(args, seed), "kitti")
+        sequence = open_sequence(_rendered(args, seed, layout), layout)
         for estimator in args.estimators:
-            config = build_config(estimator, seed=0)
-            result = run_sequence(
-                sequence, config, use_imu=False, progress=True, rig_settings=args.rig_settings
-            )
-            summary = write_outputs(result, out / f"seed{seed}" / estimator)
-            results[estimator][str(seed)] = summary
-            print(_row(f"{estimator} seed {seed}", summary), flush=True)
+            for mode in modes:
+                config = build_config(estimator, seed=0)
+                result = run_sequence(
+                    sequence,
+                    config,
+                    use_imu=mode == "fused",
+                    progress=True,
+                    rig_settings=args.rig_settings,
+                )
+                summary = write_outputs(result, out / f"seed{seed}" / estimator / mode)
+                results[estimator][mode][str(seed)] = summary
+                print(_row(f"{estimator} {mode} seed {seed}", summary), flush=True)
     table = _table(results)
     print("\n" + table)
     if not args.quick:

@@ -105,23 +105,31 @@ def perturbation_summary(results: Path) -> str:
 
 
 def driving_summary(results: Path) -> str:
-    """Rendered drives with the rig-derived settings: mean over the seeds, lost frames summed."""
+    """Rendered drives with the rig-derived settings: mean over the seeds, lost frames summed,
+    per estimator and mode (vision alone / fused; files without modes are vision alone)."""
     runs = _load(results, "driving/driving.json")
     rows = []
-    for name, seeds in runs.items():
-        drives = list(seeds.values())
-        rows.append([
-            name,
-            str(len(drives)),
-            f"{sum(d['path_length_m'] for d in drives):.0f}",
-            f"{statistics.mean(d['final_drift_pct'] for d in drives):.2f}",
-            f"{statistics.mean(d['rpe_rot_rmse_deg'] for d in drives):.4f}",
-            str(sum(d["frames_failed"] for d in drives)),
-            f"{min(d['matches_median'] for d in drives):.0f}",
-            f"{statistics.mean(d['fps'] for d in drives):.1f}",
-        ])
+    for name, by_mode in runs.items():
+        first = next(iter(by_mode.values()), {})
+        if "path_length_m" in first:  # estimator -> seed (vision alone only)
+            by_mode = {"vision": by_mode}
+        for mode, seeds in by_mode.items():
+            drives = list(seeds.values())
+            if not drives:
+                continue
+            rows.append([
+                name,
+                mode,
+                str(len(drives)),
+                f"{sum(d['path_length_m'] for d in drives):.0f}",
+                f"{statistics.mean(d['final_drift_pct'] for d in drives):.2f}",
+                f"{statistics.mean(d['rpe_rot_rmse_deg'] for d in drives):.4f}",
+                str(sum(d["frames_failed"] for d in drives)),
+                f"{min(d['matches_median'] for d in drives):.0f}",
+                f"{statistics.mean(d['fps'] for d in drives):.1f}",
+            ])
     header = [
-        "estimator", "drives", "path m", "final drift % (mean)", "deg/frame (mean)",
+        "estimator", "mode", "drives", "path m", "final drift % (mean)", "deg/frame (mean)",
         "lost frames", "median matches (worst drive)", "frames/s",
     ]
     return _table(header, rows)

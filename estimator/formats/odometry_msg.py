@@ -32,7 +32,11 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from estimator.backend.systematic_noise import drift_growth, reported_measurement_covariance
+from estimator.backend.systematic_noise import (
+    drift_growth,
+    fit_floor_covariance,
+    reported_measurement_covariance,
+)
 from estimator.config import BackendConfig
 from estimator.geometry import (
     invert_pose,
@@ -173,9 +177,7 @@ class OdometryBuilder:
         self.camera_from_body = invert_pose(self.body_from_camera)
         self._camera_to_body = se3_adjoint(self.body_from_camera)
         self._level = odom_rotation(first_accel)
-        self._floor = np.diag(
-            [config.fit_min_rotation_sigma_rad**2] * 3 + [config.fit_min_translation_sigma_m**2] * 3
-        )
+        self._floor = fit_floor_covariance(config)
         self._report_floor = np.diag(
             [config.report_min_rotation_sigma_rad**2] * 3
             + [config.report_min_translation_sigma_m**2] * 3
