@@ -257,8 +257,9 @@ class FusionBackend:
             self._body_pose, self._last_ns, self._previous_motion, self._previous_dt
         )
         guess = self._vision.add(
-            step, previous, relative_pose, covariance, reference_ns, prediction, stereo
-        )
+            step, previous, relative_pose, self._weighed(covariance), reference_ns, prediction,
+            stereo,
+        )  # fmt: skip
         if self.config.motion_prior == "always" or not (step.accepted or inertial is not None):
             add_motion_prior(step, motion, self.config)
         guess = self._rest.add(step, guess)
@@ -273,6 +274,20 @@ class FusionBackend:
             status, "; ".join(step.notes), self._previous_motion.copy(), step.delta
         )
         return replace(estimate, vision_rejected=step.rejected)
+
+    def _weighed(self, covariance: np.ndarray | None) -> np.ndarray | None:
+        """The measurement covariance the graph weighs (and gates with).
+
+        With ``covariance_scale_factors`` it is inflated by the session factor measured
+        against the gyro when that factor exceeds 1 (the calibration itself keeps comparing
+        the covariance as handed over). Only inflated: where the noise model is conservative
+        (rendered flights, factor 0.2-0.5) trusting vision more did not help the fused answer.
+        """
+        if covariance is None or not self.config.covariance_scale_factors:
+            return covariance
+        if self._calibration is None:
+            return covariance
+        return max(self._calibration.value, 1.0) * covariance
 
     def _add_imu(
         self,
