@@ -192,6 +192,11 @@ def main() -> None:
     variants = json.loads(args.variants)
     if not isinstance(variants, list) or not all(isinstance(v, dict) for v in variants):
         parser.error("--variants must be a JSON list of objects")
+    for variant in variants:
+        try:
+            BackendConfig.model_validate(variant)
+        except ValueError as error:  # pydantic's ValidationError: an unknown or bad field
+            parser.error(f"variant {json.dumps(variant)}: {error}")
     sequence = open_clip(args.dataset)
     if sequence.ground_truth is None:
         parser.error(f"{args.dataset} has no ground truth")
