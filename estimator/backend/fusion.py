@@ -363,6 +363,7 @@ class FusionBackend:
         """A fresh smoother anchored at ``body_pose``: the trajectory goes on from here."""
         self._smoother.reset()
         self._vision.reset()
+        self._vision.placement.anchor()
         gyro_bias = (self._bias, self.config.gyro_bias_prior_sigma) if self.use_imu else None
         inertial = (
             self._inertial_prior(self.config.gravity_prior_sigma) if self._use_accel else None
@@ -406,6 +407,9 @@ class FusionBackend:
             self._gravity = self._smoother.vector(GRAVITY_KEY)
             self._accel_bias = self._smoother.vector(ACCEL_BIAS_KEY)
         covariance, motion_covariance = self._smoother.marginals(self._index, motion)
+        placement = self._vision.placement
+        covariance = placement.report(self._index, self._body_pose, covariance)
+        placement.forget_before(self._window.oldest_reference)
         return FusedEstimate(
             pose=self._body_pose @ self.body_from_camera,
             body_pose=self._body_pose.copy(),
