@@ -276,11 +276,13 @@ class BackendConfig(_Section):
     # the previous frame (after a gap: the last one with vision) through their current
     # estimates; "prior" places the frame in the world from the reference's estimate and the
     # measurement; "prior-after-gap" does so only for the first frames with vision after frames
-    # without (their recent neighbours are carried by the IMU alone), else "chain". "prior": on
-    # the real MH_01 clip fused 0.0067 deg per frame instead of 0.0116, but the reported pose
-    # covariance is then too small for its errors there (NEES 15.5 per DOF over 1 s windows
-    # against 1.2; docs/backend.md), so it is not the default.
-    old_reference: Literal["chain", "prior", "prior-after-gap", "views"] = "prior-after-gap"
+    # without (their recent neighbours are carried by the IMU alone), else "chain". "prior" (the
+    # default) places every such frame from its keyframe: on the real MH_01 clip fused 0.0067
+    # deg per frame instead of 0.0116, and stable across solver settings where the chain,
+    # which feeds the previous frame's estimate back as a measurement, is not; the uncertainty
+    # the placement drops is added to the reported covariance (backend/placement_covariance.py,
+    # docs/backend.md).
+    old_reference: Literal["chain", "prior", "prior-after-gap", "views"] = "prior"
     # "views": a measurement against a keyframe goes through a view variable of that keyframe
     # that stays while measurements refer to it (backend/keyframe_views.py): the fraction
     # ``keyframe_shared_error`` of each measurement's covariance is the error all share (on the
