@@ -266,7 +266,10 @@ class BackendConfig(_Section):
     # are equally noisy). The graph counts them as independent, so its pose covariance grows
     # too slowly: the reported growth is multiplied by 1 + 2 x this (the variance of a sum of
     # errors with that lag-1 correlation; backend/systematic_noise.py, ``shared_error_growth``).
-    keyframe_error_correlation: float = Field(0.5, ge=0, lt=1)
+    # None: from the rig (estimator/rig_settings.py): 0.5 for a rig whose calibration is exact,
+    # 0 for a real one, whose fit floor and placement priors' carried covariance already cover
+    # it (real MH_01 fused pose NEES per DOF 0.68 without it, 0.34 with it).
+    keyframe_error_correlation: float | None = Field(None, ge=0, lt=1)
     covariance_scale_max: float = Field(16.0, ge=1)
     covariance_scale_window: int = Field(400, ge=5)
     covariance_scale_gyro_bias_sigma: float = Field(2e-4, ge=0)
@@ -274,6 +277,11 @@ class BackendConfig(_Section):
     # stretches of ``local_window_s``, the last ``local_count`` of them (0: off).
     covariance_scale_local_window_s: float = Field(1.0, gt=0)
     covariance_scale_local_count: int = Field(10, ge=0)
+    # The session factor, where above 1, also on the graph's relative-pose factors and the gate
+    # (the reports are scaled as before). Real MH_01 fused: 0.0097 deg per frame instead of
+    # 0.0116, the ATE within the solver's spread, the final drift larger; so not the default
+    # (docs/backend.md, "What the fused rotation error on MH_01 is made of").
+    covariance_scale_factors: bool = False
     # Reported covariances without the gyro factor (no IMU, or the front end alone;
     # backend/systematic_noise.py): the fit's covariance, this floor instead of ``fit_min_*``,
     # and a calibration error proportional to the measured motion (relative, per axis). None:
@@ -290,11 +298,13 @@ class BackendConfig(_Section):
     # the previous frame (after a gap: the last one with vision) through their current
     # estimates; "prior" places the frame in the world from the reference's estimate and the
     # measurement; "prior-after-gap" does so only for the first frames with vision after frames
-    # without (their recent neighbours are carried by the IMU alone), else "chain". "prior": on
-    # the real MH_01 clip fused 0.0067 deg per frame instead of 0.0116, but the reported pose
-    # covariance is then too small for its errors there (NEES 15.5 per DOF over 1 s windows
-    # against 1.2; docs/backend.md), so it is not the default.
-    old_reference: Literal["chain", "prior", "prior-after-gap", "views"] = "prior-after-gap"
+    # without (their recent neighbours are carried by the IMU alone), else "chain". "prior" (the
+    # default) places every such frame from its keyframe: on the real MH_01 clip fused 0.0067
+    # deg per frame instead of 0.0116, and stable across solver settings where the chain,
+    # which feeds the previous frame's estimate back as a measurement, is not; the uncertainty
+    # the placement drops is added to the reported covariance (backend/placement_covariance.py,
+    # docs/backend.md).
+    old_reference: Literal["chain", "prior", "prior-after-gap", "views"] = "prior"
     # "views": a measurement against a keyframe goes through a view variable of that keyframe
     # that stays while measurements refer to it (backend/keyframe_views.py): the fraction
     # ``keyframe_shared_error`` of each measurement's covariance is the error all share (on the

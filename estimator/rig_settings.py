@@ -37,6 +37,9 @@ interval, with constants chosen so that the real EuRoC rig (436 px after rectifi
   ``estimator.backend.answer.answer_time_constant``): 3 and 0 for a real rig; for an exact one,
   whose measurement covariances are consistent, a kernel that leaves a consistent 6-DOF
   measurement at nearly full weight (Cauchy 12.3) and the smoother's lag.
+- ``backend.keyframe_error_correlation``: the factor 1 + 2 rho on the fused pose covariance for
+  the keyframe-shared error (``estimator.backend.systematic_noise``): 0.5 for an exact rig, 0 for
+  a real one, whose fit floor and placement priors already cover it.
 
 Explicit configuration always wins: a frontend field the user set (``model_fields_set`` of the
 frontend section) or a backend gain, floor, kernel scale or time constant that is not None is
@@ -52,7 +55,11 @@ import numpy as np
 
 from estimator.backend.answer import answer_time_constant
 from estimator.backend.noise import kernel_scale
-from estimator.backend.systematic_noise import calibration_gains, fit_floor
+from estimator.backend.systematic_noise import (
+    calibration_gains,
+    fit_floor,
+    keyframe_error_correlation,
+)
 from estimator.config import BackendConfig, FrontendConfig, SwarmvoConfig
 from estimator.formats.calibration import StereoRig
 
@@ -84,7 +91,7 @@ _INTERVAL_SETTINGS = ("search_radius_px",)
 _GAIN_FIELDS = ("calibration_rotation_gain", "calibration_translation_gain")
 _FLOOR_FIELDS = ("fit_min_rotation_sigma_rad", "fit_min_translation_sigma_m")
 # The robust kernel's scale and the online answer's time constant (consistent covariances).
-_WEIGHT_FIELDS = ("robust_parameter", "answer_smoothing_s")
+_WEIGHT_FIELDS = ("robust_parameter", "answer_smoothing_s", "keyframe_error_correlation")
 
 # Depth error / depth at the farthest point kept (EuRoC: 30 m with sigma_d = 0.5 px).
 MAX_RELATIVE_DEPTH_ERROR = 0.3125  # d_min = 1.6 px at the default sigma_d of 0.5 px
@@ -182,6 +189,7 @@ def derive_calibration_settings(rig: StereoRig, backend: BackendConfig) -> list[
         *fit_floor(unset, rig.calibration_exact),
         kernel_scale(unset.robust_kernel, None, rig.calibration_exact),
         answer_time_constant(unset, rig.calibration_exact),
+        keyframe_error_correlation(unset, rig.calibration_exact),
     )
     if rig.calibration_exact:
         reason = "the rig's calibration is exact"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from estimator.backend import FusionBackend
@@ -98,3 +100,49 @@ def test_measurements_against_one_keyframe_are_not_counted_as_independent():
     assert 1.7 < ratio < 2.3
     ratio = np.trace(independent[20].body_covariance) / np.trace(independent[10].body_covariance)
     assert 0.8 < ratio < 1.25
+
+
+def test_prior_reports_the_uncertainty_its_placement_drops():
+    """As above with ``"prior"``: from frame 8 on, frames are placed in the world from their
+    keyframe's estimate (frame 0, then 10, then 20). The smoother holds each to within one
+    measurement (its marginal does not grow), but the reported covariance carries the
+    keyframe's and grows along the frames placed from one keyframe, so it keeps growing."""
+    _, backend, answers = _keyframe_run(34, keyframe_every=10, imu=False, mode="prior")
+    before = np.trace(answers[5].body_covariance)  # no frame placed yet
+    marginal = np.asarray(backend._smoother.isam().marginalCovariance(pose_key(33)))
+    assert np.trace(marginal) < 2.2 * before  # what the graph alone reports
+    covariances = [answers[k].body_covariance for k in (10, 20, 30)]
+    assert np.trace(covariances[2]) > 5.0 * before
+    for earlier, later in itertools.pairwise(covariances):
+        assert np.linalg.eigvalsh(later - earlier).min() > 0
+
+
+def test_placement_covariance_follows_the_frames():
+    """The carried part moves with the frame (adjoint of the motion), a placement replaces it
+    by the keyframe's reported covariance plus the earlier placements from that keyframe (a
+    random walk along its measurements), and a restart carries the whole newest report."""
+    from estimator.backend.placement_covariance import PlacementCovariance
+    from estimator.geometry import transport_covariance
+
+    rng = np.random.default_rng(3)
+    base = rng.normal(size=(6, 6))
+    marginal = base @ base.T + np.eye(6)
+    measurement = 0.1 * np.eye(6)
+    motion = np.eye(4)
+    motion[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    motion[:3, 3] = [0.3, -0.1, 0.2]
+    carried = PlacementCovariance()
+    assert np.allclose(carried.report(0, np.eye(4), marginal), marginal)
+    carried.place(0, motion, measurement)
+    placed = carried.report(1, motion, marginal)
+    assert np.allclose(placed, marginal + transport_covariance(marginal, motion))
+    moved = carried.report(2, motion @ motion, marginal)
+    expected = marginal + transport_covariance(transport_covariance(marginal, motion), motion)
+    assert np.allclose(moved, expected)
+    carried.place(0, motion, measurement)  # the second frame placed from frame 0
+    second = carried.report(3, motion, marginal)
+    assert np.allclose(second, placed + measurement)
+    carried.forget_before(2)
+    carried.place(0, motion, measurement)  # forgotten reference: nothing to carry from it
+    carried.anchor()
+    assert np.allclose(carried.report(4, motion, marginal), marginal + second)

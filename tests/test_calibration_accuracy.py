@@ -31,7 +31,7 @@ from service.app import create_app
 
 GAINS = ("calibration_rotation_gain", "calibration_translation_gain")
 FLOORS = ("fit_min_rotation_sigma_rad", "fit_min_translation_sigma_m")
-WEIGHTS = ("robust_parameter", "answer_smoothing_s")
+WEIGHTS = ("robust_parameter", "answer_smoothing_s", "keyframe_error_correlation")
 
 
 def _gains(config: SwarmvoConfig) -> tuple[float | None, float | None]:
@@ -67,6 +67,7 @@ def test_a_synthesized_flight_opened_from_disk_is_exact_and_has_zero_gains(
     # Consistent covariances: the chi-square kernel and the answer spread over the lag.
     assert config.backend.robust_parameter == pytest.approx(12.3, abs=0.01)
     assert config.backend.answer_smoothing_s == config.backend.smoother_lag_s
+    assert config.backend.keyframe_error_correlation == 0.5
     assert all(not s.overridden and "exact" in s.reason for s in backend.values())
     # The flag survives the plain form (what the service stores and load_rig reads).
     assert StereoRig.from_dict(rig.to_dict()).calibration_exact is True
@@ -86,6 +87,8 @@ def test_the_real_mh01_rig_gets_the_default_gains(euroc_mh01_moving) -> None:
     assert fit_floor(BackendConfig()) == REAL_RIG_FIT_FLOOR
     # ... and the kernel and the answer it was tuned with.
     assert (config.backend.robust_parameter, config.backend.answer_smoothing_s) == (3.0, 0.0)
+    # No widening of the fused pose covariance: the floor and the placement priors cover it.
+    assert config.backend.keyframe_error_correlation == 0.0
 
 
 def test_an_explicit_fit_floor_wins_on_an_exact_rig(synthesized) -> None:

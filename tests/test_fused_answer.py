@@ -71,12 +71,14 @@ def test_a_revision_reaches_the_answer_gradually_and_the_offset_decays():
 
 
 def test_the_fused_pose_covariance_allows_for_the_keyframe_shared_error():
-    assert shared_error_growth(BackendConfig()) == 2.0
+    assert shared_error_growth(BackendConfig(keyframe_error_correlation=0.5)) == 2.0
     assert shared_error_growth(BackendConfig(keyframe_error_correlation=0.0)) == 1.0
+    # Unset: a real rig's (its fit floor and placement priors cover the shared error).
+    assert shared_error_growth(BackendConfig()) == 1.0
     scenario = smooth_trajectory(20, seed=2, noise=PERFECT_IMU, initial_bias=(0.0, 0.0, 0.0))
     measurements = _perfect_measurements(scenario.body_poses)
     independent = _run(scenario, measurements, BackendConfig(keyframe_error_correlation=0.0))
-    shared = _run(scenario, measurements, BackendConfig())
+    shared = _run(scenario, measurements, BackendConfig(keyframe_error_correlation=0.5))
     assert shared[-1].body_covariance is not None
     np.testing.assert_allclose(shared[-1].body_covariance, 2.0 * independent[-1].body_covariance)
     # The motion's covariance (the twist) is the graph's own.
@@ -84,7 +86,9 @@ def test_the_fused_pose_covariance_allows_for_the_keyframe_shared_error():
         shared[-1].body_motion_covariance, independent[-1].body_motion_covariance
     )
     # Without the IMU the graph is the keyframe chain itself: nothing to widen.
-    alone = _run(scenario, measurements, BackendConfig(), imu=False)
+    alone = _run(
+        scenario, measurements, BackendConfig(keyframe_error_correlation=0.5), imu=False
+    )
     alone_independent = _run(
         scenario, measurements, BackendConfig(keyframe_error_correlation=0.0), imu=False
     )

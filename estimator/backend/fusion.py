@@ -261,8 +261,9 @@ class FusionBackend:
             self._body_pose, self._last_ns, self._previous_motion, self._previous_dt
         )
         guess = self._vision.add(
-            step, previous, relative_pose, covariance, reference_ns, prediction, stereo
-        )
+            step, previous, relative_pose, self._weighed(covariance), reference_ns, prediction,
+            stereo,
+        )  # fmt: skip
         if self.config.motion_prior == "always" or not (step.accepted or inertial is not None):
             add_motion_prior(step, motion, self.config)
         guess = self._rest.add(step, guess)
@@ -277,6 +278,20 @@ class FusionBackend:
             status, "; ".join(step.notes), self._previous_motion.copy(), step.delta
         )
         return replace(estimate, vision_rejected=step.rejected)
+
+    def _weighed(self, covariance: np.ndarray | None) -> np.ndarray | None:
+        """The measurement covariance the graph weighs (and gates with).
+
+        With ``covariance_scale_factors`` it is inflated by the session factor measured
+        against the gyro when that factor exceeds 1 (the calibration itself keeps comparing
+        the covariance as handed over). Only inflated: where the noise model is conservative
+        (rendered flights, factor 0.2-0.5) trusting vision more did not help the fused answer.
+        """
+        if covariance is None or not self.config.covariance_scale_factors:
+            return covariance
+        if self._calibration is None:
+            return covariance
+        return max(self._calibration.value, 1.0) * covariance
 
     def _add_imu(
         self,
@@ -353,6 +368,7 @@ class FusionBackend:
         self._smoother.reset()
         self._vision.reset()
         self._answer.reset()
+        self._vision.placement.anchor()
         gyro_bias = (self._bias, self.config.gyro_bias_prior_sigma) if self.use_imu else None
         inertial = (
             self._inertial_prior(self.config.gravity_prior_sigma) if self._use_accel else None
@@ -399,6 +415,9 @@ class FusionBackend:
         answer = self._answer.update(self._body_pose, motion, self._previous_dt)
         if covariance is not None and self.use_imu:
             covariance = self._shared_error_growth * covariance
+        placement = self._vision.placement
+        covariance = placement.report(self._index, self._body_pose, covariance)
+        placement.forget_before(self._window.oldest_reference)
         return FusedEstimate(
             pose=answer @ self.body_from_camera,
             body_pose=answer,

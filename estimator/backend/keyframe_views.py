@@ -1,9 +1,10 @@
 """Measurements against a keyframe that has left the window: a view variable of the keyframe.
 
-``old_reference = "prior"`` placed such a frame in the world from the keyframe's last estimate
-with the measurement's covariance alone: its absolute covariance stopped at one measurement's
-while the keyframe's own uncertainty, and the drift before it, were dropped, so a filter
-trusting the pose covariance saw its errors as too large (MH_01 fused pose NEES 15.5 per DOF).
+``old_reference = "prior"`` places such a frame in the world from the keyframe's last estimate
+with the measurement's covariance alone: in the graph its absolute covariance stops at one
+measurement's while the keyframe's own uncertainty, and the drift before it, are dropped
+(MH_01 fused pose NEES 15.5 per DOF when reported as is; ``placement_covariance.py`` adds them
+back to the report).
 
 Here every measurement against keyframe K goes through a view V_K of it, a Pose3 variable tied
 to X_K by ``Between(X_K, V_K, I)`` when K is first measured against (while X_K is in the

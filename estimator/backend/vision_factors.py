@@ -21,6 +21,7 @@ from estimator.backend.keyframe_views import KeyframeViews
 from estimator.backend.landmarks import LandmarkMap
 from estimator.backend.noise import robust
 from estimator.backend.observations import StereoObservations
+from estimator.backend.placement_covariance import PlacementCovariance
 from estimator.backend.smoother import Smoother, pose_key
 from estimator.backend.step import Step
 from estimator.backend.window import FrameWindow
@@ -61,6 +62,8 @@ class VisionFactors:
         self._window = window
         self._landmarks = LandmarkMap(config, body_from_camera) if config.landmarks else None
         self._views = KeyframeViews(smoother, config)
+        # What a placement prior drops from the frame's covariance, added back when reported.
+        self.placement = PlacementCovariance()
         # The newest frame with accepted vision (or the first): its time widens the gate after
         # a gap, and a measurement whose reference has left the window is chained through it.
         self.last_fix_index = 0
@@ -201,6 +204,7 @@ class VisionFactors:
             # recent frames whose estimates the smoother still moves (after a gap, frames
             # carried by the IMU alone).
             placed = reference_pose @ body_measured  # type: ignore[operator]
+            self.placement.place(reference, body_measured, covariance)
             step.factors.add(
                 gtsam.PriorFactorPose3(pose_key(step.current), gtsam.Pose3(placed), noise)
             )
