@@ -296,7 +296,9 @@ def odometry_messages(result: RunResult, calibrated: bool = True) -> list[Odomet
     first_ns = result.reports[0].timestamp_ns
     first_imu = result.sequence.imu_between(first_ns - FIRST_FRAME_IMU_WINDOW_NS, first_ns)
     # A run without the rig settings applied still reports its rig's calibration error.
-    backend = backend_with_calibration_gains(result.config.backend, result.sequence.rig)
+    backend = backend_with_calibration_gains(
+        result.config.backend, result.sequence.rig, result.config.registration.use_point_sigmas
+    )
     gyro = backend.enabled and backend.use_imu and result.sequence.imu is not None
     builder = OdometryBuilder(
         result.sequence.rig.left.T_BS, backend, first_imu.accel, calibrated=calibrated,

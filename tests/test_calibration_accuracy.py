@@ -181,3 +181,17 @@ def test_rendered_covariances_without_the_gyro_follow_the_flag(synthesized) -> N
     real = odometry_messages(run_sequence(sequence, config, use_imu=False))
     traces = [np.trace(m[-1].pose_covariance) for m in (exact, real)]
     assert traces[1] > traces[0] > 0
+
+
+def test_an_isotropic_registration_keeps_the_real_rig_weights_on_an_exact_rig(synthesized) -> None:
+    """The exact rig's floors and weights presume consistent (per-point) covariances; the
+    isotropic registration's are not, so it keeps the real-rig values (the gains stay exact)."""
+    rig = open_sequence(synthesized["euroc"]).rig
+    isotropic = SwarmvoConfig(registration={"use_point_sigmas": False})
+    config, derived = apply_rig_settings(isotropic, rig, 0.05)
+    assert _gains(config) == (0.0, 0.0)
+    assert _floors(config) == REAL_RIG_FIT_FLOOR
+    weights = tuple(getattr(config.backend, name) for name in WEIGHTS)
+    assert weights == (3.0, 0.0, 0.0)
+    floor = next(s for s in derived if s.name == "fit_min_rotation_sigma_rad")
+    assert "isotropic" in floor.reason
