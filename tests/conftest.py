@@ -98,3 +98,48 @@ def _between_factor_ends(smoother_graph) -> set[tuple[str, int, str, int]]:
 def between_factor_ends():
     """What a back-end test asks of the smoother's graph: which keys its relative poses tie."""
     return _between_factor_ends
+
+
+def _vision_flight(
+    factor: float, config: Any, frames: int, noise_seed: int, sigmas: Any
+) -> tuple[list, Any]:
+    """The back end on a simulated flight with its IMU, each frame measured against the
+    previous one with errors of ``factor`` times the covariance it is handed; the fused
+    answers and the true body poses."""
+    import gtsam
+    import numpy as np
+
+    from estimator.backend import FusionBackend
+    from estimator.geometry import invert_pose
+    from estimator.rendered.scenario import CAMERA_MOUNT, smooth_trajectory
+    from estimator.types import ImuNoise
+
+    scenario = smooth_trajectory(frames, seed=4)
+    camera = scenario.body_poses @ CAMERA_MOUNT
+    rng = np.random.default_rng(noise_seed)
+    covariance = np.diag(np.square(sigmas))
+    backend = FusionBackend(config, CAMERA_MOUNT, ImuNoise())
+    stamps = scenario.timestamps_ns
+    out = []
+    for k in range(frames):
+        start = stamps[k - 1] if k else stamps[0] - 10**8
+        relative = None
+        if k:
+            error = rng.multivariate_normal(np.zeros(6), factor * covariance)
+            truth = invert_pose(camera[k - 1]) @ camera[k]
+            relative = truth @ gtsam.Pose3.Expmap(error).matrix()
+        imu = scenario.imu.between(int(start), int(stamps[k]))
+        out.append(
+            backend.add_frame(
+                int(stamps[k]), relative, None, 100, imu, covariance=covariance if k else None
+            )
+        )
+    return out, scenario.body_poses
+
+
+@pytest.fixture
+def vision_flight():
+    """``vision_flight(factor, config, frames, noise_seed, sigmas)``: a simulated flight fused
+    from relative poses whose errors are ``factor`` times their stated covariance (standard
+    deviations ``sigmas``: rotation rad, translation m)."""
+    return _vision_flight

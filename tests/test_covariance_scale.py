@@ -61,45 +61,21 @@ def test_the_factor_is_one_until_enough_comparisons_and_stays_bounded() -> None:
         CovarianceScale(bounds=(2.0, 4.0))
 
 
-def _fused(factor: float, mode: str = "gyro", frames: int = 160):
-    """The back end on a simulated flight with its IMU; each frame measured against the
-    previous one with errors ``factor`` times the covariance it is handed with."""
-    scenario = smooth_trajectory(frames, seed=4)
-    camera = scenario.body_poses @ CAMERA_MOUNT
-    rng = np.random.default_rng(11)
-    covariance = np.diag(VISION_SIGMAS**2)
-    backend = FusionBackend(BackendConfig(covariance_scale=mode), CAMERA_MOUNT, ImuNoise())
-    stamps = scenario.timestamps_ns
-    out = []
-    for k in range(frames):
-        start = stamps[k - 1] if k else stamps[0] - 10**8
-        relative = None
-        if k:
-            error = rng.multivariate_normal(np.zeros(6), factor * covariance)
-            truth = invert_pose(camera[k - 1]) @ camera[k]
-            relative = truth @ gtsam.Pose3.Expmap(error).matrix()
-        out.append(
-            backend.add_frame(
-                int(stamps[k]),
-                relative,
-                None,
-                100,
-                scenario.imu.between(int(start), int(stamps[k])),
-                covariance=covariance if k else None,
-            )
-        )
-    return out
+def _fused(vision_flight, factor: float, mode: str = "gyro", frames: int = 160) -> list:
+    """The conftest flight (noise seed 11) with the covariance scale ``mode``."""
+    config = BackendConfig(covariance_scale=mode)
+    return vision_flight(factor, config, frames, 11, VISION_SIGMAS)[0]
 
 
 @pytest.mark.parametrize("factor", [0.25, 4.0])
 def test_the_back_end_measures_an_injected_noise_level_without_changing_the_trajectory(
-    factor: float,
+    factor: float, vision_flight
 ) -> None:
-    calibrated = _fused(factor)
+    calibrated = _fused(vision_flight, factor)
     # The factor also covers the floors the back end adds (0.1 mrad on 1 mrad: 1 %).
     assert calibrated[-1].covariance_scale == pytest.approx(factor, rel=0.4)
     assert calibrated[0].covariance_scale == 1.0  # nothing measured yet
-    fixed = _fused(factor, mode="off")
+    fixed = _fused(vision_flight, factor, mode="off")
     assert all(e.covariance_scale == 1.0 for e in fixed)
     np.testing.assert_allclose([e.pose for e in calibrated], [e.pose for e in fixed], atol=1e-12)
 

@@ -5,44 +5,16 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from estimator.backend import FusionBackend
 from estimator.config import BackendConfig
 from estimator.geometry import invert_pose
-from estimator.rendered.scenario import CAMERA_MOUNT, smooth_trajectory
-from estimator.types import ImuNoise
 
 VISION_SIGMAS = np.array([1e-3] * 3 + [4e-3] * 3)  # rotation rad, translation m
 FRAMES = 120
 
 
-def _flight(factor: float, config: BackendConfig) -> tuple[list, np.ndarray]:
-    """The back end on a simulated flight with its IMU, each frame measured against the
-    previous one with errors of ``factor`` times the covariance it is handed; the fused
-    answers and the true body poses."""
-    scenario = smooth_trajectory(FRAMES, seed=4)
-    camera = scenario.body_poses @ CAMERA_MOUNT
-    rng = np.random.default_rng(5)
-    covariance = np.diag(VISION_SIGMAS**2)
-    backend = FusionBackend(config, CAMERA_MOUNT, ImuNoise())
-    stamps = scenario.timestamps_ns
-    out = []
-    for k in range(FRAMES):
-        start = stamps[k - 1] if k else stamps[0] - 10**8
-        relative = None
-        if k:
-            error = rng.multivariate_normal(np.zeros(6), factor * covariance)
-            truth = invert_pose(camera[k - 1]) @ camera[k]
-            relative = truth @ gtsam.Pose3.Expmap(error).matrix()
-        fused = backend.add_frame(
-            int(stamps[k]),
-            relative,
-            None,
-            100,
-            scenario.imu.between(int(start), int(stamps[k])),
-            covariance=covariance if k else None,
-        )
-        out.append(fused)
-    return out, scenario.body_poses
+def _flight(vision_flight, factor: float, config: BackendConfig) -> tuple[list, np.ndarray]:
+    """The fused answers and true body poses of the conftest flight (noise seed 5)."""
+    return vision_flight(factor, config, FRAMES, 5, VISION_SIGMAS)
 
 
 def _rotation_error_per_frame(answers: list, truth: np.ndarray) -> float:
@@ -57,26 +29,28 @@ def _rotation_error_per_frame(answers: list, truth: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(errors))))
 
 
-def test_an_under_stated_vision_noise_is_weighed_as_measured() -> None:
+def test_an_under_stated_vision_noise_is_weighed_as_measured(vision_flight) -> None:
     """Vision errors 16x their stated variance: with the factor on the vision factors the
     gyro carries the rotation, and the fused rotation per frame is clearly better."""
-    plain, truth = _flight(16.0, BackendConfig())
-    scaled, _ = _flight(16.0, BackendConfig(covariance_scale_factors=True))
+    plain, truth = _flight(vision_flight, 16.0, BackendConfig())
+    scaled, _ = _flight(vision_flight, 16.0, BackendConfig(covariance_scale_factors=True))
     assert scaled[-1].covariance_scale > 4.0  # measured, and the same as without the option
     assert scaled[-1].covariance_scale == plain[-1].covariance_scale
     assert _rotation_error_per_frame(scaled, truth) < 0.8 * _rotation_error_per_frame(plain, truth)
 
 
-def test_a_conservative_noise_model_is_not_shrunk() -> None:
+def test_a_conservative_noise_model_is_not_shrunk(vision_flight) -> None:
     """Vision errors a quarter of their stated variance: the factor (< 1) leaves the graph's
     noise as it is, so the answers are those without the option."""
-    plain, _ = _flight(0.25, BackendConfig())
-    scaled, _ = _flight(0.25, BackendConfig(covariance_scale_factors=True))
+    plain, _ = _flight(vision_flight, 0.25, BackendConfig())
+    scaled, _ = _flight(vision_flight, 0.25, BackendConfig(covariance_scale_factors=True))
     assert scaled[-1].covariance_scale < 1.0
     np.testing.assert_allclose([e.pose for e in scaled], [e.pose for e in plain], atol=1e-12)
 
 
-def test_without_the_gyro_factor_the_option_changes_nothing() -> None:
-    plain, _ = _flight(16.0, BackendConfig(covariance_scale="off"))
-    scaled, _ = _flight(16.0, BackendConfig(covariance_scale="off", covariance_scale_factors=True))
+def test_without_the_gyro_factor_the_option_changes_nothing(vision_flight) -> None:
+    plain, _ = _flight(vision_flight, 16.0, BackendConfig(covariance_scale="off"))
+    scaled, _ = _flight(
+        vision_flight, 16.0, BackendConfig(covariance_scale="off", covariance_scale_factors=True)
+    )
     np.testing.assert_allclose([e.pose for e in scaled], [e.pose for e in plain], atol=1e-12)
