@@ -286,9 +286,12 @@ def test_page_follows_a_live_session_in_chromium(
                 stored = api.trajectory(session.id)
                 smoothed = api.smoothed(session.id)
             assert len(stored) == FRAMES and smoothed
+            # The final smoothed poses reach the page after the last frame's answer: wait for
+            # them too, then check every count.
             stats = json.loads(browser.wait_for(
                 f"window.swarmvoView.stats.drawn === {FRAMES} && "
                 f"window.swarmvoView.stats.serverFrames === {FRAMES} && "
+                f"window.swarmvoView.stats.smoothed === {len(smoothed)} && "
                 "JSON.stringify(window.swarmvoView.stats)", what="every pose drawn"))
             assert len({n for n in seen if 0 < n < FRAMES}) >= 2, f"no live updates: {seen}"
             assert stats["poses"] == stats["serverFrames"] == FRAMES
