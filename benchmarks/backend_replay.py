@@ -189,7 +189,10 @@ def main() -> None:
     parser.add_argument("--variants", default="[{}]", help="JSON list of backend overrides")
     parser.add_argument("--recording", type=Path, default=None)
     args = parser.parse_args()
-    variants = json.loads(args.variants)
+    try:
+        variants = json.loads(args.variants)
+    except json.JSONDecodeError as error:
+        parser.error(f"--variants is not JSON: {error}")
     if not isinstance(variants, list) or not all(isinstance(v, dict) for v in variants):
         parser.error("--variants must be a JSON list of objects")
     for variant in variants:

@@ -26,7 +26,6 @@ Prints markdown tables (nothing is written).
 from __future__ import annotations
 
 import argparse
-import json
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,7 +38,7 @@ from estimator import odometry as odometry_module
 from estimator.config import SwarmvoConfig
 from estimator.evaluation.metrics import camera_ground_truth
 from estimator.formats.datasets import open_sequence
-from estimator.pipeline import build_config, run_sequence
+from estimator.pipeline import build_config, load_config, run_sequence
 from estimator.registration.refine import refine_pose_mahalanobis
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -304,7 +303,12 @@ def main() -> int:
     parser.add_argument("dataset", nargs="?", type=Path, default=DEFAULT)
     parser.add_argument("--config", type=Path, help="SwarmvoConfig as JSON")
     args = parser.parse_args()
-    config = SwarmvoConfig(**json.loads(args.config.read_text())) if args.config else None
+    if not args.dataset.is_dir():
+        parser.error(f"dataset folder not found: {args.dataset}")
+    try:
+        config = load_config(args.config) if args.config else None
+    except (FileNotFoundError, ValueError) as error:
+        parser.error(str(error))
     raw, sequence = record(args.dataset, config)
     truths = true_relatives(raw, sequence)
     problems = [

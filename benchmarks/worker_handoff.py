@@ -104,6 +104,8 @@ def main() -> None:
     parser.add_argument("--pickled", action="store_true",
                         help="the images pickled with the request (no free slot), not in a slot")
     args = parser.parse_args()
+    if args.calls < 1 or args.rounds < 1:
+        parser.error("--calls and --rounds must be at least 1")
     with contextlib.suppress(ImportError):
         import uvloop
 
