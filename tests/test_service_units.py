@@ -733,6 +733,31 @@ class ProcessFactory(EstimatorFactory):
         return PidPipeline(initial_pose, first_index, self.delay)
 
 
+class DescribingPipeline(PidPipeline):
+    """A ``PidPipeline`` whose message is ``describe(frame, message)``: what a test reads back
+    from inside the worker process."""
+
+    def __init__(self, initial_pose, first_index: int, describe) -> None:
+        super().__init__(initial_pose, first_index, 0.0)
+        self.describe = describe
+
+    def process(self, frame: StereoFrame, imu: ImuBatch | None = None) -> FrameReport:
+        report = super().process(frame, imu)
+        report.message = self.describe(frame, report.message)
+        return report
+
+
+class DescribingFactory(ProcessFactory):
+    """``describe`` must be a module-level function (the factory is pickled to the workers)."""
+
+    def __init__(self, describe) -> None:
+        super().__init__()
+        self.describe = describe
+
+    def create(self, prepared: PreparedSession, initial_pose, first_index):  # type: ignore[override]
+        return DescribingPipeline(initial_pose, first_index, self.describe)
+
+
 def _pid(pose: dict) -> int:
     return int(pose["message"].rsplit("pid=", 1)[1])
 

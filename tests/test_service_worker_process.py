@@ -6,30 +6,20 @@ from pathlib import Path
 
 import cv2
 from fastapi.testclient import TestClient
-from test_service_units import PidPipeline, ProcessFactory, new_session, send, settings_for
+from test_service_units import DescribingFactory, new_session, send, settings_for
 
-from estimator.types import FrameReport, ImuBatch, StereoFrame
+from estimator.types import StereoFrame
 from service.app import create_app
-from service.estimator_adapter import PreparedSession
 
 
-class ThreadCountPipeline(PidPipeline):
-    """Answers with the number of OpenCV threads of the process it runs in."""
-
-    def process(self, frame: StereoFrame, imu: ImuBatch | None = None) -> FrameReport:
-        report = super().process(frame, imu)
-        report.message = f"opencv_threads={cv2.getNumThreads()}"
-        return report
-
-
-class ThreadCountFactory(ProcessFactory):
-    def create(self, prepared: PreparedSession, initial_pose, first_index):  # type: ignore[override]
-        return ThreadCountPipeline(initial_pose, first_index, 0.0)
+def _opencv_threads(frame: StereoFrame, message: str) -> str:
+    """The number of OpenCV threads of the process the frame ran in."""
+    return f"opencv_threads={cv2.getNumThreads()}"
 
 
 def test_worker_processes_run_opencv_on_one_thread(tmp_path: Path) -> None:
     settings = settings_for(tmp_path, executor="process", workers=1)
-    with TestClient(create_app(settings, ThreadCountFactory())) as c:
+    with TestClient(create_app(settings, DescribingFactory(_opencv_threads))) as c:
         session = new_session(c)
         answer = send(c, session, 10)
     assert answer.status_code == 200, answer.text

@@ -13,17 +13,15 @@ from test_service_units import (
     HEIGHT,
     KEY_A,
     WIDTH,
-    PidPipeline,
-    ProcessFactory,
+    DescribingFactory,
     new_session,
     png,
     send,
     settings_for,
 )
 
-from estimator.types import FrameReport, ImuBatch, StereoFrame
+from estimator.types import StereoFrame
 from service.app import create_app
-from service.estimator_adapter import PreparedSession
 from service.images import ImageLimits, decode_image, decode_pair, image_size
 from service.shared_images import ImageSlots, read_pair
 
@@ -80,18 +78,9 @@ def test_a_png_pair_decodes_from_the_views_as_from_bytes() -> None:
         slots.close()
 
 
-class SumPipeline(PidPipeline):
-    """Answers with the pixel sums it was given, so the test sees what reached the worker."""
-
-    def process(self, frame: StereoFrame, imu: ImuBatch | None = None) -> FrameReport:
-        report = super().process(frame, imu)
-        report.message = f"{int(frame.left.sum())},{int(frame.right.sum())};{report.message}"
-        return report
-
-
-class SumFactory(ProcessFactory):
-    def create(self, prepared: PreparedSession, initial_pose, first_index):  # type: ignore[override]
-        return SumPipeline(initial_pose, first_index, 0.0)
+def _pixel_sums(frame: StereoFrame, message: str) -> str:
+    """The pixel sums the worker was given, so the test sees what reached it."""
+    return f"{int(frame.left.sum())},{int(frame.right.sum())};{message}"
 
 
 def _noise_png(seed: int) -> bytes:
@@ -113,7 +102,7 @@ def test_frames_reach_the_worker_intact_and_every_slot_comes_back(
 ) -> None:
     settings = settings_for(tmp_path, executor="process", workers=1, image_slots=2,
                             image_slot_bytes=slot_bytes)
-    with TestClient(create_app(settings, SumFactory())) as c:
+    with TestClient(create_app(settings, DescribingFactory(_pixel_sums))) as c:
         runner = c.app.state.swarmvo.manager.runner
         assert runner.images is not None
         name = runner.images.name
@@ -139,7 +128,7 @@ def test_frames_reach_the_worker_intact_and_every_slot_comes_back(
 
 def test_no_slots_means_the_pipe(tmp_path: Path) -> None:
     settings = settings_for(tmp_path, executor="process", workers=1, image_slots=0)
-    with TestClient(create_app(settings, SumFactory())) as c:
+    with TestClient(create_app(settings, DescribingFactory(_pixel_sums))) as c:
         assert c.app.state.swarmvo.manager.runner.images is None
         session = new_session(c)
         assert send(c, session, 10).status_code == 200
@@ -151,7 +140,7 @@ def test_raw8_pixels_over_the_websocket_reach_the_worker_through_a_slot(tmp_path
     right = (left // 2).astype(np.uint8)
     header = {"type": "frame", "timestamp_ns": 10, "encoding": "raw8", "width": WIDTH,
               "height": HEIGHT, "left_bytes": left.size, "right_bytes": right.size}
-    with TestClient(create_app(settings, SumFactory())) as c:
+    with TestClient(create_app(settings, DescribingFactory(_pixel_sums))) as c:
         runner = c.app.state.swarmvo.manager.runner
         session = new_session(c)
         with c.websocket_connect(f"/v1/sessions/{session}/stream",
