@@ -368,7 +368,6 @@ class FusionBackend:
         self._smoother.reset()
         self._vision.reset()
         self._answer.reset()
-        self._vision.placement.anchor()
         gyro_bias = (self._bias, self.config.gyro_bias_prior_sigma) if self.use_imu else None
         inertial = (
             self._inertial_prior(self.config.gravity_prior_sigma) if self._use_accel else None

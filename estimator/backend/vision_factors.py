@@ -70,10 +70,12 @@ class VisionFactors:
         self.last_fix_ns = 0
 
     def reset(self) -> None:
-        """Forget the landmarks and keyframe views of a smoother that starts afresh."""
+        """Forget the landmarks and keyframe views of a smoother that starts afresh; the
+        placement covariance carries on from the newest report."""
         if self._landmarks is not None:
             self._landmarks.reset()
         self._views.reset()
+        self.placement.anchor()
 
     def add(
         self,
