@@ -39,6 +39,7 @@ import gtsam
 import numpy as np
 
 from estimator.backend.imu import GyroPreintegration
+from estimator.backend.scale_kernels import spectra_statistic
 from estimator.config import BackendConfig
 from estimator.geometry import invert_pose
 
@@ -84,8 +85,21 @@ def solve_factor_spectra(
     bounds: tuple[float, float],
 ) -> float:
     """``solve_factor`` of samples decomposed by ``disagreement_spectra`` (kept per sample
-    by a caller that adds one sample a frame to a window of hundreds)."""
+    by a caller that adds one sample a frame to a window of hundreds).
+
+    The median and the mean run compiled (``scale_kernels.py``, the same numbers); any other
+    statistic in NumPy.
+    """
     eigenvalues, weights = spectra
+    median = _COMPILED.get(statistic)
+    if median is not None:
+        eigenvalues = np.ascontiguousarray(eigenvalues, dtype=float)
+        weights = np.ascontiguousarray(weights, dtype=float)
+
+        def compiled(log_scale: float) -> float:
+            return spectra_statistic(eigenvalues, weights, float(np.exp(log_scale)), median)
+
+        return _bisect(compiled, target, bounds)
 
     def decomposed(log_scale: float) -> float:
         return float(statistic((weights / (np.exp(log_scale) * eigenvalues + 1.0)).sum(axis=1)))
@@ -139,6 +153,14 @@ def _median(values: np.ndarray) -> float:
         return float(np.partition(values, half)[half])
     part = np.partition(values, (half - 1, half))
     return float((part[half - 1] + part[half]) / 2.0)
+
+
+# Statistics with a compiled bisection step: True for the median, False for the mean.
+_COMPILED: dict[Callable[[np.ndarray], float], bool] = {
+    _median: True,
+    np.median: True,
+    np.mean: False,
+}
 
 
 class GyroChain:
@@ -213,6 +235,10 @@ class CovarianceScale:
         self._gyro: deque[np.ndarray] = deque(maxlen=window)
         # Each sample decomposed once, when it arrives (None: its gyro covariance is singular).
         self._spectra: deque[Spectra | None] = deque(maxlen=window)
+        # The same spectra in a ring (slot i: the sample appended i, i + window, ... th), so
+        # that a solve reads them without joining 400 small arrays; the median ignores order.
+        self._ring = np.full((2, window, 3), np.nan)  # eigenvalues, weights
+        self._slot = 0
         self._value = 1.0
 
     @property
@@ -240,9 +266,11 @@ class CovarianceScale:
         self._errors.append(error)
         self._vision.append(np.asarray(vision_covariance, dtype=float))
         self._gyro.append(np.asarray(gyro_covariance, dtype=float) + bias)
-        self._spectra.append(
-            disagreement_spectra(error[None], self._vision[-1][None], self._gyro[-1][None])
-        )
+        spectrum = disagreement_spectra(error[None], self._vision[-1][None], self._gyro[-1][None])
+        self._spectra.append(spectrum)
+        if spectrum is not None:
+            self._ring[0, self._slot], self._ring[1, self._slot] = spectrum[0][0], spectrum[1][0]
+        self._slot = (self._slot + 1) % self._ring.shape[1]
         if len(self._errors) >= self.min_samples:
             self._value = self._solve()
         return self._value
@@ -250,11 +278,9 @@ class CovarianceScale:
     def _solve(self) -> float:
         """The factor whose median normalised disagreement is chi-square(3)'s median."""
         if all(spectrum is not None for spectrum in self._spectra):
-            eigenvalues = np.concatenate([spectrum[0] for spectrum in self._spectra])  # type: ignore[index]
-            weights = np.concatenate([spectrum[1] for spectrum in self._spectra])  # type: ignore[index]
-            return solve_factor_spectra(
-                _median, _CHI2_3_MEDIAN, (eigenvalues, weights), self.bounds
-            )
+            count = len(self._spectra)  # the ring's first ``count`` slots until it is full
+            spectra = (self._ring[0, :count], self._ring[1, :count])
+            return solve_factor_spectra(_median, _CHI2_3_MEDIAN, spectra, self.bounds)
         errors, vision, gyro = np.array(self._errors), np.array(self._vision), np.array(self._gyro)
         return solve_factor(_median, _CHI2_3_MEDIAN, errors, vision, gyro, self.bounds)
 
