@@ -277,7 +277,7 @@ class CovarianceScale:
 
     def _solve(self) -> float:
         """The factor whose median normalised disagreement is chi-square(3)'s median."""
-        if all(spectrum is not None for spectrum in self._spectra):
+        if None not in self._spectra:  # every sample decomposed (identity test per item)
             count = len(self._spectra)  # the ring's first ``count`` slots until it is full
             spectra = (self._ring[0, :count], self._ring[1, :count])
             return solve_factor_spectra(_median, _CHI2_3_MEDIAN, spectra, self.bounds)
@@ -360,7 +360,7 @@ class ChainDisagreement:
 
     def _solve(self) -> float:
         """The factor whose mean normalised disagreement is chi-square(3)'s mean."""
-        if all(spectrum is not None for spectrum in self._spectra):
+        if None not in self._spectra:
             eigenvalues = np.concatenate([spectrum[0] for spectrum in self._spectra])  # type: ignore[index]
             weights = np.concatenate([spectrum[1] for spectrum in self._spectra])  # type: ignore[index]
             return solve_factor_spectra(np.mean, _CHI2_3_MEAN, (eigenvalues, weights), self.bounds)

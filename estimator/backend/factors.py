@@ -25,7 +25,13 @@ from estimator.backend.imu import GyroPreintegration
 
 __all__ = ["gyro_rotation_error", "gyro_rotation_factor"]
 
-_ZEROS = np.zeros((3, 3))
+
+
+def _on_rotation(jacobian: np.ndarray) -> np.ndarray:
+    """A 3x3 Jacobian w.r.t. a rotation as the 3x6 one w.r.t. the Pose3 (translation: 0)."""
+    full = np.zeros((3, 6))
+    full[:, :3] = jacobian
+    return full
 
 
 def gyro_rotation_error(
@@ -68,8 +74,7 @@ def gyro_rotation_factor(
             values.atVector(key_b),
         )
         if jacobians is not None:
-            jacobians[0] = np.hstack([d_i, _ZEROS])
-            jacobians[1] = np.hstack([d_j, _ZEROS])
+            jacobians[0], jacobians[1] = _on_rotation(d_i), _on_rotation(d_j)
             jacobians[2] = d_b
         return error
 

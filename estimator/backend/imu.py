@@ -33,6 +33,8 @@ __all__ = [
 
 GRAVITY = 9.81  # m/s^2, magnitude only: the world z axis points up (against gravity)
 
+Segments = tuple[np.ndarray, np.ndarray]  # (K, 3) mean value per piece, (K,) durations in s
+
 
 @dataclass(frozen=True)
 class GyroPreintegration:
@@ -65,10 +67,17 @@ def preintegrate_gyro(
     end_ns: int,
     params: gtsam.PreintegratedRotationParams,
     bias_hat: np.ndarray | None = None,
+    segments: Segments | None = None,
 ) -> GyroPreintegration:
-    """Preintegrate the gyro over [start_ns, end_ns] with bias ``bias_hat`` removed."""
+    """Preintegrate the gyro over [start_ns, end_ns] with bias ``bias_hat`` removed.
+
+    ``segments``: the gyro's ``sample_segments`` over the interval when the caller has them
+    already (the accelerometer's preintegration uses the same ones).
+    """
     bias_hat = np.zeros(3) if bias_hat is None else np.asarray(bias_hat, dtype=float)
-    rates, durations = sample_segments(timestamps_ns, gyro, start_ns, end_ns)
+    if segments is None:
+        segments = sample_segments(timestamps_ns, gyro, start_ns, end_ns)
+    rates, durations = segments
     pim = gtsam.PreintegratedAhrsMeasurements(params, bias_hat)
     bias_jacobian = np.zeros((3, 3))
     # One C++ call per IMU sample (~10 per frame); the 3x3 recursion mirrors GTSAM's
@@ -117,13 +126,17 @@ def preintegrate_specific_force(
     end_ns: int,
     gyro_bias: np.ndarray | None = None,
     accel_bias: np.ndarray | None = None,
+    gyro_segments: Segments | None = None,
 ) -> SpecificForceDelta:
     """Velocity and position increments of the specific force over [start_ns, end_ns].
 
     GTSAM's ``PreintegratedImuMeasurements`` does the integration (gravity zero, biases
-    removed); both signals are cut at the frame times like the gyro (``sample_segments``).
+    removed); both signals are cut at the frame times like the gyro (``sample_segments``;
+    ``gyro_segments``: the gyro's, when the caller has them already).
     """
-    rates, durations = sample_segments(timestamps_ns, gyro, start_ns, end_ns)
+    if gyro_segments is None:
+        gyro_segments = sample_segments(timestamps_ns, gyro, start_ns, end_ns)
+    rates, durations = gyro_segments
     forces, _ = sample_segments(timestamps_ns, accel, start_ns, end_ns)
     bias = gtsam.imuBias.ConstantBias(
         np.zeros(3) if accel_bias is None else np.asarray(accel_bias, dtype=float),

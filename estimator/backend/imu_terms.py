@@ -34,6 +34,7 @@ from estimator.backend.smoother import ACCEL_BIAS_KEY, GRAVITY_KEY, bias_key, po
 from estimator.backend.step import Step
 from estimator.backend.window import FrameWindow
 from estimator.config import BackendConfig
+from estimator.imu_sampling import sample_segments
 from estimator.types import ImuNoise
 
 __all__ = ["ImuTerms"]
@@ -72,14 +73,17 @@ class ImuTerms:
         if not self.buffer.covers(start_ns, end_ns, self.max_gap_ns):
             return None, None
         samples = self.buffer.window(start_ns, end_ns)
+        stamps = samples.timestamps_ns
+        segments = sample_segments(stamps, samples.gyro, start_ns, end_ns)  # cut once for both
         preintegration = preintegrate_gyro(
-            samples.timestamps_ns, samples.gyro, start_ns, end_ns, self.params, bias
+            stamps, samples.gyro, start_ns, end_ns, self.params, bias, segments
         )
         delta = None
         if self.use_accel:
             delta = preintegrate_specific_force(
-                samples.timestamps_ns, samples.gyro, samples.accel, start_ns, end_ns, bias
-            )
+                stamps, samples.gyro, samples.accel, start_ns, end_ns, bias,
+                gyro_segments=segments,
+            )  # fmt: skip
         self.buffer.drop_before(end_ns)
         return preintegration, delta
 
