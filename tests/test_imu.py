@@ -253,3 +253,35 @@ def test_rest_bias_estimate_is_as_accurate_as_the_noise_density_says():
     # 120 normalised errors: none beyond 4 sigma, spread 1 within sampling noise (~7 %).
     assert np.abs(errors).max() < 4.0
     assert 0.75 < float(np.sqrt(np.mean(errors**2))) < 1.25
+
+
+def test_an_interval_cut_once_preintegrates_as_when_each_signal_cuts_it() -> None:
+    """``ImuTerms.preintegrate`` hands the gyro's pieces to both preintegrations: the same
+    rotation, bias Jacobian, covariance and specific-force increments, to the last bit."""
+    from estimator.backend.imu import preintegrate_specific_force
+    from estimator.backend.imu_terms import ImuTerms
+    from estimator.config import BackendConfig
+
+    rng = np.random.default_rng(4)
+    stamps = np.arange(0, 300_000_000, 4_900_000, dtype=np.int64) + 1_234_567
+    gyro = rng.normal(size=(len(stamps), 3)) * 0.3
+    accel = rng.normal(size=(len(stamps), 3)) + np.array([0.0, 0.0, GRAVITY])
+    noise = ImuNoise()
+    terms = ImuTerms(BackendConfig(), noise, use_accel=True)
+    terms.buffer.extend(ImuBatch(stamps, gyro, accel))
+    bias = np.array([1e-3, -2e-3, 5e-4])
+    start, end = 50_000_000, 150_000_000
+    window = terms.buffer.window(start, end)
+    gyro_alone = preintegrate_gyro(
+        window.timestamps_ns, window.gyro, start, end, terms.params, bias
+    )
+    force_alone = preintegrate_specific_force(
+        window.timestamps_ns, window.gyro, window.accel, start, end, bias
+    )
+    shared, force = terms.preintegrate(start, end, bias)
+    assert shared is not None and force is not None
+    for name in ("delta_rotation", "bias_jacobian", "covariance", "bias_hat"):
+        assert np.array_equal(getattr(shared, name), getattr(gyro_alone, name)), name
+    assert np.array_equal(force.delta_position, force_alone.delta_position)
+    assert np.array_equal(force.delta_velocity, force_alone.delta_velocity)
+    assert shared.duration_s == gyro_alone.duration_s == force.duration_s
