@@ -261,3 +261,16 @@ def test_real_clip_fused_bridges_black_frames_close_to_vision(euroc_mh01_moving)
             for mode in ("vision", "fused")
         )
     assert fused <= vision + 1.5e-3, f"fused {fused * 1e3:.1f} mm > vision {vision * 1e3:.1f} mm"
+
+
+def test_the_factors_own_skew_matrix_is_geometrys_to_the_bit() -> None:
+    """The inertial factor builds its cross-product matrices itself (hot path); they must be
+    ``geometry.skew``'s exactly, signed zeros included."""
+    from estimator.backend.inertial import _skew
+    from estimator.geometry import skew
+
+    rng = np.random.default_rng(8)
+    vectors = [rng.normal(size=3), np.zeros(3), np.array([-0.0, 1.5, -2.0])]
+    vectors.append(np.array([3.0, 0.0, -0.0]))
+    for vector in vectors:
+        assert _skew(vector).tobytes() == skew(vector).tobytes()

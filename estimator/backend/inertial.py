@@ -30,7 +30,6 @@ import gtsam
 import numpy as np
 
 from estimator.backend.imu import SpecificForceDelta
-from estimator.geometry import skew
 
 __all__ = [
     "InertialTerms",
@@ -90,12 +89,22 @@ def velocity_change_error(
         - terms.c * gravity
     )
     d0, d1, d2 = np.empty((3, 6)), np.empty((3, 6)), np.zeros((3, 6))
-    d0[:, :3] = r0 @ skew(a1)
+    d0[:, :3] = r0 @ _skew(a1)
     d0[:, 3:] = r0 / dt1
-    d1[:, :3] = r1 @ skew(a2)
+    d1[:, :3] = r1 @ _skew(a2)
     d1[:, 3:] = r1 * -(1.0 / dt1 + 1.0 / dt2)
     d2[:, 3:] = r2 / dt2
-    return error, (d0, d1, d2, -terms.c * np.eye(3), (0.5 * dt1) * r0 + (0.5 * dt2) * r1)
+    return error, (d0, d1, d2, -terms.c * _EYE, (0.5 * dt1) * r0 + (0.5 * dt2) * r1)
+
+
+_EYE = np.eye(3)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """``geometry.skew`` of one vector, the same matrix built in one call: the factor is
+    linearised again on every frame it stays in the window (tests/test_inertial.py)."""
+    x, y, z = v
+    return np.array(((0.0, -z, y), (z, 0.0, -x), (-y, x, 0.0)))
 
 
 def predict_position(
