@@ -140,13 +140,12 @@ class Smoother:
             joint = isam.jointMarginalCovariance(gtsam.KeyVector([previous, current]))
         except RuntimeError:  # numerical failure inside GTSAM
             return None, None
-        jacobian = np.hstack([-se3_adjoint(motion, inverse=True), np.eye(6)])
-        blocks = np.block(
-            [
-                [joint.at(previous, previous), joint.at(previous, current)],
-                [joint.at(current, previous), joint.at(current, current)],
-            ]
-        )
+        jacobian = np.empty((6, 12))
+        jacobian[:, :6], jacobian[:, 6:] = -se3_adjoint(motion, inverse=True), np.eye(6)
+        blocks = np.empty((12, 12))  # filled block by block: np.block costs more than the rest
+        current_block = np.asarray(joint.at(current, current))
+        blocks[:6, :6], blocks[:6, 6:] = joint.at(previous, previous), joint.at(previous, current)
+        blocks[6:, :6], blocks[6:, 6:] = joint.at(current, previous), current_block
         motion_covariance = jacobian @ blocks @ jacobian.T
         motion_covariance = 0.5 * (motion_covariance + motion_covariance.T)
-        return np.asarray(joint.at(current, current)), motion_covariance
+        return current_block, motion_covariance
