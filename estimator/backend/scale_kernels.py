@@ -6,7 +6,7 @@ frame; in NumPy each evaluation is half a dozen array passes and temporaries, wh
 calibration the back end's largest Python cost. One compiled pass gives the same numbers to
 the last bit: the three terms are added left to right (what NumPy's ``sum(axis=1)`` does
 for three columns), the mean uses NumPy's pairwise summation, and the median picks the same
-order statistics (``tests/test_covariance_scale.py`` compares both on random samples). The
+order statistics (``tests/test_scale_kernels.py`` compares both on random samples). The
 scale ``s`` itself is computed by the caller with NumPy's ``exp``, whose last bit differs
 from the compiled one's.
 """
