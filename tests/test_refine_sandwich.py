@@ -8,6 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from estimator.registration.refine import refine_pose_mahalanobis
+from estimator.registration.refine_kernels import ROBUST_CODES, score_outer_products
 
 FOCAL, BASELINE = 460.0, 0.11  # a EuRoC-like rig
 SIGMA_U, SIGMA_D = 0.3, 0.5  # the pixel noise the point covariances assume
@@ -96,3 +97,36 @@ def test_too_few_pairs_give_no_sandwich() -> None:
     )
     assert more.sandwich_covariance is not None
     assert refine_pose_mahalanobis(*args).sandwich_covariance is None  # not asked for
+
+
+@pytest.mark.parametrize("robust", ["none", "cauchy", "huber"])
+def test_compiled_sums_match_the_per_pair_formula(robust: str) -> None:
+    """B = sum g g^T and the kernel's curvature term D against a per-pair NumPy version."""
+    rng = np.random.default_rng(4)
+    source = np.column_stack([rng.uniform(-2, 2, (50, 2)), rng.uniform(2, 8, 50)])
+    rotation = Rotation.from_rotvec([0.03, -0.02, 0.05]).as_matrix()
+    translation = np.array([0.2, -0.1, 0.05])
+    covariance = _covariances(source)
+    target = source @ rotation.T + translation + 0.05 * rng.standard_t(2, source.shape)
+    scale = 3.0
+    meat, curvature, regular = score_outer_products(
+        source, target, covariance, covariance, rotation, translation, ROBUST_CODES[robust], scale
+    )
+    assert regular
+    expected_meat, expected_curvature = np.zeros((6, 6)), np.zeros((6, 6))
+    for s, t, c in zip(source, target, covariance, strict=True):
+        residual = rotation.T @ (t - translation) - s
+        info = np.linalg.inv(c + rotation.T @ c @ rotation)
+        squared = residual @ info @ residual
+        weight, loss = 1.0, 0.0
+        if robust == "cauchy":
+            weight, loss = 1.0 / (1.0 + squared / scale**2), 2.0 / scale**2
+        elif robust == "huber" and np.sqrt(squared) > scale:
+            weight, loss = scale / np.sqrt(squared), 1.0 / (scale * np.sqrt(squared))
+        skew = np.array([[0, -s[2], s[1]], [s[2], 0, -s[0]], [-s[1], s[0], 0]])
+        jacobian = np.hstack([skew, -np.eye(3)])
+        score = weight * jacobian.T @ info @ residual
+        expected_meat += np.outer(score, score)
+        expected_curvature += loss * np.outer(score, score)
+    np.testing.assert_allclose(meat, expected_meat, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(curvature, expected_curvature, rtol=1e-9, atol=1e-12)
