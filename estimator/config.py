@@ -62,6 +62,14 @@ class RegistrationConfig(_Section):
     # the kernel, now at the right scale, biased rendered rotations (4 standard errors about the
     # optical axis); 6 removes that and is as accurate on the real clip.
     refine_robust_scale: float = Field(6.0, gt=0)
+    # The refinement's 6x6 covariance (estimator/registration/refine.py): "median", the inverse
+    # Hessian scaled by the median squared Mahalanobis residual; "sandwich", the robust sandwich
+    # from the residuals the inliers actually show (their heavy tails move the pose more than a
+    # Gaussian with their median spread: on the rendered drives the median one is 2x too small
+    # in variance, translation NEES per DOF 3.8 instead of 1.4); "sandwich-reported": the back
+    # end weighs the median one, the frame reports and the odometry messages built from them
+    # carry the sandwich (docs/frontend.md, "The covariance the refinement hands on").
+    refine_covariance: Literal["median", "sandwich", "sandwich-reported"] = "sandwich-reported"
 
 
 class FrontendConfig(_Section):

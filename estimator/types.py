@@ -97,7 +97,9 @@ class FrameReport:
     # Uncertainty, for the odometry message (``estimator.formats.odometry_msg``). Covariances are
     # 6x6 in GTSAM's tangent order (rotation, translation), right perturbation:
     # the front end's T_ref_cur (left camera frame) against the frame stamped
-    # ``reference_timestamp_ns``, calibrated as the back end uses it (None when it failed);
+    # ``reference_timestamp_ns``, floored as the back end uses it (the refinement's robust
+    # sandwich with ``registration.refine_covariance`` "sandwich-reported", the default, while
+    # the back end weighs the median-scaled one; None when it failed);
     measurement_covariance: np.ndarray | None = None
     reference_timestamp_ns: int | None = None
     # with the back end, the marginals of the fused body (IMU) pose and of the body motion

@@ -351,6 +351,7 @@ class Odometry:
         )
         if fused is not None:
             estimate.reference_from_current, estimate.covariance = fused
+            estimate.reported_covariance = None  # the combination's is the one to report
         return estimate, True
 
     def _estimate_against(

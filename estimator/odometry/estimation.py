@@ -164,8 +164,14 @@ class PoseEstimation:
             iterations=registration.refine_iterations,
             robust=registration.refine_robust,
             robust_scale=registration.refine_robust_scale,
+            sandwich=registration.refine_covariance != "median",
         )
         if refined.success:
             estimate.reference_from_current = make_pose(refined.rotation, refined.translation)
             estimate.covariance = refined.covariance
+            robust = refined.sandwich_covariance  # None with too few pairs: the median one
+            if robust is not None and registration.refine_covariance == "sandwich":
+                estimate.covariance = robust
+            elif robust is not None and registration.refine_covariance == "sandwich-reported":
+                estimate.reported_covariance = robust
         return estimate

@@ -83,6 +83,9 @@ class Estimate:
     reference: Reference | None = None  # the frame it was measured against
     # 6x6 of (rotation, translation), right perturbation, when the pose was refined.
     covariance: np.ndarray | None = None
+    # The covariance the frame report carries when it is not ``covariance`` (the one the back
+    # end weighs; ``registration.refine_covariance``); None: ``covariance``.
+    reported_covariance: np.ndarray | None = None
     # (N, 3, 3) covariances of the current and reference points of ``pairs``.
     point_covariances: tuple[np.ndarray, np.ndarray] | None = None
 

@@ -100,25 +100,33 @@ class CameraFrames:
             typical_flow_px=noise.typical_flow,
         )
 
-    def measurement_covariance(self, estimate: Estimate) -> np.ndarray | None:
-        """The refinement's 6x6 covariance, rotated from the rectified into the camera frame.
+    def measurement_covariance(
+        self, estimate: Estimate, reported: bool = False
+    ) -> np.ndarray | None:
+        """The refinement's 6x6 covariance, rotated from the rectified into the camera frame
+        (``reported``: the one the frame report carries, ``Estimate.reported_covariance``).
 
         The rectifying transform is a pure rotation, whose adjoint rotates both the rotation and
         the translation block of the (right-perturbation) tangent.
         """
-        if estimate.covariance is None:
+        covariance = estimate.covariance
+        if reported and estimate.reported_covariance is not None:
+            covariance = estimate.reported_covariance
+        if covariance is None:
             return None
         rotation = self.camera_from_rect[:3, :3]
         adjoint = np.zeros((6, 6))
         adjoint[:3, :3] = adjoint[3:, 3:] = rotation
-        return adjoint @ estimate.covariance @ adjoint.T
+        return adjoint @ covariance @ adjoint.T
 
     def report_covariance(self, estimate: Estimate, backend: BackendConfig) -> np.ndarray:
-        """Covariance of the measured T_ref_cur as the back end weighs it: the refinement's,
-        else the rigid fit's from the inlier points, scaled and floored by ``backend``."""
+        """Covariance of the measured T_ref_cur as the back end weighs it (with
+        ``registration.refine_covariance`` "sandwich-reported": the robust one instead): the
+        refinement's, else the rigid fit's from the inlier points, scaled and floored by
+        ``backend``."""
         from estimator.backend.noise import fit_covariance, measured_covariance
 
-        covariance = self.measurement_covariance(estimate)
+        covariance = self.measurement_covariance(estimate, reported=True)
         if covariance is not None:
             return measured_covariance(covariance, backend)
         points, residuals = self.inlier_points(estimate), self.inlier_residuals(estimate)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["ROBUST_CODES", "linearise_pairs", "squared_distances"]
+__all__ = ["ROBUST_CODES", "linearise_pairs", "score_outer_products", "squared_distances"]
 
 ROBUST_CODES = {"none": 0, "cauchy": 1, "huber": 2}
 
@@ -144,3 +144,55 @@ def linearise_pairs(
                 total += weighted[k, a] * residual[k]
             gradient[a] += total
     return cost, hessian, gradient, squared, True
+
+
+@numba.njit(cache=True, nogil=True)
+def score_outer_products(
+    source, target, source_cov, target_cov, rotation, translation, robust_code, scale
+):
+    """(B, D, regular): B = sum_j g_j g_j^T with g_j = w_j J_j^T W_j r'_j, each pair's share
+    of the gradient (the "meat" of the robust sandwich covariance, ``refine.py``), and D the
+    part of J^T W J that the robust cost's own curvature takes off (the Gauss-Newton Hessian
+    minus D is the Hessian of the robust cost): with half the cost per pair
+    rho(z) = c^2/2 log(1 + |z|^2/c^2) (Cauchy) the Hessian in the whitened residual z is
+    w I - 2 w^2 / c^2 z z^T, so D_j = 2 / c^2 g_j g_j^T; Huber beyond its threshold k:
+    w I - w / |z|^2 z z^T, D_j = g_j g_j^T / (k |z|)."""
+    count = source.shape[0]
+    meat = np.zeros((6, 6))
+    curvature = np.zeros((6, 6))
+    residual = np.empty(3)
+    info = np.empty((3, 3))
+    whitened = np.empty(3)
+    score = np.empty(6)
+    c2 = scale * scale
+    for n in range(count):
+        if not _pair(source, target, source_cov, target_cov, rotation, translation, n,
+                     residual, info):  # fmt: skip
+            return meat, curvature, False
+        value = _quadratic_form(info, residual)
+        weight, loss = 1.0, 0.0
+        if robust_code == 1:
+            weight = 1.0 / (1.0 + value / c2)
+            loss = 2.0 / c2
+        elif robust_code == 2:
+            distance = np.sqrt(value)
+            if distance > scale:
+                weight = scale / max(distance, 1e-300)
+                loss = 1.0 / (scale * distance)
+        for i in range(3):
+            total = 0.0
+            for k in range(3):
+                total += info[i, k] * residual[k]
+            whitened[i] = weight * total
+        s0, s1, s2 = source[n, 0], source[n, 1], source[n, 2]
+        # J^T w with J = [[s]x, -I]: [s]x^T w = w x s, then -w.
+        score[0] = whitened[1] * s2 - whitened[2] * s1
+        score[1] = whitened[2] * s0 - whitened[0] * s2
+        score[2] = whitened[0] * s1 - whitened[1] * s0
+        score[3], score[4], score[5] = -whitened[0], -whitened[1], -whitened[2]
+        for a in range(6):
+            for b in range(6):
+                product = score[a] * score[b]
+                meat[a, b] += product
+                curvature[a, b] += loss * product
+    return meat, curvature, True
