@@ -23,7 +23,13 @@ from typing import Literal
 import numpy as np
 
 from estimator.geometry import quat_to_matrix, rotation_vector_to_quat
-from estimator.registration.refine_kernels import ROBUST_CODES, linearise_pairs, squared_distances
+from estimator.order_statistics import median
+from estimator.registration.refine_kernels import (
+    ROBUST_CODES,
+    linearise_pairs,
+    scaled_condition,
+    squared_distances,
+)
 
 __all__ = ["CHI2_3_MEDIAN", "RefinementResult", "refine_pose_mahalanobis", "squared_mahalanobis"]
 
@@ -125,11 +131,7 @@ def _linearise(
 
 def _condition(hessian: np.ndarray) -> float:
     """Condition number after Jacobi scaling (radians and metres are not comparable units)."""
-    diagonal = np.diag(hessian)
-    if not np.isfinite(hessian).all() or (diagonal <= 0).any():
-        return np.inf
-    scale = 1.0 / np.sqrt(diagonal)
-    return float(np.linalg.cond(hessian * scale[:, None] * scale[None, :]))
+    return float(scaled_condition(np.ascontiguousarray(hessian, dtype=float)))
 
 
 def _checked(array: np.ndarray, shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -213,7 +215,7 @@ def _scaled_covariance(linearisation: _Linearisation) -> tuple[np.ndarray, float
     distance over the median of chi-square with 3 degrees of freedom) makes the covariance
     match this frame's data, so a consumer weighs it neither too much nor too little.
     """
-    variance_factor = float(np.median(linearisation.squared) / CHI2_3_MEDIAN)
+    variance_factor = median(linearisation.squared) / CHI2_3_MEDIAN
     variance_factor = min(max(variance_factor, _MIN_VARIANCE_FACTOR), _MAX_VARIANCE_FACTOR)
     covariance = variance_factor * np.linalg.inv(linearisation.hessian)
     return 0.5 * (covariance + covariance.T), variance_factor
