@@ -190,7 +190,8 @@ def _levenberg_marquardt(
     damping, steps, rejected = 1e-4, 0, 0
     while steps < iterations and rejected < _MAX_DAMPING_TRIES:
         step = _solve_damped(current, damping)
-        if np.linalg.norm(step) < _STEP_TOLERANCE:
+        size = np.linalg.norm(step)
+        if size < _STEP_TOLERANCE:
             break  # converged; evaluating a smaller step would only compare rounding errors
         candidate, candidate_r, candidate_t = _try_step(
             data, estimate_r, estimate_t, step, robust, robust_scale
@@ -199,7 +200,7 @@ def _levenberg_marquardt(
             estimate_r, estimate_t, current = candidate_r, candidate_t, candidate
             damping = max(damping * 0.1, 1e-9)
             steps += 1
-        elif candidate is not None and np.linalg.norm(step) < _SETTLED_STEP:
+        elif candidate is not None and size < _SETTLED_STEP:
             break
         else:
             damping *= 10.0
