@@ -9,7 +9,7 @@ import pytest
 
 from estimator.geometry import quat_to_matrix, rotation_vector_to_quat, skew
 from estimator.registration.refine import squared_mahalanobis
-from estimator.registration.refine_kernels import ROBUST_CODES, linearise_pairs
+from estimator.registration.refine_kernels import ROBUST_CODES, linearise_pairs, scaled_condition
 
 
 def _reference(source, target, source_cov, target_cov, rotation, translation, kind, scale):
@@ -168,3 +168,21 @@ def test_the_kernel_equals_the_full_loops_bit_for_bit(kind: str) -> None:
         np.testing.assert_array_equal(gradient, expected[2])
         np.testing.assert_array_equal(squared, expected[3])
         np.testing.assert_array_equal(squared_mahalanobis(*data), expected[3])
+
+
+def test_the_scaled_condition_number_is_numpys() -> None:
+    """The compiled conditioning test: NumPy's 2-norm condition number of the Jacobi-scaled
+    matrix (to rounding), and inf where the scaling is undefined."""
+    rng = np.random.default_rng(8)
+    for exponent in (0, 4, 8, 12):
+        a = rng.normal(size=(6, 6)) * np.logspace(0, exponent, 6)
+        hessian = a @ a.T
+        scale = 1.0 / np.sqrt(np.diag(hessian))
+        expected = np.linalg.cond(hessian * scale[:, None] * scale[None, :])
+        assert scaled_condition(hessian) == pytest.approx(expected, rel=1e-9)
+    hessian = np.eye(6)
+    hessian[2, 2] = 0.0
+    assert scaled_condition(hessian) == np.inf
+    hessian = np.eye(6)
+    hessian[1, 4] = np.nan
+    assert scaled_condition(hessian) == np.inf
