@@ -52,3 +52,16 @@ def test_bad_arguments_give_a_one_line_error(capsys: pytest.CaptureFixture[str])
     assert frontend_profile.main(["--data", "/nonexistent/clip", "--frames", "5"]) == 2
     errors = capsys.readouterr().err.strip().splitlines()
     assert len(errors) == 2 and all(line.startswith("error: ") for line in errors)
+
+
+def test_rows_can_be_ordered_by_cumulative_time() -> None:
+    profiler = cProfile.Profile(time.process_time)
+    profiler.enable()
+    for _ in range(2):
+        _busy(0.005)
+    profiler.disable()
+    rows = frontend_profile.profile_rows(pstats.Stats(profiler), 2, 50, sort="cumulative")
+    cumulative = [row["cumulative_ms_per_frame"] for row in rows]
+    assert cumulative == sorted(cumulative, reverse=True)
+    with pytest.raises(ValueError, match="sort"):
+        frontend_profile.profile_rows(pstats.Stats(profiler), 2, 5, sort="calls")

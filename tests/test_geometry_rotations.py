@@ -90,3 +90,30 @@ def test_nearly_orthonormal_is_projected_and_reflections_refused() -> None:
         g.rotation_angle_deg(np.stack([np.eye(3), -np.eye(3)]))
     with pytest.raises(ValueError, match="shape"):
         g.matrix_to_quat(np.eye(4))
+
+
+def test_one_rotation_in_plain_floats_equals_the_array_route_bit_for_bit() -> None:
+    """The single-matrix path keeps the array route's rounding (near 0 and 180 deg too)."""
+    rng = np.random.default_rng(21)
+    axes = rng.normal(size=(3000, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    near_half_turn = rng.uniform(np.pi - 1e-3, np.pi, 1000)
+    tiny = 10.0 ** rng.uniform(-9, -3, 1000)
+    angles = np.concatenate([rng.uniform(0, np.pi, 1000), tiny, near_half_turn])
+    for vector in axes * angles[:, None]:
+        matrix = g.quat_to_matrix(g.rotation_vector_to_quat(vector))
+        array_route = g.quat_normalize(np.roll(g._unit_xyzw(matrix), 1, axis=-1))
+        np.testing.assert_array_equal(g.matrix_to_quat(matrix), array_route)
+        assert g.rotation_angle_deg(matrix) == _angle_array_route(matrix)
+
+
+def _angle_array_route(matrix: np.ndarray) -> float:
+    """``rotation_angle_deg``'s array formula, as it is for stacks of matrices."""
+    xyzw = g._unit_xyzw(matrix)
+    vector = xyzw[..., :3]
+    angle = 2.0 * np.arctan2(np.linalg.norm(vector, axis=-1), np.abs(xyzw[..., 3]))
+    small = angle <= 1e-3
+    squared = angle**2
+    series = 2 + squared / 12 + 7 * squared**2 / 2880
+    scale = np.where(small, series, angle / (np.sin(angle / 2.0) + small))
+    return float(np.degrees(np.linalg.norm(scale[..., None] * vector, axis=-1)))

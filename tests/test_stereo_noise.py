@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from estimator.formats.calibration import StereoRig
+from estimator.frontend.stereo import point_covariances
 from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel
 from estimator.geometry import quat_to_matrix, rotation_vector_to_quat
 from estimator.registration.refine import CHI2_3_MEDIAN
@@ -141,3 +142,17 @@ def test_noise_that_does_not_grow_with_the_flow_gives_no_gain() -> None:
     for turn in np.tile([0.5, 2.0, 4.0, 6.0], 5):
         model.update(*_moving_frame(NoiseLevel(0.2, 0.2, 0.1), 0.0, float(turn), rng))
     assert model.gain < 0.005
+
+
+def test_the_compiled_covariances_are_the_array_formula_bit_for_bit() -> None:
+    """The model's covariances (one compiled pass) equal ``stereo.point_covariances``."""
+    rng = np.random.default_rng(11)
+    rectification = _rectification()
+    uvd = np.column_stack([rng.uniform(0, 752, 300), rng.uniform(0, 480, 300),
+                           rng.uniform(0.5, 90.0, 300)])  # fmt: skip
+    points = _triangulate(uvd)
+    for level in (PRIOR, NoiseLevel(0.137, 0.0912, 0.3141)):
+        model = StereoNoiseModel(rectification, level)
+        expected = point_covariances(points, rectification, *level.as_tuple())
+        np.testing.assert_array_equal(model.covariances(points), expected)
+        np.testing.assert_array_equal(model.covariances(points[:0]), expected[:0])

@@ -49,10 +49,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from estimator.formats.calibration import Rectification
 from estimator.frontend.stereo import point_covariances
+from estimator.order_statistics import column_medians, median, quantile
 from estimator.registration.refine import CHI2_3_MEDIAN, squared_mahalanobis
 
 __all__ = ["CHI2_3_MEDIAN", "NoiseLevel", "StereoNoiseModel", "flow", "squared_mahalanobis"]
@@ -83,13 +85,11 @@ def project(points: np.ndarray, rectification: Rectification) -> np.ndarray:
     """(N, 3) rectified-camera points -> (N, 3) (u, v, d) in pixels."""
     f, b = rectification.fx, rectification.baseline
     inverse_depth = 1.0 / points[:, 2]
-    return np.column_stack(
-        [
-            f * points[:, 0] * inverse_depth + rectification.cx,
-            f * points[:, 1] * inverse_depth + rectification.cy,
-            f * b * inverse_depth,
-        ]
-    )
+    projected = np.empty((len(points), 3))
+    projected[:, 0] = f * points[:, 0] * inverse_depth + rectification.cx
+    projected[:, 1] = f * points[:, 1] * inverse_depth + rectification.cy
+    projected[:, 2] = f * b * inverse_depth
+    return projected
 
 
 @dataclass
@@ -164,7 +164,7 @@ class StereoNoiseModel:
         that moved more in the image than the recent ones (see module doc)."""
         if len(current) == 0:
             return self.gate_chi2
-        moved = float(np.median(flow(current, reference, self.rectification)))
+        moved = median(flow(current, reference, self.rectification))
         gain = self.gain
         ratio = (1.0 + gain * moved) / (1.0 + gain * self.typical_flow)
         return self.gate_chi2 * max(ratio, 1.0)
@@ -174,7 +174,14 @@ class StereoNoiseModel:
         return self._covariances(points, self.level)
 
     def _covariances(self, points: np.ndarray, level: NoiseLevel) -> np.ndarray:
-        return point_covariances(points, self.rectification, *level.as_tuple())
+        rectification = self.rectification
+        points = np.ascontiguousarray(points, dtype=float)
+        if points.ndim != 2 or points.shape[1] != 3:
+            return point_covariances(points, rectification, *level.as_tuple())  # its error
+        return _point_covariances(
+            points, rectification.fx, rectification.fx * rectification.baseline,
+            level.sigma_u_px**2, level.sigma_v_px**2, level.sigma_d_px,
+        )  # fmt: skip
 
     def update(
         self,
@@ -182,46 +189,51 @@ class StereoNoiseModel:
         current: np.ndarray,
         rotation: np.ndarray,
         translation: np.ndarray,
+        covariances: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> float | None:
         """Fold in one frame's inlier pairs (reference ~ R current + t); returns the median
-        squared Mahalanobis residual under the level *before* the update (None: too few)."""
+        squared Mahalanobis residual under the level *before* the update (None: too few).
+        ``covariances`` (current, reference) are ``covariances`` of the points at the present
+        level when the caller already has them (the estimate's), else they are computed."""
         if len(reference) < _MIN_PAIRS:
             return None
+        if covariances is None:
+            covariances = (self.covariances(current), self.covariances(reference))
         # The check first: residuals against the level predicted before this frame.
         predicted_squared = squared_mahalanobis(
-            current, reference, self.covariances(current), self.covariances(reference),
-            rotation, translation,
-        )  # fmt: skip
-        median = float(np.median(predicted_squared))
-        self._q90.append(float(np.quantile(predicted_squared, 0.9)))
+            current, reference, *covariances, rotation, translation
+        )
+        predicted_median = median(predicted_squared)
+        self._q90.append(quantile(predicted_squared, 0.9))
         predicted = current @ rotation.T + translation
-        errors = project(reference, self.rectification) - project(predicted, self.rectification)
+        seen = project(reference, self.rectification)
+        errors = seen - project(predicted, self.rectification)
         # Both points are noisy: the difference has twice the variance of one measurement.
-        sigma = _MAD_TO_SIGMA * np.median(np.abs(errors), axis=0) / np.sqrt(2.0)
+        sigma = _MAD_TO_SIGMA * column_medians(np.abs(errors)) / np.sqrt(2.0)
         sigma = np.maximum(sigma, _MIN_SIGMA_PX)
         frame_level = NoiseLevel(*(float(value) for value in sigma))
         squared = squared_mahalanobis(
             current, reference, self._covariances(current, frame_level),
             self._covariances(reference, frame_level), rotation, translation,
         )  # fmt: skip
-        sigma = np.maximum(sigma * np.sqrt(np.median(squared) / CHI2_3_MEDIAN), _MIN_SIGMA_PX)
+        sigma = np.maximum(sigma * np.sqrt(median(squared) / CHI2_3_MEDIAN), _MIN_SIGMA_PX)
         normalised = np.abs(errors) / (np.sqrt(2.0) * sigma)
-        tail = float(np.quantile(normalised, 0.999, axis=0).max()) / _GAUSSIAN_Q999
+        tail = float(quantile(normalised, 0.999).max()) / _GAUSSIAN_Q999
         pairs = float(len(reference))
-        moved = flow(current, reference, self.rectification)
+        moved = _flow(project(current, self.rectification), seen)
         self._fold_line(errors, moved)
-        self._flow_sum = self.memory * self._flow_sum + pairs * float(np.median(moved))
+        self._flow_sum = self.memory * self._flow_sum + pairs * median(moved)
         self._variance_sums = self.memory * self._variance_sums + pairs * sigma**2
         self._tail_sum = self.memory * self._tail_sum + pairs * tail
         self._weight = self.memory * self._weight + pairs
-        self._medians.append(median)
+        self._medians.append(predicted_median)
         self._updates += 1
-        return median
+        return predicted_median
 
     def _fold_line(self, errors: np.ndarray, moved: np.ndarray) -> None:
         """Add this frame's (flow, residual size) pairs to the running line fit."""
-        size = np.sqrt(np.mean(np.square(errors), axis=1))
-        size = np.minimum(size, _SIZE_CLIP * np.median(size))
+        size = np.sqrt(np.square(errors).sum(axis=1) / errors.shape[1])  # np.mean's operations
+        size = np.minimum(size, _SIZE_CLIP * median(size))
         frame = np.array(
             [len(size), moved.sum(), np.square(moved).sum(), size.sum(), (moved * size).sum()]
         )
@@ -249,5 +261,29 @@ class StereoNoiseModel:
 
 def flow(current: np.ndarray, reference: np.ndarray, rectification: Rectification) -> np.ndarray:
     """(N,) pixel displacement of matched points between the two frames' left images."""
-    shift = project(current, rectification)[:, :2] - project(reference, rectification)[:, :2]
+    return _flow(project(current, rectification), project(reference, rectification))
+
+
+@numba.njit(cache=True, nogil=True)
+def _point_covariances(points, focal, focal_baseline, variance_u, variance_v, sigma_d):
+    """``stereo.point_covariances`` in one compiled pass, the same operations in the same
+    order (bit for bit, tested): the array version's temporaries cost more than its
+    arithmetic at a few hundred points, four times a frame."""
+    covariance = np.empty((points.shape[0], 3, 3))
+    for n in range(points.shape[0]):
+        ray = sigma_d * points[n, 2] / focal_baseline
+        along = ray * ray  # (sigma_d / d)^2
+        for i in range(3):
+            for j in range(3):
+                covariance[n, i, j] = points[n, i] * (points[n, j] * along)
+        lateral = points[n, 2] / focal
+        across = lateral * lateral
+        covariance[n, 0, 0] += across * variance_u
+        covariance[n, 1, 1] += across * variance_v
+    return covariance
+
+
+def _flow(current: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """``flow`` of points already projected to (u, v, d)."""
+    shift = current[:, :2] - reference[:, :2]
     return np.hypot(shift[:, 0], shift[:, 1])

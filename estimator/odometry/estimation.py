@@ -96,9 +96,15 @@ class PoseEstimation:
         if self.config.registration.noise_model == "fixed":
             return
         inliers = result.inliers
+        # The estimate's point covariances are at the level the update starts from (the level
+        # changes only here, after every estimate of the frame): its check reuses them.
+        covariances = None
+        if estimate.point_covariances is not None:
+            current_cov, reference_cov = estimate.point_covariances
+            covariances = (current_cov[inliers], reference_cov[inliers])
         self.noise.update(
             pairs.reference_points[inliers], pairs.current_points[inliers], pose[:3, :3],
-            pose[:3, 3],
+            pose[:3, 3], covariances,
         )  # fmt: skip
 
     def _estimate(

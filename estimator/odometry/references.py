@@ -11,6 +11,7 @@ from estimator.frontend.temporal import PredictionUncertainty
 from estimator.geometry import invert_pose, rotation_angle_deg, scale_motion
 from estimator.odometry.frames import Estimate, Reference
 from estimator.odometry.gyro_prediction import GyroPrediction
+from estimator.order_statistics import median
 from estimator.types import ImuBatch
 
 __all__ = ["References"]
@@ -110,7 +111,7 @@ class References:
         depth = self.reference.points.points[:, 2]
         if len(depth) == 0:
             return frontend.keyframe_max_translation_m
-        return parallax * float(np.median(depth))
+        return parallax * median(depth)
 
     def held(self, now_ns: int) -> bool:
         """Whether a frame without an estimate at ``now_ns`` holds the pose: the last vision fix

@@ -32,9 +32,11 @@ from typing import Literal
 import numpy as np
 
 from estimator.geometry import quat_to_matrix, rotation_vector_to_quat
+from estimator.order_statistics import median
 from estimator.registration.refine_kernels import (
     ROBUST_CODES,
     linearise_pairs,
+    scaled_condition,
     score_outer_products,
     squared_distances,
 )
@@ -147,11 +149,7 @@ def _linearise(
 
 def _condition(hessian: np.ndarray) -> float:
     """Condition number after Jacobi scaling (radians and metres are not comparable units)."""
-    diagonal = np.diag(hessian)
-    if not np.isfinite(hessian).all() or (diagonal <= 0).any():
-        return np.inf
-    scale = 1.0 / np.sqrt(diagonal)
-    return float(np.linalg.cond(hessian * scale[:, None] * scale[None, :]))
+    return float(scaled_condition(np.ascontiguousarray(hessian, dtype=float)))
 
 
 def _checked(array: np.ndarray, shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -210,7 +208,8 @@ def _levenberg_marquardt(
     damping, steps, rejected = 1e-4, 0, 0
     while steps < iterations and rejected < _MAX_DAMPING_TRIES:
         step = _solve_damped(current, damping)
-        if np.linalg.norm(step) < _STEP_TOLERANCE:
+        size = np.linalg.norm(step)
+        if size < _STEP_TOLERANCE:
             break  # converged; evaluating a smaller step would only compare rounding errors
         candidate, candidate_r, candidate_t = _try_step(
             data, estimate_r, estimate_t, step, robust, robust_scale
@@ -219,7 +218,7 @@ def _levenberg_marquardt(
             estimate_r, estimate_t, current = candidate_r, candidate_t, candidate
             damping = max(damping * 0.1, 1e-9)
             steps += 1
-        elif candidate is not None and np.linalg.norm(step) < _SETTLED_STEP:
+        elif candidate is not None and size < _SETTLED_STEP:
             break
         else:
             damping *= 10.0
@@ -235,7 +234,7 @@ def _scaled_covariance(linearisation: _Linearisation) -> tuple[np.ndarray, float
     distance over the median of chi-square with 3 degrees of freedom) makes the covariance
     match this frame's data, so a consumer weighs it neither too much nor too little.
     """
-    variance_factor = float(np.median(linearisation.squared) / CHI2_3_MEDIAN)
+    variance_factor = median(linearisation.squared) / CHI2_3_MEDIAN
     variance_factor = min(max(variance_factor, _MIN_VARIANCE_FACTOR), _MAX_VARIANCE_FACTOR)
     covariance = variance_factor * np.linalg.inv(linearisation.hessian)
     return 0.5 * (covariance + covariance.T), variance_factor

@@ -12,45 +12,71 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["ROBUST_CODES", "linearise_pairs", "score_outer_products", "squared_distances"]
+__all__ = [
+    "ROBUST_CODES",
+    "linearise_pairs",
+    "scaled_condition",
+    "score_outer_products",
+    "squared_distances",
+]
 
 ROBUST_CODES = {"none": 0, "cauchy": 1, "huber": 2}
+
+# Where J = [[s]x, -I] is not a structural zero (row k, column j). The sums skip the zeros:
+# a running sum that starts at 0.0 is unchanged by adding +-0.0, so for finite data the result
+# is bit for bit the full sum's, at half the multiply-adds.
+_JACOBIAN_NONZERO = np.array(
+    [[k != j if j < 3 else k == j - 3 for j in range(6)] for k in range(3)], dtype=np.bool_
+)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _column(x, y, z, rotation, j):
+    """x R[0, j] + y R[1, j] + z R[2, j], summed from 0.0 in that order (the rounding the
+    array version had, signed zeros included)."""
+    value = 0.0
+    value += x * rotation[0, j]
+    value += y * rotation[1, j]
+    value += z * rotation[2, j]
+    return value
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _pair(source, target, source_cov, target_cov, rotation, translation, n, residual, info):
-    """Fill ``residual`` (3,) and ``info`` (3, 3) of pair ``n``; False for a singular one."""
-    difference = np.empty(3)
-    for k in range(3):
-        difference[k] = target[n, k] - translation[k]
+    """Fill ``residual`` (3,) and ``info`` (3, 3) of pair ``n``; False for a singular one.
+
+    Scalars only: three small temporary arrays per pair (heap allocations in compiled code)
+    cost more than the arithmetic.
+    """
+    d0 = target[n, 0] - translation[0]
+    d1 = target[n, 1] - translation[1]
+    d2 = target[n, 2] - translation[2]
     for i in range(3):
-        value = 0.0
-        for k in range(3):
-            value += difference[k] * rotation[k, i]
-        residual[i] = value - source[n, i]
-    # A = C_tgt R, then R^T A; plus C_src.
-    product = np.empty((3, 3))
-    for k in range(3):
-        for j in range(3):
-            value = 0.0
-            for m in range(3):
-                value += target_cov[n, k, m] * rotation[m, j]
-            product[k, j] = value
-    covariance = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            value = 0.0
-            for k in range(3):
-                value += rotation[k, i] * product[k, j]
-            covariance[i, j] = source_cov[n, i, j] + value
-    a, b, c = covariance[0, 0], covariance[0, 1], covariance[0, 2]
-    d, e, f = covariance[1, 1], covariance[1, 2], covariance[2, 2]
-    cofactor_a, cofactor_b, cofactor_c = d * f - e * e, c * e - b * f, b * e - c * d
-    determinant = a * cofactor_a + b * cofactor_b + c * cofactor_c
+        residual[i] = _column(d0, d1, d2, rotation, i) - source[n, i]
+    # P = C_tgt R (row k: C_tgt[k] R), then C_src + R^T P, of which the upper triangle.
+    c = target_cov
+    p00 = _column(c[n, 0, 0], c[n, 0, 1], c[n, 0, 2], rotation, 0)
+    p01 = _column(c[n, 0, 0], c[n, 0, 1], c[n, 0, 2], rotation, 1)
+    p02 = _column(c[n, 0, 0], c[n, 0, 1], c[n, 0, 2], rotation, 2)
+    p10 = _column(c[n, 1, 0], c[n, 1, 1], c[n, 1, 2], rotation, 0)
+    p11 = _column(c[n, 1, 0], c[n, 1, 1], c[n, 1, 2], rotation, 1)
+    p12 = _column(c[n, 1, 0], c[n, 1, 1], c[n, 1, 2], rotation, 2)
+    p20 = _column(c[n, 2, 0], c[n, 2, 1], c[n, 2, 2], rotation, 0)
+    p21 = _column(c[n, 2, 0], c[n, 2, 1], c[n, 2, 2], rotation, 1)
+    p22 = _column(c[n, 2, 0], c[n, 2, 1], c[n, 2, 2], rotation, 2)
+    s = source_cov
+    a = s[n, 0, 0] + _column(p00, p10, p20, rotation, 0)
+    b = s[n, 0, 1] + _column(p01, p11, p21, rotation, 0)
+    c_ = s[n, 0, 2] + _column(p02, p12, p22, rotation, 0)
+    d = s[n, 1, 1] + _column(p01, p11, p21, rotation, 1)
+    e = s[n, 1, 2] + _column(p02, p12, p22, rotation, 1)
+    f = s[n, 2, 2] + _column(p02, p12, p22, rotation, 2)
+    cofactor_a, cofactor_b, cofactor_c = d * f - e * e, c_ * e - b * f, b * e - c_ * d
+    determinant = a * cofactor_a + b * cofactor_b + c_ * cofactor_c
     if not abs(determinant) > 0.0:
         return False
     info[0, 0], info[0, 1], info[0, 2] = cofactor_a, cofactor_b, cofactor_c
-    info[1, 1], info[1, 2], info[2, 2] = a * f - c * c, b * c - a * e, a * d - b * b
+    info[1, 1], info[1, 2], info[2, 2] = a * f - c_ * c_, b * c_ - a * e, a * d - b * b
     info[1, 0], info[2, 0], info[2, 1] = cofactor_b, cofactor_c, info[1, 2]
     for i in range(3):
         for j in range(3):
@@ -131,13 +157,15 @@ def linearise_pairs(
             for j in range(6):
                 total = 0.0
                 for k in range(3):
-                    total += info[i, k] * jacobian[k, j]
+                    if _JACOBIAN_NONZERO[k, j]:
+                        total += info[i, k] * jacobian[k, j]
                 weighted[i, j] = total * weight
         for a in range(6):
             for b in range(6):
                 total = 0.0
                 for k in range(3):
-                    total += jacobian[k, a] * weighted[k, b]
+                    if _JACOBIAN_NONZERO[k, a]:
+                        total += jacobian[k, a] * weighted[k, b]
                 hessian[a, b] += total
             total = 0.0
             for k in range(3):
@@ -196,3 +224,23 @@ def score_outer_products(
                 meat[a, b] += product
                 curvature[a, b] += loss * product
     return meat, curvature, True
+
+
+@numba.njit(cache=True, nogil=True)
+def scaled_condition(hessian):
+    """2-norm condition number of the Jacobi-scaled ``hessian`` (radians and metres are not
+    comparable units); inf when it is not finite or a diagonal entry is not positive.
+    The refinement only compares it with a limit, so LAPACK's rounding here is immaterial."""
+    size = hessian.shape[0]
+    scale = np.empty(size)
+    for i in range(size):
+        if not hessian[i, i] > 0.0:
+            return np.inf
+        scale[i] = 1.0 / np.sqrt(hessian[i, i])
+    scaled = np.empty((size, size))
+    for i in range(size):
+        for j in range(size):
+            if not np.isfinite(hessian[i, j]):
+                return np.inf
+            scaled[i, j] = hessian[i, j] * scale[i] * scale[j]
+    return np.linalg.cond(scaled)
