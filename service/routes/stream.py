@@ -398,12 +398,14 @@ def _flush_later(live: LiveSession) -> None:
     task.add_done_callback(_PENDING_FLUSHES.discard)
 
 
-def _split_images(parts: list[bytes], left_bytes: int) -> tuple[bytes, bytes]:
-    """The left and right images of a frame's binary messages, copied only when a message
-    holds parts of both (one message with both images, or images split across messages)."""
+def _split_images(parts: list[bytes], left_bytes: int) -> tuple[bytes | memoryview,
+                                                               bytes | memoryview]:
+    """The left and right images of a frame's binary messages: views of the one message that
+    holds both (the usual case; two fresh copies cost 0.4 ms of page faults per frame), the
+    messages themselves when there is one per image, copied only when split across messages."""
     if len(parts) == 2 and len(parts[0]) == left_bytes:
         return parts[0], parts[1]
-    blob = parts[0] if len(parts) == 1 else b"".join(parts)
+    blob = memoryview(parts[0] if len(parts) == 1 else b"".join(parts))
     return blob[:left_bytes], blob[left_bytes:]
 
 
