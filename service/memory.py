@@ -43,3 +43,34 @@ def trim_free_memory() -> bool:
         return False
     libc.malloc_trim(0)
     return True
+
+
+# mallopt parameters (glibc's malloc.h).
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+# Frame-sized buffers (a 724 KB PNG pair and its copies in the server; image-sized arrays in a
+# worker) stay below this, so they come from the heap and are reused frame after frame.
+FRAME_BUFFER_BYTES = 4 << 20
+# Free memory at the top of a heap that is left there (reused by the next frames) rather than
+# given back after every free.
+HEAP_SLACK_BYTES = 16 << 20
+
+
+def reuse_frame_buffers(mmap_threshold: int = FRAME_BUFFER_BYTES,
+                        trim_threshold: int = HEAP_SLACK_BYTES) -> bool:
+    """Serve frame-sized allocations from the heap and keep freed ones for reuse.
+
+    By default glibc maps every allocation above a threshold that it moves between 128 KB
+    and the largest block freed so far, and gives the top of the heap back as soon as twice
+    that is free: here nearly every frame-sized buffer came as fresh pages, each one a page
+    fault on first touch (145 faults and 0.39 ms of CPU for a 724 KB pair split in two,
+    against 0.02 ms reused; docs/performance.md). Fixed thresholds keep those buffers in the
+    heap; what the process no longer uses is still given back by :func:`trim_free_memory`.
+    False where the C library is not glibc.
+    """
+    libc = _glibc()
+    if libc is None:
+        return False
+    libc.mallopt(_M_MMAP_THRESHOLD, mmap_threshold)
+    libc.mallopt(_M_TRIM_THRESHOLD, trim_threshold)
+    return True

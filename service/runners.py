@@ -294,7 +294,10 @@ class ProcessRunner:
         worker is done with the call, whatever its outcome), else pickled with the request."""
         images = self.images
         if images is None or (pair := images.put(request.left, request.right)) is None:
-            return worker.call(worker_frame, request)
+            # Views of the received message (the stream's images) cannot be pickled; bytes can
+            # (``bytes`` of a bytes object is that object, not a copy).
+            return worker.call(worker_frame, replace(
+                request, left=bytes(request.left), right=bytes(request.right)))
         try:
             return worker.call(worker_frame, replace(request, left=b"", right=b"", shared=pair),
                                over=lambda: images.release(pair))

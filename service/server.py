@@ -20,6 +20,7 @@ from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 from service.app import create_app
+from service.memory import reuse_frame_buffers
 from service.redact import redact_logs
 from service.settings import ServiceSettings
 
@@ -126,6 +127,7 @@ def serve(settings: ServiceSettings, log_level: str = "info") -> int:
         access_log=log_level == "debug",
     )
     redact_logs(k.strip() for k in settings.api_keys.split(","))
+    reuse_frame_buffers()
     HANDSHAKE_LOGGER.setLevel(logging.WARNING)
     uvicorn.Server(config).run()
     return 0

@@ -59,7 +59,7 @@ class ImageSlots:
         with self._lock:
             return len(self._free)
 
-    def put(self, left: bytes, right: bytes) -> SharedPair | None:
+    def put(self, left: bytes | memoryview, right: bytes | memoryview) -> SharedPair | None:
         """Copy a pair into a free slot; None when none is free or the pair does not fit."""
         size = len(left) + len(right)
         if size > self.slot_bytes or self._memory is None:

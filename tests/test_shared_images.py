@@ -152,3 +152,27 @@ def test_raw8_pixels_over_the_websocket_reach_the_worker_through_a_slot(tmp_path
         assert pose["type"] == "pose", pose
         assert pose["message"].split(";")[0] == f"{int(left.sum())},{int(right.sum())}"
         assert (runner.images.handed, runner.images.free) == (1, 1)
+
+
+@pytest.mark.parametrize("slots", [0, 1])  # no slots / a slot too small: the pipe
+def test_stream_images_reach_the_worker_through_the_pipe_when_no_slot_takes_them(
+    tmp_path: Path, slots: int
+) -> None:
+    """The stream hands on views of the received message; the pipe needs bytes."""
+    settings = settings_for(tmp_path, executor="process", workers=1, image_slots=slots,
+                            image_slot_bytes=1024)
+    left, right = _noise_png(3), _noise_png(103)
+    header = {"type": "frame", "timestamp_ns": 10, "left_bytes": len(left),
+              "right_bytes": len(right)}
+    with TestClient(create_app(settings, DescribingFactory(_pixel_sums))) as c:
+        session = new_session(c)
+        with c.websocket_connect(f"/v1/sessions/{session}/stream",
+                                 headers={"Authorization": f"Bearer {KEY_A}"}) as ws:
+            ws.receive_json()
+            ws.send_json(header)
+            ws.send_bytes(left + right)
+            pose = ws.receive_json()
+        assert pose["type"] == "pose", pose
+        want = (int(decode_image(left, "l", LIMITS).sum()),
+                int(decode_image(right, "r", LIMITS).sum()))
+        assert pose["message"].split(";")[0] == f"{want[0]},{want[1]}"

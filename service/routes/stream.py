@@ -22,6 +22,7 @@ from service.imu_input import brief, imu_arrays
 from service.messages import (
     CLIENT_MESSAGE,
     CLIENT_TYPES,
+    ClientMessage,
     DroppedMessage,
     ErrorMessage,
     FrameHeader,
@@ -225,23 +226,14 @@ class StreamConnection:
     async def _on_text(self, text: str, record: SessionRecord) -> bool:
         """Handle one client message; True when the client closes the stream."""
         try:
-            raw = json.loads(text)
-        except json.JSONDecodeError as error:
-            await self._reply(ErrorMessage(detail=f"message is not valid JSON: {error}"))
-            return False
-        if not isinstance(raw, dict):
-            await self._reply(ErrorMessage(detail="messages must be JSON objects"))
-            return False
-        kind = raw.get("type")
-        if kind not in CLIENT_TYPES:
-            await self._reply(ErrorMessage(
-                detail=f"unknown message type {kind!r} ({'|'.join(CLIENT_TYPES)})"))
-            return False
-        try:
-            message = CLIENT_MESSAGE.validate_python(raw)
-        except ValidationError as error:
-            await self._refuse(kind, raw, brief(error, skip=1))
-            return False
+            # Parsed and validated in one step (13 us for a header with 10 IMU samples, against
+            # 40 us for json.loads and then the models); what fails is looked at again below
+            # for the precise answer.
+            message = CLIENT_MESSAGE.validate_json(text)
+        except ValidationError:
+            message = await self._invalid(text)
+            if message is None:
+                return False
         if isinstance(message, FrameHeader):
             await self._start_frame(message, record)
         elif isinstance(message, ImuMessage):
@@ -257,6 +249,28 @@ class StreamConnection:
         else:
             return True
         return False
+
+    async def _invalid(self, text: str) -> ClientMessage | None:
+        """A message that did not validate as it came: the reason answered (None), or the
+        message when it validates once parsed (never expected; the two ways agree)."""
+        try:
+            raw = json.loads(text)
+        except json.JSONDecodeError as error:
+            await self._reply(ErrorMessage(detail=f"message is not valid JSON: {error}"))
+            return None
+        if not isinstance(raw, dict):
+            await self._reply(ErrorMessage(detail="messages must be JSON objects"))
+            return None
+        kind = raw.get("type")
+        if kind not in CLIENT_TYPES:
+            await self._reply(ErrorMessage(
+                detail=f"unknown message type {kind!r} ({'|'.join(CLIENT_TYPES)})"))
+            return None
+        try:
+            return CLIENT_MESSAGE.validate_python(raw)
+        except ValidationError as error:
+            await self._refuse(kind, raw, brief(error, skip=1))
+            return None
 
     async def _refuse(self, kind: str, raw: dict[str, Any], problem: str) -> None:
         """A message of a known type that does not validate: a frame header is rejected (with
@@ -398,12 +412,14 @@ def _flush_later(live: LiveSession) -> None:
     task.add_done_callback(_PENDING_FLUSHES.discard)
 
 
-def _split_images(parts: list[bytes], left_bytes: int) -> tuple[bytes, bytes]:
-    """The left and right images of a frame's binary messages, copied only when a message
-    holds parts of both (one message with both images, or images split across messages)."""
+def _split_images(parts: list[bytes], left_bytes: int) -> tuple[bytes | memoryview,
+                                                               bytes | memoryview]:
+    """The left and right images of a frame's binary messages: views of the one message that
+    holds both (the usual case; two fresh copies cost 0.4 ms of page faults per frame), the
+    messages themselves when there is one per image, copied only when split across messages."""
     if len(parts) == 2 and len(parts[0]) == left_bytes:
         return parts[0], parts[1]
-    blob = parts[0] if len(parts) == 1 else b"".join(parts)
+    blob = memoryview(parts[0] if len(parts) == 1 else b"".join(parts))
     return blob[:left_bytes], blob[left_bytes:]
 
 

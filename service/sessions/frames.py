@@ -43,8 +43,8 @@ class FrameDropped(FrameRejected):
 @dataclass
 class FrameJob:
     timestamp_ns: int
-    left: bytes
-    right: bytes
+    left: bytes | memoryview
+    right: bytes | memoryview
     future: asyncio.Future[Any]  # Answered; the flushed poses for a flush job
     raw: bool = False
     received: float = field(default_factory=time.perf_counter)

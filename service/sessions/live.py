@@ -131,8 +131,8 @@ class LiveSession:
     def submit(
         self,
         timestamp_ns: int,
-        left: bytes,
-        right: bytes,
+        left: bytes | memoryview,
+        right: bytes | memoryview,
         imu: ImuSamples | None,
         raw: bool = False,
     ) -> asyncio.Future[Answered]:

@@ -105,23 +105,23 @@ def answer_of(session_id: str, row: PoseRow) -> FrameAnswer:
     )
 
 
-def row_of(answer: FrameAnswer, fence: Fence | None = None) -> PoseRow:
-    """What storage keeps of an answer: everything but the live-only fields, with the lease
-    it was written under."""
-    return PoseRow(
-        session_id=answer.session_id,
-        frame_index=answer.index,
-        timestamp_ns=answer.timestamp_ns,
-        pose=flat_of(answer.pose),
-        frontend_pose=flat_of(answer.frontend_pose),
-        relative_pose=flat_of(answer.relative_pose),
-        status=answer.status,
-        matches=answer.matches,
-        inliers=answer.inliers,
-        support=answer.support,
-        timings=answer.timings_s,
-        message=answer.message,
-        resumed=answer.resumed,
-        fence_token=None if fence is None else fence.token,
-        writer=None if fence is None else fence.holder,
-    )
+def row_values(answer: FrameAnswer, fence: Fence | None = None) -> dict[str, Any]:
+    """What storage keeps of an answer, as the pose table's column values: everything but the
+    live-only fields, with the lease it was written under."""
+    return {
+        "session_id": answer.session_id,
+        "frame_index": answer.index,
+        "timestamp_ns": answer.timestamp_ns,
+        "pose": flat_of(answer.pose),
+        "frontend_pose": flat_of(answer.frontend_pose),
+        "relative_pose": flat_of(answer.relative_pose),
+        "status": answer.status,
+        "matches": answer.matches,
+        "inliers": answer.inliers,
+        "support": answer.support,
+        "timings": answer.timings_s,
+        "message": answer.message,
+        "resumed": answer.resumed,
+        "fence_token": None if fence is None else fence.token,
+        "writer": None if fence is None else fence.holder,
+    }

@@ -8,8 +8,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import delete, func, select, update
-from sqlalchemy.engine import Engine
+from sqlalchemy import bindparam, delete, func, insert, select, update
+from sqlalchemy.engine import Connection, Engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.answer import FrameAnswer
@@ -21,10 +21,27 @@ from service.storage.records import (
     SessionRecord,
     SmoothedPose,
     answer_of,
-    row_of,
+    row_values,
     session_record,
 )
 from service.storage.tables import PoseRow, SessionRow, SmoothedPoseRow
+
+# The tables as Core sees them: the pose writes skip the ORM.
+_SESSIONS = SessionRow.__table__
+_POSES = PoseRow.__table__
+_SMOOTHED = SmoothedPoseRow.__table__
+# Built once: a statement built per call costs more CPU than running it (SQLite).
+_ADVANCE = (
+    update(_SESSIONS)
+    .where(_SESSIONS.c.id == bindparam("session"))
+    .values(frame_count=bindparam("frame_count"),
+            last_timestamp_ns=bindparam("last_timestamp_ns"),
+            resume_state=bindparam("resume_state", type_=_SESSIONS.c.resume_state.type))
+)
+_UNSMOOTH = delete(_SMOOTHED).where(
+    _SMOOTHED.c.session_id == bindparam("session"),
+    _SMOOTHED.c.timestamp_ns.in_(bindparam("stamps", expanding=True)),
+)
 
 
 class Store:
@@ -134,40 +151,15 @@ class Store:
         With a ``fence`` (the writer's lease) a pose's counters are only advanced while the
         session's lease token and holder are still the writer's, checked by the database in that
         UPDATE (which also renews the lease): otherwise :class:`LeaseLost` and nothing of the
-        batch is written.
+        batch is written. Core statements on one connection, not the ORM's unit of work: its
+        bookkeeping was most of the CPU a stored pose cost (docs/performance.md).
         """
-        with self._sessions.begin() as db:
+        with self.engine.begin() as connection:
             for entry in poses:
-                self._advance_counters(db, entry)
-                _put_smoothed(db, entry.session_id, entry.smoothed)
-                db.add(row_of(entry.answer, entry.fence))
-
-    @staticmethod
-    def _advance_counters(db: Any, entry: PendingPose) -> None:
-        answer, fence = entry.answer, entry.fence
-        # The state always belongs to the last pose (None: its pipeline has none to give).
-        counters: dict[str, Any] = {
-            "frame_count": answer.index + 1,
-            "last_timestamp_ns": answer.timestamp_ns,
-            "resume_state": entry.resume_state,
-        }
-        if fence is None:
-            session = SessionRow.id == entry.session_id
-            db.execute(update(SessionRow).where(session).values(**counters))
-            return
-        renewed = db.execute(
-            update(SessionRow)
-            .where(
-                SessionRow.id == entry.session_id,
-                SessionRow.lease_token == fence.token,
-                SessionRow.lease_holder == fence.holder,
-            )
-            .values(**counters, lease_expires_at=fence.expiry())
-        )
-        if renewed.rowcount != 1:
-            raise LeaseLost(
-                f"replica {fence.holder} no longer holds the lease of session "
-                f"{entry.session_id} (token {fence.token}); the pose was not stored"
+                _advance_counters(connection, entry)
+                _put_smoothed(connection, entry.session_id, entry.smoothed)
+            connection.execute(
+                insert(_POSES), [row_values(entry.answer, entry.fence) for entry in poses]
             )
 
     def pose_at(self, session_id: str, timestamp_ns: int) -> FrameAnswer | None:
@@ -214,7 +206,7 @@ class Store:
     def add_smoothed(self, session_id: str, smoothed: Sequence[SmoothedPose]) -> None:
         """Store final poses that came without a frame (the window flushed at a session's end)."""
         with self._sessions.begin() as db:
-            _put_smoothed(db, session_id, smoothed)
+            _put_smoothed(db.connection(), session_id, smoothed)
 
     def smoothed(
         self, session_id: str, after_ns: int = -1, limit: int | None = None
@@ -233,20 +225,45 @@ class Store:
             return [(int(stamp), pose) for stamp, pose in rows]
 
 
-def _put_smoothed(db: Any, session_id: str, smoothed: Sequence[SmoothedPose]) -> None:
+def _advance_counters(connection: Connection, entry: PendingPose) -> None:
+    """Move the session's counters to ``entry`` (renewing the writer's lease, if it has one)."""
+    answer, fence = entry.answer, entry.fence
+    # The state always belongs to the last pose (None: its pipeline has none to give).
+    counters: dict[str, Any] = {
+        "frame_count": answer.index + 1,
+        "last_timestamp_ns": answer.timestamp_ns,
+        "resume_state": entry.resume_state,
+    }
+    if fence is None:
+        connection.execute(_ADVANCE, {"session": entry.session_id, **counters})
+        return
+    renewed = connection.execute(
+        update(_SESSIONS)
+        .where(
+            _SESSIONS.c.id == entry.session_id,
+            _SESSIONS.c.lease_token == fence.token,
+            _SESSIONS.c.lease_holder == fence.holder,
+        )
+        .values(**counters, lease_expires_at=fence.expiry())
+    )
+    if renewed.rowcount != 1:
+        raise LeaseLost(
+            f"replica {fence.holder} no longer holds the lease of session "
+            f"{entry.session_id} (token {fence.token}); the pose was not stored"
+        )
+
+
+def _put_smoothed(connection: Connection, session_id: str,
+                  smoothed: Sequence[SmoothedPose]) -> None:
     """Insert final poses; a frame finalised again (a resumed back end) keeps the newest."""
     if not smoothed:
         return
     stamps = [int(stamp) for stamp, _ in smoothed]
-    db.execute(
-        delete(SmoothedPoseRow).where(
-            SmoothedPoseRow.session_id == session_id, SmoothedPoseRow.timestamp_ns.in_(stamps)
-        )
-    )
-    db.add_all(
-        SmoothedPoseRow(session_id=session_id, timestamp_ns=stamp, pose=list(pose))
+    connection.execute(_UNSMOOTH, {"session": session_id, "stamps": stamps})
+    connection.execute(insert(_SMOOTHED), [
+        {"session_id": session_id, "timestamp_ns": stamp, "pose": list(pose)}
         for stamp, pose in zip(stamps, (pose for _, pose in smoothed), strict=True)
-    )
+    ])
 
 
 def _newest_pose_row(db: Session, session_id: str) -> PoseRow | None:
