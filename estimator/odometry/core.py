@@ -15,7 +15,13 @@ from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel
 from estimator.frontend.temporal import PredictionUncertainty
 from estimator.frontend.tracks import Tracker
 from estimator.geometry import invert_pose, nearest_rigid
-from estimator.odometry.chains import chain_covariance, fuse_poses, inverse_covariance
+from estimator.odometry.chains import (
+    chain_covariance,
+    fuse_correlated,
+    fused_sensitivity,
+    inverse_covariance,
+    shared_covariance,
+)
 from estimator.odometry.estimation import PoseEstimation
 from estimator.odometry.frames import (
     Estimate,
@@ -343,14 +349,27 @@ class Odometry:
         step = chained.reference_from_current
         if step is None or chained.covariance is None:
             return estimate, False
-        fused = fuse_poses(
+        mine, theirs = estimate.sensitivity, chained.sensitivity
+        # Both poses perturb on the right in the current frame, as does the chain's end.
+        cross = (
+            shared_covariance(mine, theirs)
+            if mine is not None and theirs is not None
+            else np.zeros((6, 6))
+        )
+        fused = fuse_correlated(
             measured,
             estimate.covariance,
             keyframe_from_reference @ step,
             chain_covariance(covariance, step, chained.covariance),
+            cross,
         )
         if fused is not None:
-            estimate.reference_from_current, estimate.covariance = fused
+            estimate.reference_from_current, estimate.covariance, gain = fused
+            estimate.sensitivity = (
+                fused_sensitivity(mine, theirs, gain)
+                if mine is not None and theirs is not None
+                else None
+            )
         return estimate, True
 
     def _estimate_against(

@@ -12,6 +12,7 @@ import numpy as np
 
 from estimator.frontend.stereo import StereoPoints
 from estimator.frontend.temporal import Correspondences
+from estimator.odometry.chains import PointSensitivity
 from estimator.registration.registry import RegistrationResult
 
 __all__ = [
@@ -85,6 +86,8 @@ class Estimate:
     covariance: np.ndarray | None = None
     # (N, 3, 3) covariances of the current and reference points of ``pairs``.
     point_covariances: tuple[np.ndarray, np.ndarray] | None = None
+    # How the refined pose moves with the current points (only when a chain is combined).
+    sensitivity: PointSensitivity | None = None
 
 
 def failed(estimate: Estimate, reason: str) -> Estimate:

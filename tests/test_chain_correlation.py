@@ -1,0 +1,162 @@
+"""Two registrations of one frame that share its points: their cross-covariance and the best
+linear unbiased combination (registration/sensitivity.py, odometry/chains.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from estimator.geometry import make_pose, quat_to_matrix, rotation_vector_to_quat
+from estimator.odometry.chains import (
+    PointSensitivity,
+    fuse_correlated,
+    fuse_poses,
+    fused_sensitivity,
+    pose_difference,
+    shared_covariance,
+)
+from estimator.registration.refine import refine_pose_mahalanobis
+from estimator.registration.sensitivity import source_sensitivities
+
+
+def _pose(rotvec: list[float], translation: list[float]) -> np.ndarray:
+    return make_pose(quat_to_matrix(rotation_vector_to_quat(np.array(rotvec))), translation)
+
+
+def _stereo_covariances(points: np.ndarray, pixel: float, depth: float) -> np.ndarray:
+    """Uncertain mostly along each point's viewing ray, growing with depth."""
+    covariances = np.empty((len(points), 3, 3))
+    for n, point in enumerate(points):
+        ray = point / np.linalg.norm(point)
+        z = point[2]
+        lateral = (pixel * z) ** 2 * (np.eye(3) - np.outer(ray, ray))
+        covariances[n] = lateral + (depth * z * z) ** 2 * np.outer(ray, ray)
+    return covariances
+
+
+def _points(rng: np.random.Generator, count: int) -> np.ndarray:
+    return rng.uniform([-3.0, -2.0, 2.0], [3.0, 2.0, 9.0], (count, 3))
+
+
+def _refined(source, target, source_cov, target_cov, pose, robust="none"):
+    result = refine_pose_mahalanobis(
+        source, target, source_cov, target_cov, pose[:3, :3], pose[:3, 3],
+        iterations=30, robust=robust,
+    )  # fmt: skip
+    assert result.success
+    return result
+
+
+def test_sensitivity_predicts_how_the_refined_pose_moves_with_a_source_point() -> None:
+    rng = np.random.default_rng(1)
+    source = _points(rng, 80)
+    covariance = _stereo_covariances(source, 2e-3, 2e-3)
+    truth = _pose([0.02, -0.05, 0.01], [0.1, 0.0, 0.05])
+    target = source @ truth[:3, :3].T + truth[:3, 3]
+    target += np.einsum("nij,nj->ni", np.linalg.cholesky(covariance), rng.normal(size=(80, 3)))
+    base = _refined(source, target, covariance, covariance, truth)
+    gains = source_sensitivities(
+        source, target, covariance, covariance, base.rotation, base.translation, robust="none"
+    )
+    assert gains is not None and gains.shape == (80, 6, 3)
+    start = make_pose(base.rotation, base.translation)
+    for point in (3, 40, 71):
+        offset = np.linalg.cholesky(covariance[point]) @ np.array([0.3, -0.2, 0.4])
+        moved_source = source.copy()
+        moved_source[point] += offset
+        moved = _refined(moved_source, target, covariance, covariance, start)
+        change = pose_difference(start, make_pose(moved.rotation, moved.translation))
+        predicted = gains[point] @ offset
+        assert np.linalg.norm(change - predicted) < 0.05 * np.linalg.norm(predicted)
+
+
+def _two_registrations(rng: np.random.Generator, trials: int):
+    """One current frame (its points' noise shared) registered against two references that
+    see overlapping parts of it; the second estimate is carried to the first's reference by
+    an exact transform, so both estimate the same pose."""
+    count = 90
+    current = _points(rng, count)
+    current_cov = _stereo_covariances(current, 3e-3, 3e-3)
+    first_truth = _pose([0.03, -0.1, 0.02], [0.2, -0.05, 0.1])
+    first_from_second = _pose([0.01, 0.04, -0.02], [-0.1, 0.02, 0.05])
+    second_truth = np.linalg.inv(first_from_second) @ first_truth
+    first_part, second_part = np.arange(0, 70), np.arange(20, 90)
+    samples = []
+    for _ in range(trials):
+        noisy = current + np.einsum(
+            "nij,nj->ni", np.linalg.cholesky(current_cov), rng.normal(size=(count, 3))
+        )
+        estimates = []
+        for truth, part in ((first_truth, first_part), (second_truth, second_part)):
+            target = current[part] @ truth[:3, :3].T + truth[:3, 3]
+            target_cov = _stereo_covariances(target, 1e-3, 1e-3)
+            target += np.einsum(
+                "nij,nj->ni", np.linalg.cholesky(target_cov), rng.normal(size=(len(part), 3))
+            )
+            result = _refined(noisy[part], target, current_cov[part], target_cov, truth)
+            gains = source_sensitivities(
+                noisy[part], target, current_cov[part], target_cov, result.rotation,
+                result.translation, robust="none",
+            )  # fmt: skip
+            assert gains is not None
+            estimates.append(
+                (
+                    make_pose(result.rotation, result.translation),
+                    result.covariance / result.variance_factor,  # the model's own covariance
+                    PointSensitivity(part, gains, current_cov[part]),
+                )
+            )
+        (first, first_cov, first_gains), (second, second_cov, second_gains) = estimates
+        samples.append(
+            (first, first_cov, first_from_second @ second, second_cov, first_gains, second_gains)
+        )
+    return first_truth, samples
+
+
+def test_shared_points_give_the_sampled_cross_covariance_and_a_better_combination() -> None:
+    rng = np.random.default_rng(4)
+    truth, samples = _two_registrations(rng, 400)
+    first_errors = np.array([pose_difference(truth, s[0]) for s in samples])
+    second_errors = np.array([pose_difference(truth, s[2]) for s in samples])
+    cross = shared_covariance(samples[0][4], samples[0][5])
+    sampled_cross = (first_errors.T @ second_errors) / len(samples)
+    scale = np.sqrt(np.outer(np.diag(samples[0][1]), np.diag(samples[0][3])))
+    # 400 samples: a covariance entry is known to about 5-7 % of the scale
+    assert np.abs(sampled_cross - cross).max() / scale.max() < 0.15
+    assert np.abs(cross).max() / scale.max() > 0.3  # the correlation is not negligible
+
+    fused_errors, independent_errors = [], []
+    for first, first_cov, second, second_cov, _, _ in samples:
+        fused = fuse_correlated(first, first_cov, second, second_cov, cross)
+        independent = fuse_poses(first, first_cov, second, second_cov)
+        assert fused is not None and independent is not None
+        fused_errors.append(pose_difference(truth, fused[0]))
+        independent_errors.append(pose_difference(truth, independent[0]))
+    predicted = fused[1]
+    sampled = np.cov(np.array(fused_errors).T)
+    assert np.abs(np.diag(sampled) / np.diag(predicted) - 1).max() < 0.2
+    for other in (first_errors, second_errors, np.array(independent_errors)):
+        assert (np.diag(sampled) < 1.05 * np.diag(np.cov(other.T))).all()
+    # Counting the shared points twice claims a covariance smaller than the errors show.
+    assert (np.diag(independent[1]) < 0.8 * np.diag(np.cov(np.array(independent_errors).T))).any()
+    # The combination's own sensitivity accounts for the shared points' share of its covariance.
+    combined = fused_sensitivity(samples[-1][4], samples[-1][5], fused[2])
+    assert np.array_equal(combined.current_index, np.arange(90))
+    points_share = shared_covariance(combined, combined)
+    assert (np.diag(points_share) <= np.diag(predicted) * 1.001).all()
+
+
+def test_uncorrelated_combination_is_the_independent_one_and_bad_input_is_refused() -> None:
+    rng = np.random.default_rng(2)
+    truth = _pose([0.1, 0.2, -0.1], [0.5, 0.1, 2.0])
+    first_cov = np.diag([1e-6, 2e-6, 1e-6, 1e-4, 2e-4, 3e-4])
+    second_cov = np.diag([3e-6, 1e-6, 2e-6, 2e-4, 1e-4, 1e-4])
+    first = truth @ _pose(list(rng.normal(0, 1e-3, 3)), list(rng.normal(0, 1e-2, 3)))
+    second = truth @ _pose(list(rng.normal(0, 1e-3, 3)), list(rng.normal(0, 1e-2, 3)))
+    correlated = fuse_correlated(first, first_cov, second, second_cov, np.zeros((6, 6)))
+    independent = fuse_poses(first, first_cov, second, second_cov)
+    assert correlated is not None and independent is not None
+    assert np.allclose(correlated[0], independent[0], atol=1e-12)
+    assert np.allclose(correlated[1], independent[1], rtol=1e-9, atol=1e-15)
+    # Fully shared errors (cross = first = second) leave nothing to combine.
+    assert fuse_correlated(first, first_cov, second, first_cov, first_cov) is None
+    assert fuse_correlated(first, -first_cov, second, second_cov, np.zeros((6, 6))) is None
