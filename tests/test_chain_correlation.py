@@ -15,7 +15,7 @@ from estimator.odometry.chains import (
     shared_covariance,
 )
 from estimator.registration.refine import refine_pose_mahalanobis
-from estimator.registration.sensitivity import source_sensitivities
+from estimator.registration.sensitivity import point_sensitivities
 
 
 def _pose(rotvec: list[float], translation: list[float]) -> np.ndarray:
@@ -46,7 +46,7 @@ def _refined(source, target, source_cov, target_cov, pose, robust="none"):
     return result
 
 
-def test_sensitivity_predicts_how_the_refined_pose_moves_with_a_source_point() -> None:
+def test_sensitivity_predicts_how_the_refined_pose_moves_with_a_point() -> None:
     rng = np.random.default_rng(1)
     source = _points(rng, 80)
     covariance = _stereo_covariances(source, 2e-3, 2e-3)
@@ -54,10 +54,11 @@ def test_sensitivity_predicts_how_the_refined_pose_moves_with_a_source_point() -
     target = source @ truth[:3, :3].T + truth[:3, 3]
     target += np.einsum("nij,nj->ni", np.linalg.cholesky(covariance), rng.normal(size=(80, 3)))
     base = _refined(source, target, covariance, covariance, truth)
-    gains = source_sensitivities(
+    both = point_sensitivities(
         source, target, covariance, covariance, base.rotation, base.translation, robust="none"
     )
-    assert gains is not None and gains.shape == (80, 6, 3)
+    assert both is not None and both[0].shape == both[1].shape == (80, 6, 3)
+    gains, target_gains = both
     start = make_pose(base.rotation, base.translation)
     for point in (3, 40, 71):
         offset = np.linalg.cholesky(covariance[point]) @ np.array([0.3, -0.2, 0.4])
@@ -66,6 +67,12 @@ def test_sensitivity_predicts_how_the_refined_pose_moves_with_a_source_point() -
         moved = _refined(moved_source, target, covariance, covariance, start)
         change = pose_difference(start, make_pose(moved.rotation, moved.translation))
         predicted = gains[point] @ offset
+        assert np.linalg.norm(change - predicted) < 0.05 * np.linalg.norm(predicted)
+        moved_target = target.copy()
+        moved_target[point] += offset
+        moved = _refined(source, moved_target, covariance, covariance, start)
+        change = pose_difference(start, make_pose(moved.rotation, moved.translation))
+        predicted = target_gains[point] @ offset
         assert np.linalg.norm(change - predicted) < 0.05 * np.linalg.norm(predicted)
 
 
@@ -93,7 +100,7 @@ def _two_registrations(rng: np.random.Generator, trials: int):
                 "nij,nj->ni", np.linalg.cholesky(target_cov), rng.normal(size=(len(part), 3))
             )
             result = _refined(noisy[part], target, current_cov[part], target_cov, truth)
-            gains = source_sensitivities(
+            gains = point_sensitivities(
                 noisy[part], target, current_cov[part], target_cov, result.rotation,
                 result.translation, robust="none",
             )  # fmt: skip
@@ -102,7 +109,7 @@ def _two_registrations(rng: np.random.Generator, trials: int):
                 (
                     make_pose(result.rotation, result.translation),
                     result.covariance / result.variance_factor,  # the model's own covariance
-                    PointSensitivity(part, gains, current_cov[part]),
+                    PointSensitivity(part, gains[0], current_cov[part]),
                 )
             )
         (first, first_cov, first_gains), (second, second_cov, second_gains) = estimates

@@ -12,9 +12,10 @@ xi = (omega, v) with R <- R Exp(omega), t <- t + R v, so a refined covariance ap
 The two estimates share the current frame's points, so their errors are not independent.
 Each registration's linear sensitivity to its points (``estimator/registration/sensitivity.py``)
 gives the cross-covariance those shared points cause, and the combination is the best linear
-unbiased one of two correlated estimates. Still treated as independent: the keyframe's points,
-shared by the keyframe measurement and the previous frame's (inside the chain), and the previous
-frame's points, shared by the two links of the chain.
+unbiased one of two correlated estimates. The same holds for the keyframe's points (used by the
+keyframe measurement and, inside the chain, by the previous frame's) and for the previous
+frame's points (used by both links of the chain). Each combined estimate keeps its own
+sensitivities, so the next frame's chain through it knows them.
 """
 
 from __future__ import annotations
@@ -34,23 +35,26 @@ from estimator.geometry import (
 )
 
 __all__ = [
+    "Measured",
     "PointSensitivity",
     "chain_covariance",
+    "combine_chain",
     "fuse_correlated",
     "fuse_poses",
     "fused_sensitivity",
     "inverse_covariance",
     "pose_difference",
     "shared_covariance",
+    "transported",
 ]
 
 
 @dataclass
 class PointSensitivity:
-    """How a pose estimate (right perturbation in the current frame) moves with the current
-    frame's points: error ~ sum_j gains_j e_j, e_j ~ N(0, covariances_j)."""
+    """How a pose estimate (right perturbation in the current frame) moves with one frame's
+    points: error ~ sum_j gains_j e_j, e_j ~ N(0, covariances_j)."""
 
-    current_index: np.ndarray  # (n,) into the current frame's StereoPoints
+    current_index: np.ndarray  # (n,) into the StereoPoints of the frame the points belong to
     gains: np.ndarray  # (n, 6, 3), scaled by the square root of the variance factor
     covariances: np.ndarray  # (n, 3, 3)
 
@@ -113,7 +117,8 @@ def fuse_poses(
 
 
 def shared_covariance(first: PointSensitivity, second: PointSensitivity) -> np.ndarray:
-    """(6, 6) cross-covariance of two estimates caused by the current points both used."""
+    """(6, 6) cross-covariance of two estimates caused by the points (of one frame) both
+    used."""
     _, mine, theirs = np.intersect1d(
         first.current_index, second.current_index, assume_unique=False, return_indices=True
     )
@@ -151,6 +156,12 @@ def fuse_correlated(
     return perturbed(first, xi), 0.5 * (covariance + covariance.T), gain
 
 
+def transported(sensitivity: PointSensitivity, adjoint: np.ndarray) -> PointSensitivity:
+    """The sensitivity of the perturbation ``adjoint`` @ xi (a pose moved on to another)."""
+    gains = np.einsum("ij,njk->nik", adjoint, sensitivity.gains)
+    return PointSensitivity(sensitivity.current_index, gains, sensitivity.covariances)
+
+
 def fused_sensitivity(
     first: PointSensitivity, second: PointSensitivity, gain: np.ndarray
 ) -> PointSensitivity:
@@ -163,3 +174,48 @@ def fused_sensitivity(
         np.add.at(gains, position, np.einsum("ij,njk->nik", weight, part.gains))
         covariances[position] = part.covariances
     return PointSensitivity(index, gains, covariances)
+
+
+@dataclass
+class Measured:
+    """One relative pose with its covariance and how it moves with the points of its current
+    frame and of its reference (None: not known, taken as sharing nothing)."""
+
+    pose: np.ndarray
+    covariance: np.ndarray
+    current: PointSensitivity | None = None
+    reference: PointSensitivity | None = None
+
+
+def _shared(first: PointSensitivity | None, second: PointSensitivity | None) -> np.ndarray:
+    if first is None or second is None:
+        return np.zeros((6, 6))
+    return shared_covariance(first, second)
+
+
+def combine_chain(measured: Measured, link: Measured, step: Measured) -> Measured | None:
+    """T_kc measured against the keyframe k combined with the chain T_kp @ T_pc (``link``
+    @ ``step``); None when a covariance is not positive definite.
+
+    Shared points: the current frame's (by ``measured`` and ``step``), the keyframe's (by
+    ``measured`` and, through the link, the chain) and the previous frame's (by both links of
+    the chain). A perturbation of the link reaches the chain's end through Ad(T_pc^-1).
+    """
+    adjoint = se3_adjoint(step.pose, inverse=True)
+    through = [
+        None if part is None else transported(part, adjoint)
+        for part in (link.current, link.reference)
+    ]
+    links = _shared(through[0], step.reference)
+    chain = chain_covariance(link.covariance, step.pose, step.covariance) + links + links.T
+    cross = _shared(measured.current, step.current) + _shared(measured.reference, through[1])
+    fused = fuse_correlated(measured.pose, measured.covariance, link.pose @ step.pose, chain, cross)
+    if fused is None:
+        return None
+    pose, covariance, gain = fused
+    current = reference = None
+    if measured.current is not None and step.current is not None:
+        current = fused_sensitivity(measured.current, step.current, gain)
+    if measured.reference is not None and through[1] is not None:
+        reference = fused_sensitivity(measured.reference, through[1], gain)
+    return Measured(pose, covariance, current, reference)

@@ -16,7 +16,7 @@ from estimator.odometry.chains import PointSensitivity
 from estimator.odometry.frames import Estimate, Reference, failed, frame_seed, stage
 from estimator.registration.refine import RefinementResult, refine_pose_mahalanobis
 from estimator.registration.registry import estimator_spec, register
-from estimator.registration.sensitivity import source_sensitivities
+from estimator.registration.sensitivity import point_sensitivities
 
 __all__ = ["PoseEstimation"]
 
@@ -172,19 +172,20 @@ class PoseEstimation:
             estimate.covariance = refined.covariance
             frontend = self.config.frontend
             if frontend.fuse_previous_frame or frontend.fuse_previous_keyframe:
-                estimate.sensitivity = self._sensitivity(estimate, correspondences, refined)
+                self._sensitivities(estimate, correspondences, refined)
         return estimate
 
-    def _sensitivity(
+    def _sensitivities(
         self, estimate: Estimate, correspondences: Correspondences, refined: RefinementResult
-    ) -> PointSensitivity | None:
-        """How the refined pose moves with the current inlier points, scaled like its
-        covariance (estimator/odometry/chains.py weighs a chain sharing them by it)."""
+    ) -> None:
+        """How the refined pose moves with the current and the reference inlier points,
+        scaled like its covariance (estimator/odometry/chains.py weighs the chains sharing
+        them by it)."""
         assert estimate.result is not None and estimate.point_covariances is not None
         registration = self.config.registration
         inliers = estimate.result.inliers
         current_cov, reference_cov = estimate.point_covariances
-        gains = source_sensitivities(
+        gains = point_sensitivities(
             correspondences.current_points[inliers],
             correspondences.reference_points[inliers],
             current_cov[inliers],
@@ -195,9 +196,11 @@ class PoseEstimation:
             robust_scale=registration.refine_robust_scale,
         )
         if gains is None:
-            return None
-        return PointSensitivity(
-            correspondences.current_index[inliers],
-            gains * np.sqrt(refined.variance_factor),
-            current_cov[inliers],
+            return
+        scale = np.sqrt(refined.variance_factor)
+        estimate.sensitivity = PointSensitivity(
+            correspondences.current_index[inliers], gains[0] * scale, current_cov[inliers]
+        )
+        estimate.reference_sensitivity = PointSensitivity(
+            correspondences.reference_index[inliers], gains[1] * scale, reference_cov[inliers]
         )

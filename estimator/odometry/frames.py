@@ -86,8 +86,10 @@ class Estimate:
     covariance: np.ndarray | None = None
     # (N, 3, 3) covariances of the current and reference points of ``pairs``.
     point_covariances: tuple[np.ndarray, np.ndarray] | None = None
-    # How the refined pose moves with the current points (only when a chain is combined).
+    # How the refined pose moves with the current and with the reference points (only when
+    # a chain is combined).
     sensitivity: PointSensitivity | None = None
+    reference_sensitivity: PointSensitivity | None = None
 
 
 def failed(estimate: Estimate, reason: str) -> Estimate:

@@ -1,4 +1,4 @@
-"""How a refined pose moves with its source points: the linear sensitivity of the estimate.
+"""How a refined pose moves with its points: the linear sensitivity of the estimate.
 
 The Mahalanobis refinement (``refine.py``) solves the weighted least squares
 sum_j w_j r_j'^T S_j^-1 r_j' with r_j' = R^T (target_j - t) - source_j and the Jacobian
@@ -19,7 +19,7 @@ import numpy as np
 from estimator.geometry import skew
 from estimator.registration.refine import Robust
 
-__all__ = ["source_sensitivities"]
+__all__ = ["point_sensitivities"]
 
 
 def _robust_weights(squared: np.ndarray, robust: Robust, scale: float) -> np.ndarray:
@@ -32,7 +32,7 @@ def _robust_weights(squared: np.ndarray, robust: Robust, scale: float) -> np.nda
     return np.ones_like(squared)
 
 
-def source_sensitivities(
+def point_sensitivities(
     source: np.ndarray,
     target: np.ndarray,
     source_cov: np.ndarray,
@@ -41,9 +41,11 @@ def source_sensitivities(
     translation: np.ndarray,
     robust: Robust = "cauchy",
     robust_scale: float = 3.0,
-) -> np.ndarray | None:
-    """(N, 6, 3) d xi / d source_j at the refined pose (right perturbation, source frame);
-    None when the pairs do not fix all six degrees or a covariance is singular.
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """(N, 6, 3) d xi / d source_j and d xi / d target_j at the refined pose (right
+    perturbation, source frame); None when the pairs do not fix all six degrees or a
+    covariance is singular. A target point enters only through r_j' (by R^T), so its gain is
+    -H^-1 J_j^T W_j R^T.
 
     Sum_j K_j S_j K_j^T is the unscaled refinement covariance H^-1 without robust weights;
     the source points' share of it is sum_j K_j C_src_j K_j^T.
@@ -62,6 +64,7 @@ def source_sensitivities(
     jacobian[:, :, 3:] = -np.eye(3)
     transposed = np.einsum("nki,nkj->nij", jacobian, weighted)  # (N, 6, 3) J^T W
     hessian = np.einsum("nik,nkj->ij", transposed, jacobian)
+    target_side = -transposed @ rotation.T
     # J_j depends on source_j too: d(J_j^T W_j r_j')/d source_j = -J_j^T W_j + [[W_j r_j']x; 0]
     # (first order: a single pair's residual is not small, only their weighted sum vanishes).
     pulled = np.einsum("nij,nj->ni", weighted, residual)
@@ -72,4 +75,7 @@ def source_sensitivities(
         return None
     if not np.isfinite(inverse).all():
         return None
-    return np.einsum("ij,njk->nik", inverse, transposed)
+    return (
+        np.einsum("ij,njk->nik", inverse, transposed),
+        np.einsum("ij,njk->nik", inverse, target_side),
+    )
