@@ -51,32 +51,34 @@ def _refined(source, target, source_cov, target_cov, pose, robust="none"):
 
 def test_sensitivity_predicts_how_the_refined_pose_moves_with_a_point() -> None:
     rng = np.random.default_rng(1)
-    source = _points(rng, 80)
+    # Few points, so that one moves the estimate well beyond the refinement's step tolerance.
+    source = _points(rng, 25)
     covariance = _stereo_covariances(source, 2e-3, 2e-3)
     truth = _pose([0.02, -0.05, 0.01], [0.1, 0.0, 0.05])
     target = source @ truth[:3, :3].T + truth[:3, 3]
-    target += np.einsum("nij,nj->ni", np.linalg.cholesky(covariance), rng.normal(size=(80, 3)))
+    target += np.einsum("nij,nj->ni", np.linalg.cholesky(covariance), rng.normal(size=(25, 3)))
     base = _refined(source, target, covariance, covariance, truth)
     both = point_sensitivities(
         source, target, covariance, covariance, base.rotation, base.translation, robust="none"
     )
-    assert both is not None and both[0].shape == both[1].shape == (80, 6, 3)
+    assert both is not None and both[0].shape == both[1].shape == (25, 6, 3)
     gains, target_gains = both
     start = make_pose(base.rotation, base.translation)
-    for point in (3, 40, 71):
-        offset = np.linalg.cholesky(covariance[point]) @ np.array([0.3, -0.2, 0.4])
-        moved_source = source.copy()
-        moved_source[point] += offset
-        moved = _refined(moved_source, target, covariance, covariance, start)
-        change = pose_difference(start, make_pose(moved.rotation, moved.translation))
-        predicted = gains[point] @ offset
-        assert np.linalg.norm(change - predicted) < 0.05 * np.linalg.norm(predicted)
-        moved_target = target.copy()
-        moved_target[point] += offset
-        moved = _refined(source, moved_target, covariance, covariance, start)
-        change = pose_difference(start, make_pose(moved.rotation, moved.translation))
-        predicted = target_gains[point] @ offset
-        assert np.linalg.norm(change - predicted) < 0.05 * np.linalg.norm(predicted)
+    misses = []
+    for point in range(25):
+        # 1.6 sigma: small enough to stay linear, large enough for the refinement's tolerance
+        offset = np.linalg.cholesky(covariance[point]) @ np.array([0.9, -0.6, 1.2])
+        for moved_source, moved_target, gain in (
+            (source + np.eye(25)[point][:, None] * offset, target, gains[point]),
+            (source, target + np.eye(25)[point][:, None] * offset, target_gains[point]),
+        ):
+            moved = _refined(moved_source, moved_target, covariance, covariance, start)
+            change = pose_difference(start, make_pose(moved.rotation, moved.translation))
+            predicted = gain @ offset
+            misses.append(np.linalg.norm(change - predicted) / np.linalg.norm(predicted))
+    # Measured over seeds: median below 1 %, worst 13 % (the refinement stops at a 1e-6 step);
+    # without the [[W r]x; 0] term single points miss by 15-35 %, a wrong sign by 200 %.
+    assert np.median(misses) < 0.05 and max(misses) < 0.15, np.round(misses, 3)
 
 
 def _two_registrations(rng: np.random.Generator, trials: int):
@@ -85,7 +87,7 @@ def _two_registrations(rng: np.random.Generator, trials: int):
     an exact transform, so both estimate the same pose."""
     count = 90
     current = _points(rng, count)
-    current_cov = _stereo_covariances(current, 3e-3, 3e-3)
+    current_cov = _stereo_covariances(current, 2e-3, 1.5e-3)
     first_truth = _pose([0.03, -0.1, 0.02], [0.2, -0.05, 0.1])
     first_from_second = _pose([0.01, 0.04, -0.02], [-0.1, 0.02, 0.05])
     second_truth = np.linalg.inv(first_from_second) @ first_truth
@@ -124,13 +126,13 @@ def _two_registrations(rng: np.random.Generator, trials: int):
 
 def test_shared_points_give_the_sampled_cross_covariance_and_a_better_combination() -> None:
     rng = np.random.default_rng(4)
-    truth, samples = _two_registrations(rng, 400)
+    truth, samples = _two_registrations(rng, 600)
     first_errors = np.array([pose_difference(truth, s[0]) for s in samples])
     second_errors = np.array([pose_difference(truth, s[2]) for s in samples])
     cross = shared_covariance(samples[0][4], samples[0][5])
     sampled_cross = (first_errors.T @ second_errors) / len(samples)
     scale = np.sqrt(np.outer(np.diag(samples[0][1]), np.diag(samples[0][3])))
-    # 400 samples: a covariance entry is known to about 5-7 % of the scale
+    # 600 samples: a covariance entry is known to about 4-6 % of the scale
     assert np.abs(sampled_cross - cross).max() / scale.max() < 0.15
     assert np.abs(cross).max() / scale.max() > 0.3  # the correlation is not negligible
 
@@ -143,7 +145,9 @@ def test_shared_points_give_the_sampled_cross_covariance_and_a_better_combinatio
         independent_errors.append(pose_difference(truth, independent[0]))
     predicted = fused[1]
     sampled = np.cov(np.array(fused_errors).T)
-    assert np.abs(np.diag(sampled) / np.diag(predicted) - 1).max() < 0.2
+    # Within 6 % at this seed; up to 22 % on one axis at others (one sample of gains and
+    # covariances stands for all, and the model is linearised).
+    assert np.abs(np.diag(sampled) / np.diag(predicted) - 1).max() < 0.25
     for other in (first_errors, second_errors, np.array(independent_errors)):
         assert (np.diag(sampled) < 1.05 * np.diag(np.cov(other.T))).all()
     # Counting the shared points twice claims a covariance smaller than the errors show.
@@ -204,7 +208,7 @@ def test_chain_through_the_previous_frame_counts_every_shared_point() -> None:
     factors = [np.linalg.cholesky(covariance) for covariance in covariances]
     truth = poses[2]  # T_kc with k = identity
     errors: dict[str, list[np.ndarray]] = {"fused": [], "measured": [], "chain": [], "naive": []}
-    for _ in range(300):
+    for _ in range(600):
         frames = [
             view + np.einsum("nij,nj->ni", factor, rng.normal(size=view.shape))
             for view, factor in zip(views, factors, strict=True)
@@ -224,7 +228,7 @@ def test_chain_through_the_previous_frame_counts_every_shared_point() -> None:
         ):  # fmt: skip
             errors[name].append(pose_difference(truth, pose))
     sampled = {name: np.cov(np.array(values).T) for name, values in errors.items()}
-    # Measured (seed 11): sampled / predicted variance 0.88-1.10 per axis.
+    # 600 samples: a variance is known to about 6 %; the worst of six axes within 3.5 sigma.
     ratio = np.diag(sampled["fused"]) / np.diag(fused.covariance)
     assert np.abs(ratio - 1).max() < 0.2, ratio
     for other in ("measured", "chain", "naive"):
