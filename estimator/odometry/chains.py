@@ -9,12 +9,18 @@ their covariances (a Kalman update with the keyframe measurement as the prior).
 
 Poses here use the refinement's right perturbation (``estimator/registration/refine.py``):
 xi = (omega, v) with R <- R Exp(omega), t <- t + R v, so a refined covariance applies as is.
-The two estimates share the current frame's points, so their errors are not independent; the
-combination ignores that (it cannot be measured from one frame), which makes the combined
-covariance somewhat optimistic but leaves the weighting between the two sensible.
+The two estimates share the current frame's points, so their errors are not independent.
+Each registration's linear sensitivity to its points (``estimator/registration/sensitivity.py``)
+gives the cross-covariance those shared points cause, and the combination is the best linear
+unbiased one of two correlated estimates. The same holds for the keyframe's points (used by the
+keyframe measurement and, inside the chain, by the previous frame's) and for the previous
+frame's points (used by both links of the chain). Each combined estimate keeps its own
+sensitivities, so the next frame's chain through it knows them.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -28,7 +34,29 @@ from estimator.geometry import (
     transport_covariance,
 )
 
-__all__ = ["chain_covariance", "fuse_poses", "inverse_covariance", "pose_difference"]
+__all__ = [
+    "Measured",
+    "PointSensitivity",
+    "chain_covariance",
+    "combine_chain",
+    "fuse_correlated",
+    "fuse_poses",
+    "fused_sensitivity",
+    "inverse_covariance",
+    "pose_difference",
+    "shared_covariance",
+    "transported",
+]
+
+
+@dataclass
+class PointSensitivity:
+    """How a pose estimate (right perturbation in the current frame) moves with one frame's
+    points: error ~ sum_j gains_j e_j, e_j ~ N(0, covariances_j)."""
+
+    current_index: np.ndarray  # (n,) into the StereoPoints of the frame the points belong to
+    gains: np.ndarray  # (n, 6, 3), scaled by the square root of the variance factor
+    covariances: np.ndarray  # (n, 3, 3)
 
 
 def pose_difference(first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -86,3 +114,108 @@ def fuse_poses(
     if not np.isfinite(xi).all():
         return None
     return perturbed(first, xi), 0.5 * (covariance + covariance.T)
+
+
+def shared_covariance(first: PointSensitivity, second: PointSensitivity) -> np.ndarray:
+    """(6, 6) cross-covariance of two estimates caused by the points (of one frame) both
+    used."""
+    _, mine, theirs = np.intersect1d(
+        first.current_index, second.current_index, assume_unique=False, return_indices=True
+    )
+    return np.einsum(
+        "nij,njk,nlk->il", first.gains[mine], first.covariances[mine], second.gains[theirs]
+    )
+
+
+def fuse_correlated(
+    first: np.ndarray,
+    first_covariance: np.ndarray,
+    second: np.ndarray,
+    second_covariance: np.ndarray,
+    cross: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The best linear unbiased combination of two estimates of one pose whose errors have
+    the cross-covariance ``cross`` = E[e_first e_second^T]: pose, covariance and the gain G
+    (xi = G (second - first)); None when a covariance is not positive definite.
+
+    With ``cross`` = 0 this is ``fuse_poses``; a shared error gets no weight twice.
+    """
+    shared = first_covariance - cross
+    difference = first_covariance + second_covariance - cross - cross.T
+    try:
+        np.linalg.cholesky(first_covariance)
+        np.linalg.cholesky(second_covariance)
+        np.linalg.cholesky(0.5 * (difference + difference.T))
+        gain = np.linalg.solve(difference.T, shared.T).T  # shared @ difference^-1
+    except np.linalg.LinAlgError:
+        return None
+    xi = gain @ pose_difference(first, second)
+    covariance = first_covariance - gain @ shared.T
+    if not (np.isfinite(xi).all() and np.isfinite(covariance).all()):
+        return None
+    return perturbed(first, xi), 0.5 * (covariance + covariance.T), gain
+
+
+def transported(sensitivity: PointSensitivity, adjoint: np.ndarray) -> PointSensitivity:
+    """The sensitivity of the perturbation ``adjoint`` @ xi (a pose moved on to another)."""
+    gains = np.einsum("ij,njk->nik", adjoint, sensitivity.gains)
+    return PointSensitivity(sensitivity.current_index, gains, sensitivity.covariances)
+
+
+def fused_sensitivity(
+    first: PointSensitivity, second: PointSensitivity, gain: np.ndarray
+) -> PointSensitivity:
+    """The sensitivity of first + G (second - first) to the current points of either."""
+    index = np.union1d(first.current_index, second.current_index)
+    gains = np.zeros((len(index), 6, 3))
+    covariances = np.zeros((len(index), 3, 3))
+    for part, weight in ((first, np.eye(6) - gain), (second, gain)):
+        position = np.searchsorted(index, part.current_index)
+        np.add.at(gains, position, np.einsum("ij,njk->nik", weight, part.gains))
+        covariances[position] = part.covariances
+    return PointSensitivity(index, gains, covariances)
+
+
+@dataclass
+class Measured:
+    """One relative pose with its covariance and how it moves with the points of its current
+    frame and of its reference (None: not known, taken as sharing nothing)."""
+
+    pose: np.ndarray
+    covariance: np.ndarray
+    current: PointSensitivity | None = None
+    reference: PointSensitivity | None = None
+
+
+def _shared(first: PointSensitivity | None, second: PointSensitivity | None) -> np.ndarray:
+    if first is None or second is None:
+        return np.zeros((6, 6))
+    return shared_covariance(first, second)
+
+
+def combine_chain(measured: Measured, link: Measured, step: Measured) -> Measured | None:
+    """T_kc measured against the keyframe k combined with the chain T_kp @ T_pc (``link``
+    @ ``step``); None when a covariance is not positive definite.
+
+    Shared points: the current frame's (by ``measured`` and ``step``), the keyframe's (by
+    ``measured`` and, through the link, the chain) and the previous frame's (by both links of
+    the chain). A perturbation of the link reaches the chain's end through Ad(T_pc^-1).
+    """
+    adjoint = se3_adjoint(step.pose, inverse=True)
+    through = [
+        None if part is None else transported(part, adjoint)
+        for part in (link.current, link.reference)
+    ]
+    links = _shared(through[0], step.reference)
+    chain = chain_covariance(link.covariance, step.pose, step.covariance) + links + links.T
+    cross = _shared(measured.current, step.current) + _shared(measured.reference, through[1])
+    fused = fuse_correlated(measured.pose, measured.covariance, link.pose @ step.pose, chain, cross)
+    if fused is None:
+        return None
+    pose, covariance, gain = fused
+    current = reference = None
+    if measured.current is not None and step.current is not None:
+        current = fused_sensitivity(measured.current, step.current, gain)
+    if measured.reference is not None and through[1] is not None:
+        reference = fused_sensitivity(measured.reference, through[1], gain)
+    return Measured(pose, covariance, current, reference)

@@ -15,7 +15,7 @@ from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel
 from estimator.frontend.temporal import PredictionUncertainty
 from estimator.frontend.tracks import Tracker
 from estimator.geometry import invert_pose, nearest_rigid
-from estimator.odometry.chains import chain_covariance, fuse_poses, inverse_covariance
+from estimator.odometry.chains import Measured, combine_chain, inverse_covariance
 from estimator.odometry.estimation import PoseEstimation
 from estimator.odometry.frames import (
     Estimate,
@@ -303,17 +303,19 @@ class Odometry:
         combine_previous = self.config.frontend.fuse_previous_frame and previous is not keyframe
         if previous is not None and combine_previous:
             covariance = references.reference_from_previous_covariance
-            estimate, _ = self._combined(
-                estimate, previous, references.reference_from_previous, covariance,
-                points, image, timings,
-            )  # fmt: skip
+            link = None
+            if covariance is not None:
+                link = Measured(
+                    references.reference_from_previous, covariance, *references.previous_sensitivity
+                )
+            estimate, _ = self._combined(estimate, previous, link, points, image, timings)
         if older is not None and self.config.frontend.fuse_previous_keyframe:
             to_older = invert_pose(references.older_from_reference)
             covariance = inverse_covariance(
                 references.older_from_reference, references.older_from_reference_covariance
             )
             estimate, tracked = self._combined(
-                estimate, older, to_older, covariance, points, image, timings
+                estimate, older, Measured(to_older, covariance), points, image, timings
             )
             if not tracked:
                 references.older = None  # out of view: not tried again
@@ -323,34 +325,36 @@ class Odometry:
         self,
         estimate: Estimate,
         reference: Reference,
-        keyframe_from_reference: np.ndarray,
-        covariance: np.ndarray | None,
+        link: Measured | None,
         points: StereoPoints,
         image: np.ndarray,
         timings: dict[str, float],
     ) -> tuple[Estimate, bool]:
         """``estimate`` (against the keyframe) combined with the chain keyframe -> ``reference``
-        -> current, and whether ``reference`` was tracked; the estimate is kept as it was
-        when either part has no covariance."""
+        -> current (``link`` = keyframe -> ``reference``), and whether ``reference`` was
+        tracked; the estimate is kept as it was when either part has no covariance."""
         measured = estimate.reference_from_current
-        if measured is None or estimate.covariance is None or covariance is None:
+        if measured is None or estimate.covariance is None or link is None:
             return estimate, True
         assert self._last_timestamp_ns is not None
-        prediction = invert_pose(keyframe_from_reference) @ measured  # sharper than velocity
+        prediction = invert_pose(link.pose) @ measured  # sharper than velocity
         chained = self._estimate_against(reference, prediction, points, image, timings)
         span_ns = self._last_timestamp_ns - reference.timestamp_ns
         chained = self._estimation.plausible(chained, prediction, span_ns)
         step = chained.reference_from_current
         if step is None or chained.covariance is None:
             return estimate, False
-        fused = fuse_poses(
-            measured,
-            estimate.covariance,
-            keyframe_from_reference @ step,
-            chain_covariance(covariance, step, chained.covariance),
-        )
+        fused = combine_chain(
+            Measured(
+                measured, estimate.covariance, estimate.sensitivity,
+                estimate.reference_sensitivity,
+            ),
+            link,
+            Measured(step, chained.covariance, chained.sensitivity, chained.reference_sensitivity),
+        )  # fmt: skip
         if fused is not None:
-            estimate.reference_from_current, estimate.covariance = fused
+            estimate.reference_from_current, estimate.covariance = fused.pose, fused.covariance
+            estimate.sensitivity, estimate.reference_sensitivity = fused.current, fused.reference
             estimate.reported_covariance = None  # the combination's is the one to report
         return estimate, True
 

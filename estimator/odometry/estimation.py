@@ -12,9 +12,11 @@ from estimator.frontend.stereo_noise import StereoNoiseModel
 from estimator.frontend.temporal import Correspondences, PredictionUncertainty, match_temporal
 from estimator.frontend.tracks import match_tracks
 from estimator.geometry import invert_pose, make_pose, rotation_angle_deg
+from estimator.odometry.chains import PointSensitivity
 from estimator.odometry.frames import Estimate, Reference, failed, frame_seed, stage
-from estimator.registration.refine import refine_pose_mahalanobis
+from estimator.registration.refine import RefinementResult, refine_pose_mahalanobis
 from estimator.registration.registry import estimator_spec, register
+from estimator.registration.sensitivity import point_sensitivities
 
 __all__ = ["PoseEstimation"]
 
@@ -180,4 +182,37 @@ class PoseEstimation:
                 estimate.covariance = robust
             elif robust is not None and registration.refine_covariance == "sandwich-reported":
                 estimate.reported_covariance = robust
+            frontend = self.config.frontend
+            if frontend.fuse_previous_frame or frontend.fuse_previous_keyframe:
+                self._sensitivities(estimate, correspondences, refined)
         return estimate
+
+    def _sensitivities(
+        self, estimate: Estimate, correspondences: Correspondences, refined: RefinementResult
+    ) -> None:
+        """How the refined pose moves with the current and the reference inlier points,
+        scaled like its covariance (estimator/odometry/chains.py weighs the chains sharing
+        them by it)."""
+        assert estimate.result is not None and estimate.point_covariances is not None
+        registration = self.config.registration
+        inliers = estimate.result.inliers
+        current_cov, reference_cov = estimate.point_covariances
+        gains = point_sensitivities(
+            correspondences.current_points[inliers],
+            correspondences.reference_points[inliers],
+            current_cov[inliers],
+            reference_cov[inliers],
+            refined.rotation,
+            refined.translation,
+            robust=registration.refine_robust,
+            robust_scale=registration.refine_robust_scale,
+        )
+        if gains is None:
+            return
+        scale = np.sqrt(refined.variance_factor)
+        estimate.sensitivity = PointSensitivity(
+            correspondences.current_index[inliers], gains[0] * scale, current_cov[inliers]
+        )
+        estimate.reference_sensitivity = PointSensitivity(
+            correspondences.reference_index[inliers], gains[1] * scale, reference_cov[inliers]
+        )

@@ -12,6 +12,7 @@ import numpy as np
 
 from estimator.frontend.stereo import StereoPoints
 from estimator.frontend.temporal import Correspondences
+from estimator.odometry.chains import PointSensitivity
 from estimator.registration.registry import RegistrationResult
 
 __all__ = [
@@ -88,6 +89,10 @@ class Estimate:
     reported_covariance: np.ndarray | None = None
     # (N, 3, 3) covariances of the current and reference points of ``pairs``.
     point_covariances: tuple[np.ndarray, np.ndarray] | None = None
+    # How the refined pose moves with the current and with the reference points (only when
+    # a chain is combined).
+    sensitivity: PointSensitivity | None = None
+    reference_sensitivity: PointSensitivity | None = None
 
 
 def failed(estimate: Estimate, reason: str) -> Estimate:

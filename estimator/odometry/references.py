@@ -9,6 +9,7 @@ from estimator.config import FrontendConfig
 from estimator.frontend.stereo import StereoPoints
 from estimator.frontend.temporal import PredictionUncertainty
 from estimator.geometry import invert_pose, rotation_angle_deg, scale_motion
+from estimator.odometry.chains import PointSensitivity
 from estimator.odometry.frames import Estimate, Reference
 from estimator.odometry.gyro_prediction import GyroPrediction
 from estimator.order_statistics import median
@@ -40,6 +41,12 @@ class References:
         self.reference_from_previous = np.eye(4)  # rectified; for predicting the search
         # ... and its 6x6 covariance (right perturbation); None when not measured
         self.reference_from_previous_covariance: np.ndarray | None = None
+        # ... and how it moves with the previous frame's and the keyframe's points (None:
+        # not known), for the chain through the previous frame (odometry/chains.py)
+        self.previous_sensitivity: tuple[PointSensitivity | None, PointSensitivity | None] = (
+            None,
+            None,
+        )
         # The keyframe before this one, with the keyframe's pose in it and its covariance,
         # while frames still register against it (None otherwise)
         self.older: Reference | None = None
@@ -174,10 +181,12 @@ class References:
             self.reference = current
             self.reference_from_previous = np.eye(4)
             self.reference_from_previous_covariance = np.zeros((6, 6))
+            self.previous_sensitivity = (None, None)
         else:
             assert reference_from_current is not None
             self.reference_from_previous = reference_from_current
             self.reference_from_previous_covariance = estimate.covariance
+            self.previous_sensitivity = (estimate.sensitivity, estimate.reference_sensitivity)
         self.previous = current
 
     def _gyro_frame_done(self, failed: bool, estimate: Estimate) -> None:
