@@ -29,7 +29,7 @@ from service.frame_work import (
     finish_pipeline,
     session_problem,
 )
-from service.memory import reuse_frame_buffers, trim_free_memory
+from service.memory import trim_free_memory
 from service.shared_images import read_pair
 
 if TYPE_CHECKING:  # a type alias only: the storage package would load SQLAlchemy (28 MB)
@@ -71,7 +71,9 @@ def worker_init(factory: PipelineFactory) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     threading.Thread(target=_exit_with_parent, name="swarmvo-parent-watch", daemon=True).start()
     single_threaded_opencv()
-    reuse_frame_buffers()
+    # glibc's default allocator on purpose: with the server's fixed thresholds
+    # (service.memory.reuse_frame_buffers) the workers' heaps kept ~80 MB more each at 8 robots
+    # (docs/performance.md), more than the page faults they spare are worth.
     if not logging.getLogger().handlers:  # spawned: the server's logging is not inherited
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     warm_up = getattr(factory, "warm_up", None)
