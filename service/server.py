@@ -7,6 +7,10 @@
 - A WebSocket handshake is one log line (accepted, or the 401/404 of a refusal): uvicorn's
   sans-I/O protocol would add an "ASGI callable returned without completing handshake" error
   to each refusal, and the websockets library its own line to each handshake.
+- On SIGTERM/SIGINT the open streams are told first (``SessionManager.stop_streams``): they
+  stop reading, send what is due for a moment and close with 1012, instead of holding the
+  shutdown until uvicorn cancels them with a traceback each; a socket whose client stopped
+  reading is cut off shortly after.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import logging
 from typing import Any
 
 import uvicorn
+from fastapi import FastAPI
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
@@ -79,17 +84,55 @@ WS_PING_INTERVAL_S = 5.0
 HANDSHAKE_LOGGER = logging.getLogger("swarmvo.websockets")
 
 
+# Seconds the open streams get to close themselves once the server stops (see stream.py's
+# STOPPING_DRAIN_S and CLOSE_SEND_TIMEOUT_S, which fit in it).
+STREAMS_STOP_GRACE_S = 4.0
+# Seconds a WebSocket's socket may still take to flush its close after shutdown; then it is
+# aborted (its client stopped reading: the buffered bytes would never leave).
+WS_ABORT_AFTER_S = 1.0
+
+
 class DenialLoggedOnce(WebSocketsSansIOProtocol):
-    """A handshake answered with an HTTP denial is complete: no extra error line for it."""
+    """A handshake answered with an HTTP denial is complete: no extra error line for it; a
+    socket that cannot flush at shutdown is aborted rather than waited for."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.conn.logger = HANDSHAKE_LOGGER
+        self.lost = False
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.lost = True
+        super().connection_lost(exc)
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self.loop.call_later(WS_ABORT_AFTER_S, self._abort_if_stuck)
+
+    def _abort_if_stuck(self) -> None:
+        if not self.lost:
+            self.transport.abort()
 
     async def send(self, message: Any) -> None:
         await super().send(message)
         if message["type"] == "websocket.http.response.body" and not message.get("more_body"):
             self.handshake_complete = True
+
+
+class StreamsFirstServer(uvicorn.Server):
+    """uvicorn, telling the app's open streams the server stops before waiting for them."""
+
+    def __init__(self, config: uvicorn.Config, app: FastAPI) -> None:
+        super().__init__(config)
+        self.service_app = app
+
+    async def shutdown(self, sockets: list[Any] | None = None) -> None:
+        for server in self.servers:
+            server.close()  # no new connections while the streams close
+        state = getattr(self.service_app.state, "swarmvo", None)
+        if state is not None:
+            await state.manager.stop_streams(STREAMS_STOP_GRACE_S)
+        await super().shutdown(sockets)
 
 
 def serve(settings: ServiceSettings, log_level: str = "info") -> int:
@@ -105,8 +148,9 @@ def serve(settings: ServiceSettings, log_level: str = "info") -> int:
         )
     protocol = type("HttpProtocol", (HeaderTimeoutProtocol,),
                     {"header_timeout_s": settings.request_header_timeout_s})
+    app = create_app(settings)
     config = uvicorn.Config(
-        create_app(settings),
+        app,
         host=settings.host,
         port=settings.port,
         log_level=log_level,
@@ -122,12 +166,14 @@ def serve(settings: ServiceSettings, log_level: str = "info") -> int:
         # replicas (docker/nginx.conf: 15 s).
         ws_ping_interval=WS_PING_INTERVAL_S,
         timeout_keep_alive=settings.timeout_keep_alive_s,
-        # Queued frames get this long to be processed and stored on SIGTERM/SIGINT.
+        # The last resort for connections still open after the streams were told to close
+        # (StreamsFirstServer); queued frames are processed and stored after it, at lifespan
+        # shutdown (SessionManager.shutdown, up to 10 s).
         timeout_graceful_shutdown=15,
         access_log=log_level == "debug",
     )
     redact_logs(k.strip() for k in settings.api_keys.split(","))
     reuse_frame_buffers()
     HANDSHAKE_LOGGER.setLevel(logging.WARNING)
-    uvicorn.Server(config).run()
+    StreamsFirstServer(config, app).run()
     return 0

@@ -14,10 +14,9 @@ import time
 from pathlib import Path
 
 import pytest
-from test_service_server import KEY, Server, _calibration, _png, _stored
-from websockets.asyncio.client import connect
-
 from swarmvo_client import Client
+from test_service_server import KEY, Server, _calibration, _png, _stored
+from websockets.asyncio.client import ClientConnection, connect
 
 # Each refusal repeats the message type it was given: 256 kB per answer, so a few dozen fill the
 # socket buffers of a client that does not read.
@@ -25,9 +24,9 @@ BIG_TYPE = "x" * 256 * 1024
 FLOOD = 40
 
 
-async def _answer_then_stop_reading(url: str, sid: str) -> list[int]:
-    """Frames answered (timestamps of their poses), then a flood of answers left unread, the close
-    message and frames still queued behind it; the socket stays open, unread."""
+async def _answer_then_stop_reading(url: str) -> tuple[list[int], ClientConnection]:
+    """Frames answered (timestamps of their poses), then a flood of answers left unread and the
+    close message; the connection is returned open, and nobody reads it any more."""
     png = _png()
     ws = await connect(url, max_queue=1, max_size=None)
     assert json.loads(await ws.recv())["type"] == "hello"
@@ -44,9 +43,7 @@ async def _answer_then_stop_reading(url: str, sid: str) -> list[int]:
         await ws.send(json.dumps({"type": BIG_TYPE}))
     await ws.send(json.dumps({"type": "close"}))
     await asyncio.sleep(2.0)  # the server reads all of it and blocks writing its answers
-    # The connection object is kept (not closed) by the caller: nobody reads it any more.
-    _answer_then_stop_reading.kept = ws  # type: ignore[attr-defined]
-    return answered
+    return answered, ws
 
 
 @pytest.mark.slow
@@ -59,16 +56,22 @@ def test_sigterm_with_a_stuck_stream_exits_quickly_and_cleanly(tmp_path: Path) -
                                         config={"backend": {"enabled": False}}).id
         url = server.url.replace("http://", "ws://") + f"/v1/sessions/{sid}/stream?token={KEY}"
         loop = asyncio.new_event_loop()
-        answered = loop.run_until_complete(_answer_then_stop_reading(url, sid))
+        answered, unread = loop.run_until_complete(_answer_then_stop_reading(url))
         assert answered, "the real odometry answered none of the frames with a pose"
         start = time.monotonic()
         server.process.send_signal(signal.SIGTERM)
         code = server.process.wait(timeout=30)
         took = time.monotonic() - start
+        unread.transport.abort()
     finally:
         if server.process.poll() is None:
             server.kill()
-    loop.close()
+        left = asyncio.all_tasks(loop)
+        for task in left:
+            task.cancel()
+        loop.run_until_complete(asyncio.gather(*left, return_exceptions=True))
+        loop.close()
+    print(f"stopped in {took:.1f} s")
     output = log.read_text()
     assert code in (0, -signal.SIGTERM), output
     assert took < 8.0, f"stopping took {took:.1f} s:\n{output}"

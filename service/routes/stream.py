@@ -55,6 +55,15 @@ MAX_UNSENT_REPLIES = 64
 _FLUSH = object()
 # How long a stream of a deleted session may take to send its last message.
 FINAL_MESSAGE_TIMEOUT_S = 5.0
+# How long a robot's close message may take to be answered (every frame, then the flush).
+GRACEFUL_CLOSE_TIMEOUT_S = 120.0
+# Once the server is stopping: how long answers already due may still take to be sent. Frames
+# still queued are processed and stored at shutdown whether or not their answer goes out.
+STOPPING_DRAIN_S = 2.0
+# How long the close frame may take to be written (a client that stopped reading never takes it).
+CLOSE_SEND_TIMEOUT_S = 1.0
+# Close code and reason for the streams of a stopping server (1012: service restart).
+STREAM_CLOSE_STOPPING = (1012, "server stopping; reconnect to continue")
 
 # Answers in order: a ready message, (future, timestamp_ns) of a frame being processed, or
 # the flush marker.
@@ -90,10 +99,12 @@ class StreamConnection:
         self.received = 0
         self.sender: asyncio.Task[None] | None = None
         self.image_size = (0, 0)  # the session's (width, height), known once accepted
-        # Set by terminate() (the session was deleted): close code and reason to send.
+        # Set by terminate() (the session was deleted) or server_stopping(): close code and
+        # reason to send.
         self.ending: tuple[int, str] | None = None
         self.stop = asyncio.Event()
         self.stopped: asyncio.Future[object] | None = None  # waits on ``stop``, made on first use
+        self.server_stop = asyncio.Event()  # set once the server is stopping
 
     def terminate(self, code: int, reason: str, last: list[SmoothedPose] | None = None) -> None:
         """End this stream from outside: its loop stops reading and closes with ``code``,
@@ -107,6 +118,20 @@ class StreamConnection:
         elif self.sender is not None:
             self.sender.cancel()
 
+    def server_stopping(self) -> None:
+        """The server is stopping: stop reading, send what is due for a short while (even after
+        the robot's close message), then close with 1012 so the robot reconnects elsewhere."""
+        if self.ending is None:
+            self.ending = STREAM_CLOSE_STOPPING
+        self.server_stop.set()
+        self.stop.set()
+
+    def _stop_waiter(self) -> asyncio.Future[object]:
+        """One waiter on the stop event for the whole connection (not one per message)."""
+        if self.stopped is None:
+            self.stopped = asyncio.ensure_future(self.stop.wait())
+        return self.stopped
+
     async def _receive(self) -> Message | None:
         """The next client message, or None once the stream was terminated.
 
@@ -115,10 +140,8 @@ class StreamConnection:
         """
         if self.stop.is_set():
             return None
-        if self.stopped is None:
-            self.stopped = asyncio.ensure_future(self.stop.wait())
         receive = asyncio.ensure_future(self.websocket.receive())
-        await asyncio.wait({receive, self.stopped}, return_when=asyncio.FIRST_COMPLETED)
+        await asyncio.wait({receive, self._stop_waiter()}, return_when=asyncio.FIRST_COMPLETED)
         if receive.done():
             return receive.result()
         receive.cancel()
@@ -201,23 +224,39 @@ class StreamConnection:
                 # The back end's window follows the answers, then the stream closes.
                 await self.outbox.put(_FLUSH)
             await self.outbox.put(None)
-            if self.ending is not None:
-                await asyncio.wait({sender}, timeout=FINAL_MESSAGE_TIMEOUT_S)
-                sender.cancel()
-                await asyncio.wait({sender})
-                with contextlib.suppress(Exception):
-                    await websocket.close(*self.ending)
-            elif graceful:
-                with contextlib.suppress(Exception):
-                    await asyncio.wait_for(sender, timeout=120)
-                with contextlib.suppress(Exception):
-                    await websocket.close(1000)
-            else:
-                # The client left: frames it sent are still processed and stored (the futures
-                # are shielded), only the answers have nobody to go to.
-                sender.cancel()
-                await asyncio.wait({sender})
+            await self._finish(sender, graceful)
         return graceful
+
+    async def _finish(self, sender: asyncio.Task[None], graceful: bool) -> None:
+        """Let the sender send what is due (bounded), then close the socket.
+
+        A cancelled sender loses answers only: frames already submitted are still processed
+        and stored (their futures are shielded), and a stopping server flushes every back end.
+        """
+        if self.ending is None and not graceful:
+            # The client left: only the answers have nobody to go to.
+            sender.cancel()
+            await asyncio.wait({sender})
+            return
+        limit = GRACEFUL_CLOSE_TIMEOUT_S if self.ending is None else FINAL_MESSAGE_TIMEOUT_S
+        await self._wait_sender(sender, limit)
+        sender.cancel()
+        await asyncio.wait({sender})
+        code, reason = self.ending or (1000, "")
+        with contextlib.suppress(Exception):
+            # Bounded: a client that stopped reading leaves the socket unwritable for good.
+            await asyncio.wait_for(self.websocket.close(code, reason), CLOSE_SEND_TIMEOUT_S)
+
+    async def _wait_sender(self, sender: asyncio.Task[None], limit_s: float) -> None:
+        """Wait up to ``limit_s`` for the sender; once the server stops, ``STOPPING_DRAIN_S``."""
+        stopping = asyncio.ensure_future(self.server_stop.wait())
+        try:
+            await asyncio.wait({sender, stopping}, timeout=limit_s,
+                               return_when=asyncio.FIRST_COMPLETED)
+            if stopping.done() and not sender.done():
+                await asyncio.wait({sender}, timeout=STOPPING_DRAIN_S)
+        finally:
+            stopping.cancel()
 
     async def _reply(self, message: ServerMessage) -> None:
         await self._acquire_credit()
@@ -366,10 +405,12 @@ class StreamConnection:
         self.outbox.put_nowait((future, header.timestamp_ns))
 
     async def _acquire_credit(self) -> None:
-        """Wait for room for one more unanswered frame, unless the sender has died."""
+        """Wait for room for one more unanswered frame, unless the sender has died or the stream
+        is ending (the session deleted, the server stopping)."""
         assert self.sender is not None
         acquire = asyncio.ensure_future(self.credit.acquire())
-        await asyncio.wait({acquire, self.sender}, return_when=asyncio.FIRST_COMPLETED)
+        await asyncio.wait({acquire, self.sender, self._stop_waiter()},
+                           return_when=asyncio.FIRST_COMPLETED)
         if not acquire.done():
             acquire.cancel()
             raise WebSocketDisconnect(1011)

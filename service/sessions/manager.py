@@ -26,10 +26,14 @@ MAX_REMEMBERED_DELETIONS = 10_000
 
 
 class StreamHandle(Protocol):
-    """An open stream of a session (a WebSocket), ended when the session is deleted."""
+    """An open stream of a session (a WebSocket), ended when the session is deleted or the
+    server stops."""
 
     def terminate(self, code: int, reason: str, last: list[SmoothedPose] | None = None) -> None:
         """Close with ``code`` after sending ``last`` (the flushed smoothed poses), if any."""
+
+    def server_stopping(self) -> None:
+        """Stop reading, send what is answered within a bounded time, close with 1012."""
 
 
 class SessionManager:
@@ -145,6 +149,20 @@ class SessionManager:
         live = self.live.get(session_id)
         if finished and live is not None and session_id not in self.streams:
             self._release_later(live)
+
+    async def stop_streams(self, grace_s: float) -> None:
+        """Tell every open stream the server is stopping; wait up to ``grace_s`` for them to close.
+
+        Called before the server waits for its connections: a stream whose robot stopped
+        reading would otherwise hold the shutdown until the server gives up and cancels it.
+        Frames already queued are not touched here; :meth:`shutdown` processes and stores them.
+        """
+        for streams in list(self.streams.values()):
+            for stream in list(streams):
+                stream.server_stopping()
+        deadline = time.monotonic() + grace_s
+        while self.streams and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
 
     async def finish(self, session_id: str) -> list[SmoothedPose]:
         """The robot's end of stream over REST, as a WebSocket's close message: once the frames
