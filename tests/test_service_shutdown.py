@@ -1,5 +1,6 @@
-"""A server stopped (SIGTERM) while a stream is still open: it tells the stream it is stopping,
-exits within seconds without a traceback, and every answered pose is stored.
+"""A server stopped (SIGTERM) while streams are still open: it tells them it is stopping (close
+code 1012 with a reason), exits within seconds without a traceback, and every answered pose is
+stored.
 
 The hard case is a robot that sent its close message and then stopped reading: the server's
 answers pile up in the socket until its writes block, so the stream can never finish by itself.
@@ -46,8 +47,19 @@ async def _answer_then_stop_reading(url: str) -> tuple[list[int], ClientConnecti
     return answered, ws
 
 
+async def _open(url: str) -> ClientConnection:
+    """A stream that reads (its connection does, in the background) and sends nothing."""
+    ws = await connect(url)
+    assert json.loads(await ws.recv())["type"] == "hello"
+    return ws
+
+
 @pytest.mark.slow
-def test_sigterm_with_a_stuck_stream_exits_quickly_and_cleanly(tmp_path: Path) -> None:
+@pytest.mark.parametrize("deleted", [False, True], ids=["open", "session-deleted"])
+def test_sigterm_with_a_stuck_stream_exits_quickly_and_cleanly(tmp_path: Path,
+                                                               deleted: bool) -> None:
+    """``deleted``: the session is deleted before the SIGTERM (as the load test does at the end
+    of a run), so the stuck stream is already ending when the server stops."""
     log = tmp_path / "server.log"
     server = Server(tmp_path / "data", log)
     try:
@@ -58,10 +70,20 @@ def test_sigterm_with_a_stuck_stream_exits_quickly_and_cleanly(tmp_path: Path) -
         loop = asyncio.new_event_loop()
         answered, unread = loop.run_until_complete(_answer_then_stop_reading(url))
         assert answered, "the real odometry answered none of the frames with a pose"
+        reading = loop.run_until_complete(_open(url))
+        if deleted:
+            with Client(server.url, KEY) as client:
+                client.delete_session(sid)
         start = time.monotonic()
         server.process.send_signal(signal.SIGTERM)
-        code = server.process.wait(timeout=30)
+        code = loop.run_until_complete(asyncio.to_thread(server.process.wait, 30))
         took = time.monotonic() - start
+        loop.run_until_complete(asyncio.wait_for(reading.wait_closed(), 5))
+        if deleted:
+            assert (reading.close_code, reading.close_reason) == (4404, "session deleted")
+        else:
+            assert reading.close_code == 1012
+            assert reading.close_reason == "server stopping; reconnect to continue"
         unread.transport.abort()
     finally:
         if server.process.poll() is None:
@@ -78,7 +100,8 @@ def test_sigterm_with_a_stuck_stream_exits_quickly_and_cleanly(tmp_path: Path) -
     assert "Traceback" not in output, output
     assert "Exception in ASGI application" not in output, output
     assert "timeout graceful shutdown exceeded" not in output, output
-
+    if deleted:
+        return
     again = Server(tmp_path / "data", log)
     try:
         stored = {pose.timestamp_ns for pose in _stored(again.url, sid)}

@@ -248,14 +248,22 @@ class StreamConnection:
             await asyncio.wait_for(self.websocket.close(code, reason), CLOSE_SEND_TIMEOUT_S)
 
     async def _wait_sender(self, sender: asyncio.Task[None], limit_s: float) -> None:
-        """Wait up to ``limit_s`` for the sender; once the server stops, ``STOPPING_DRAIN_S``."""
+        """Wait up to ``limit_s`` for the sender, cut short when the stream is ended from
+        outside meanwhile: ``FINAL_MESSAGE_TIMEOUT_S`` once its session is deleted,
+        ``STOPPING_DRAIN_S`` once the server stops."""
+        ended = asyncio.ensure_future(self.stop.wait())
         stopping = asyncio.ensure_future(self.server_stop.wait())
         try:
-            await asyncio.wait({sender, stopping}, timeout=limit_s,
+            await asyncio.wait({sender, ended}, timeout=limit_s,
+                               return_when=asyncio.FIRST_COMPLETED)
+            if sender.done() or not ended.done():
+                return
+            await asyncio.wait({sender, stopping}, timeout=FINAL_MESSAGE_TIMEOUT_S,
                                return_when=asyncio.FIRST_COMPLETED)
             if stopping.done() and not sender.done():
                 await asyncio.wait({sender}, timeout=STOPPING_DRAIN_S)
         finally:
+            ended.cancel()
             stopping.cancel()
 
     async def _reply(self, message: ServerMessage) -> None:

@@ -407,6 +407,11 @@ class LiveSession:
         future: asyncio.Future[list[SmoothedPose]] = asyncio.get_running_loop().create_future()
         future.add_done_callback(lambda f: f.cancelled() or f.exception())
         await self.queue.put(FrameJob(-1, b"", b"", future, flush=True))
+        if self.closed and not future.done():
+            # Put after close() began (it waited for room in a full queue): close() may have
+            # emptied the queue already and nobody would take it; the closing session flushes
+            # (and stores) by itself.
+            return []
         try:
             return await asyncio.shield(future)
         except FrameRejected:  # refused by a closing session, which flushes by itself

@@ -70,6 +70,8 @@ class SessionManager:
         # up just before its deletion cannot bring it back to life.
         self.deleted: OrderedDict[str, None] = OrderedDict()
         self.streams: dict[str, set[StreamHandle]] = {}
+        # Streams of deleted sessions, still sending their last message until they detach.
+        self.ending: set[StreamHandle] = set()
         self._background: set[asyncio.Task[None]] = set()
         self._trimmer: asyncio.Task[None] | None = None
         self._on_change: Callable[[], None] = lambda: metrics.sessions_active.set(
@@ -141,6 +143,7 @@ class SessionManager:
 
     def detach(self, session_id: str, stream: StreamHandle, finished: bool = False) -> None:
         """Forget a stream; ``finished`` (the robot said close): give the lease up once idle."""
+        self.ending.discard(stream)
         streams = self.streams.get(session_id)
         if streams is not None:
             streams.discard(stream)
@@ -157,11 +160,10 @@ class SessionManager:
         reading would otherwise hold the shutdown until the server gives up and cancels it.
         Frames already queued are not touched here; :meth:`shutdown` processes and stores them.
         """
-        for streams in list(self.streams.values()):
-            for stream in list(streams):
-                stream.server_stopping()
+        for stream in [*self.ending, *(s for group in self.streams.values() for s in group)]:
+            stream.server_stopping()
         deadline = time.monotonic() + grace_s
-        while self.streams and time.monotonic() < deadline:
+        while (self.streams or self.ending) and time.monotonic() < deadline:
             await asyncio.sleep(0.05)
 
     async def finish(self, session_id: str) -> list[SmoothedPose]:
@@ -209,6 +211,7 @@ class SessionManager:
             last = await live.close("session was deleted", deleted=True)
             self.runner.release(live.slot, session_id)
         for stream in self.streams.pop(session_id, set()):
+            self.ending.add(stream)
             stream.terminate(STREAM_CLOSE_DELETED, "session deleted", last)
 
     async def shutdown(self, drain_seconds: float = 10.0) -> None:
