@@ -4,20 +4,30 @@ stored.
 
 The hard case is a robot that sent its close message and then stopped reading: the server's
 answers pile up in the socket until its writes block, so the stream can never finish by itself.
+A stream's end flush queued behind a full queue of a session deleted meanwhile must return too.
 """
 
 from __future__ import annotations
 
 import asyncio
+import datetime as dt
 import json
 import signal
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
 from swarmvo_client import Client
 from test_service_server import KEY, Server, _calibration, _png, _stored
 from websockets.asyncio.client import ClientConnection, connect
+
+from service.frame_work import FrameFailure
+from service.metrics import Metrics
+from service.sessions.frames import FrameRejected
+from service.sessions.live import LiveSession
+from service.settings import ServiceSettings
+from service.storage import SessionRecord
 
 # Each refusal repeats the message type it was given: 256 kB per answer, so a few dozen fill the
 # socket buffers of a client that does not read.
@@ -108,3 +118,64 @@ def test_sigterm_with_a_stuck_stream_exits_quickly_and_cleanly(tmp_path: Path,
     finally:
         assert again.stop()
     assert set(answered) <= stored
+
+
+class _HeldRunner:
+    """A worker holding one frame until ``release`` is set; that frame then fails (a bad image)
+    and a flush is answered a moment later, as a worker process answers: a consumer that took
+    the stream's flush job is still waiting for it when close() stops the consumer."""
+
+    def __init__(self) -> None:
+        self.release = asyncio.Event()
+        self.started = asyncio.Event()
+
+    async def run(self, slot: int, request) -> FrameFailure:
+        self.started.set()
+        await self.release.wait()
+        return FrameFailure(400, "bad image", "bad_image")
+
+    def finish(self, slot: int, session_id: str) -> asyncio.Future[list]:
+        future: asyncio.Future[list] = asyncio.get_running_loop().create_future()
+        asyncio.get_running_loop().call_later(0.05, lambda: future.done() or future.set_result([]))
+        return future
+
+
+async def _flush_behind_a_full_queue_of_a_deleted_session(tmp_path: Path) -> None:
+    record = SessionRecord("s1", "owner", "s1", dt.datetime.now(dt.UTC),
+                           _calibration(), {}, None, 32, 24, 0, None, 0)
+    settings = ServiceSettings(data_dir=tmp_path, api_keys=KEY, queue_size=2,
+                               executor="thread")
+    runner = _HeldRunner()
+    with ThreadPoolExecutor(1) as io_pool:
+        live = LiveSession(record, settings, None, runner, 0, io_pool,  # type: ignore[arg-type]
+                           Metrics())
+        live.pipeline_ready = True  # the worker holds a pipeline: the end flush must reach it
+        frames = [live.submit(1, b"", b"", None)]
+        await asyncio.wait_for(runner.started.wait(), 5)  # frame 1 in the worker
+        frames += [live.submit(t, b"", b"", None) for t in (2, 3)]
+        assert live.queue.full()  # frames 2 and 3 wait
+        flush = asyncio.create_task(live.flush_after_queued())
+        await asyncio.sleep(0.05)
+        assert not flush.done()  # it waits for room in the queue
+        closing = asyncio.create_task(live.close("session deleted", deleted=True))
+        await asyncio.sleep(0.05)  # close() emptied the queue and waits for frame 1
+        runner.release.set()
+        assert await asyncio.wait_for(closing, 5) == []
+        try:
+            assert await asyncio.wait_for(flush, 5) == []
+        except TimeoutError:
+            pytest.fail("the flush queued behind the full queue never returned")
+        # Frame 1 finished in the worker (refused by it); frames 2 and 3 were refused by close().
+        for frame, status in zip(frames, (400, 404, 404), strict=True):
+            with pytest.raises(FrameRejected) as refused:
+                await frame
+            assert refused.value.status_code == status
+
+
+def test_a_flush_queued_behind_a_full_queue_returns_when_the_session_is_deleted(
+    tmp_path: Path,
+) -> None:
+    """The stream's end flush waits for room in a full queue; the session is deleted
+    meanwhile, and close() empties the queue and stops the consumer: the flush returns (the
+    closing session flushes by itself) instead of waiting forever for a job nobody takes."""
+    asyncio.run(_flush_behind_a_full_queue_of_a_deleted_session(tmp_path))
