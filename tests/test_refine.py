@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from estimator.formats.calibration import Rectification, StereoRig
+from estimator.frontend.stereo import point_covariances
 from estimator.geometry import kabsch, rotation_angle_deg
 from estimator.registration.refine import refine_pose_mahalanobis
 
@@ -15,14 +17,30 @@ FOCAL, BASELINE = 460.0, 0.11
 SIGMA_U, SIGMA_D = 0.3, 0.5  # pixels
 
 
+def _rectification() -> Rectification:
+    """The rig above, already rectified: the covariances need its focal length and baseline."""
+    camera = {
+        "width": 752, "height": 480, "fx": FOCAL, "fy": FOCAL, "cx": 376.0, "cy": 240.0,
+        "distortion_model": "none", "distortion": [],
+    }  # fmt: skip
+    right = np.eye(4)
+    right[0, 3] = BASELINE
+    rig = StereoRig.from_dict(
+        {
+            "left": {**camera, "T_BS": np.eye(4).tolist()},
+            "right": {**camera, "T_BS": right.tolist()},
+        }
+    )
+    return rig.rectification
+
+
+RECTIFICATION = _rectification()
+
+
 def _covariances(points: np.ndarray) -> np.ndarray:
-    """Ray-aligned stereo covariances: (Z/f)^2 sigma_u^2 across, (sigma_d Z/(f b))^2 p p^T."""
-    depth = points[:, 2]
-    along = (SIGMA_D * depth / (FOCAL * BASELINE)) ** 2
-    covariance = np.einsum("ni,nj->nij", points, points) * along[:, None, None]
-    covariance[:, 0, 0] += (depth / FOCAL * SIGMA_U) ** 2
-    covariance[:, 1, 1] += (depth / FOCAL * SIGMA_U) ** 2
-    return covariance
+    """Ray-aligned stereo covariances as the front end gives them: (Z/f)^2 sigma_u^2 across,
+    (sigma_d Z/(f b))^2 p p^T along the ray."""
+    return point_covariances(points, RECTIFICATION, SIGMA_U, SIGMA_U, SIGMA_D)
 
 
 def _scene(rng: np.random.Generator, count: int = 150):

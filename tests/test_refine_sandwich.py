@@ -6,21 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from test_refine import _covariances  # EuRoC-like rig; 0.3 px pixel, 0.5 px disparity noise
 
 from estimator.registration.refine import refine_pose_mahalanobis
 from estimator.registration.refine_kernels import ROBUST_CODES, score_outer_products
-
-FOCAL, BASELINE = 460.0, 0.11  # a EuRoC-like rig
-SIGMA_U, SIGMA_D = 0.3, 0.5  # the pixel noise the point covariances assume
-
-
-def _covariances(points: np.ndarray) -> np.ndarray:
-    depth = points[:, 2]
-    along = (SIGMA_D * depth / (FOCAL * BASELINE)) ** 2
-    covariance = np.einsum("ni,nj->nij", points, points) * along[:, None, None]
-    covariance[:, 0, 0] += (depth / FOCAL * SIGMA_U) ** 2
-    covariance[:, 1, 1] += (depth / FOCAL * SIGMA_U) ** 2
-    return covariance
 
 
 def _noise(points: np.ndarray, rng: np.random.Generator, scale: float, tail: float) -> np.ndarray:
