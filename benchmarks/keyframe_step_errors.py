@@ -67,7 +67,10 @@ def main() -> int:
     args = parser.parse_args()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        sequence = open_sequence(args.dataset)
+        try:
+            sequence = open_sequence(args.dataset)
+        except (OSError, ValueError) as error:
+            parser.error(f"cannot read {args.dataset}: {error}")
     print(
         "| fuse_previous_frame | frames: rot mdeg / trans mm RMS | keyframe steps | "
         "step rot RMS per axis mdeg | step rot mean per axis mdeg | step trans mean mm |"

@@ -131,6 +131,8 @@ def main() -> None:
     args = parser.parse_args()
     if not args.sequence.is_dir():
         parser.error(f"no sequence at {args.sequence}")
+    if args.limit is not None and args.limit < 2:
+        parser.error("--limit must be at least 2 frames")
     run(args.sequence, args.limit)
 
 

@@ -108,12 +108,5 @@ def test_one_rotation_in_plain_floats_equals_the_array_route_bit_for_bit() -> No
 
 
 def _angle_array_route(matrix: np.ndarray) -> float:
-    """``rotation_angle_deg``'s array formula, as it is for stacks of matrices."""
-    xyzw = g._unit_xyzw(matrix)
-    vector = xyzw[..., :3]
-    angle = 2.0 * np.arctan2(np.linalg.norm(vector, axis=-1), np.abs(xyzw[..., 3]))
-    small = angle <= 1e-3
-    squared = angle**2
-    series = 2 + squared / 12 + 7 * squared**2 / 2880
-    scale = np.where(small, series, angle / (np.sin(angle / 2.0) + small))
-    return float(np.degrees(np.linalg.norm(scale[..., None] * vector, axis=-1)))
+    """``rotation_angle_deg`` of a stack of one matrix: the array formula it uses for stacks."""
+    return float(g.rotation_angle_deg(matrix[None])[0])

@@ -162,11 +162,14 @@ class PoseEstimation:
         registration = self.config.registration
         inliers = estimate.result.inliers
         current_cov, reference_cov = estimate.point_covariances
-        refined = refine_pose_mahalanobis(
+        pairs = (
             correspondences.current_points[inliers],
             correspondences.reference_points[inliers],
             current_cov[inliers],
             reference_cov[inliers],
+        )
+        refined = refine_pose_mahalanobis(
+            *pairs,
             estimate.reference_from_current[:3, :3],
             estimate.reference_from_current[:3, 3],
             iterations=registration.refine_iterations,
@@ -184,24 +187,25 @@ class PoseEstimation:
                 estimate.reported_covariance = robust
             frontend = self.config.frontend
             if frontend.fuse_previous_frame or frontend.fuse_previous_keyframe:
-                self._sensitivities(estimate, correspondences, refined)
+                self._sensitivities(estimate, correspondences, pairs, refined)
         return estimate
 
     def _sensitivities(
-        self, estimate: Estimate, correspondences: Correspondences, refined: RefinementResult
+        self,
+        estimate: Estimate,
+        correspondences: Correspondences,
+        pairs: tuple[np.ndarray, ...],
+        refined: RefinementResult,
     ) -> None:
-        """How the refined pose moves with the current and the reference inlier points,
-        scaled like its covariance (estimator/odometry/chains.py weighs the chains sharing
-        them by it)."""
-        assert estimate.result is not None and estimate.point_covariances is not None
+        """How the refined pose moves with the current and the reference inlier points
+        (``pairs``: the refinement's inlier points and covariances), scaled like its covariance
+        (estimator/odometry/chains.py weighs the chains sharing them by it)."""
+        assert estimate.result is not None
         registration = self.config.registration
         inliers = estimate.result.inliers
-        current_cov, reference_cov = estimate.point_covariances
+        current_cov, reference_cov = pairs[2], pairs[3]  # already the inliers'
         gains = point_sensitivities(
-            correspondences.current_points[inliers],
-            correspondences.reference_points[inliers],
-            current_cov[inliers],
-            reference_cov[inliers],
+            *pairs,
             refined.rotation,
             refined.translation,
             robust=registration.refine_robust,
@@ -211,8 +215,8 @@ class PoseEstimation:
             return
         scale = np.sqrt(refined.variance_factor)
         estimate.sensitivity = PointSensitivity(
-            correspondences.current_index[inliers], gains[0] * scale, current_cov[inliers]
+            correspondences.current_index[inliers], gains[0] * scale, current_cov
         )
         estimate.reference_sensitivity = PointSensitivity(
-            correspondences.reference_index[inliers], gains[1] * scale, reference_cov[inliers]
+            correspondences.reference_index[inliers], gains[1] * scale, reference_cov
         )
