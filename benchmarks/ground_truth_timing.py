@@ -5,8 +5,9 @@ own timestamps, docs/datasets-and-evaluation.md). From the stored odometry runs 
 vision alone and fused, four estimators) and the clip's IMU and ground truth
 (``estimator.evaluation.ground_truth_checks``):
 
-* clocks: the ground truth's body rate against the gyro, and, without any ground truth,
-  vision's frame-to-frame rotations against the gyro over the same intervals (vision runs);
+* clocks: the ground truth's body rate against the gyro; its positions' second difference
+  against the accelerometer (no camera); and, without any ground truth, vision's
+  frame-to-frame rotations against the gyro over the same intervals (vision runs);
 * per run: the ATE at 0 (= the headline), with the ground-truth positions read later or
   earlier (best shift), with a lever arm of the camera in the body frame fitted, with both;
 * per run, held out: each correction fitted on one half of the frames and applied to the
@@ -42,6 +43,9 @@ ESTIMATORS = ("pso-robust", "msac", "pso", "svd")
 MODES = ("vision", "fused")
 CLOCK_SHIFTS_MS = np.arange(-10, 11)  # 1 ms steps: the clocks agree to well under that
 ATE_SHIFTS_MS = np.arange(-10, 31)  # the positions' best shift is several ms late
+# Multiples of the ground truth's 5 ms rows (reading between rows smooths its noise).
+ACCELEROMETER_SHIFTS_MS = np.arange(-30, 31, 5)
+ACCELEROMETER_HALF_WINDOW_S = 0.1
 
 
 def run_name(estimator: str, mode: str) -> str:
@@ -86,6 +90,15 @@ def gyro_check(sequence: Sequence) -> dict[str, Any]:
         sequence.imu, sequence.ground_truth, _seconds(CLOCK_SHIFTS_MS)
     )
     return {"unit": "rad/s", **_scan(scan, 1.0)}
+
+
+def accelerometer_check(sequence: Sequence) -> dict[str, Any]:
+    """The ground-truth positions' acceleration against the accelerometer (m/s^2 RMS)."""
+    scan = checks.accelerometer_ground_truth_offset(
+        sequence.imu, sequence.ground_truth, _seconds(ACCELEROMETER_SHIFTS_MS),
+        ACCELEROMETER_HALF_WINDOW_S,
+    )  # fmt: skip
+    return {"unit": "m/s^2", "half_window_s": ACCELEROMETER_HALF_WINDOW_S, **_scan(scan, 1.0)}
 
 
 def camera_check(sequence: Sequence, folder: Path) -> dict[str, Any]:
@@ -145,8 +158,10 @@ def compute(results: Path, data: Path) -> dict[str, Any]:
         "convention": "shift s: the other series (ground truth; gyro in camera_vs_gyro) read "
         "at t + s; a minimum at s > 0 means its stamps run s late",
         "clock_shifts_ms": CLOCK_SHIFTS_MS.tolist(),
+        "accelerometer_shifts_ms": ACCELEROMETER_SHIFTS_MS.tolist(),
         "ate_shifts_ms": ATE_SHIFTS_MS.tolist(),
         "gyro_vs_ground_truth": gyro_check(sequence),
+        "accelerometer_vs_ground_truth": accelerometer_check(sequence),
         "camera_vs_gyro": {
             name: camera_check(sequence, path)
             for name, path in present.items()
@@ -158,7 +173,7 @@ def compute(results: Path, data: Path) -> dict[str, Any]:
 
 def markdown(result: dict[str, Any]) -> str:
     """The tables of ground_truth.md."""
-    gyro = result["gyro_vs_ground_truth"]
+    gyro, accel = result["gyro_vs_ground_truth"], result["accelerometer_vs_ground_truth"]
     lines = [
         f"# Ground-truth timing and lever arm: {result['sequence']} (diagnostic)",
         "",
@@ -169,6 +184,9 @@ def markdown(result: dict[str, Any]) -> str:
         "|---|---|---|---|",
         f"| gyro vs ground-truth body rate | {gyro['best_shift_ms']:+.2f} ms | "
         f"{gyro['at_best']:.5f} rad/s | {gyro['at_0']:.5f} rad/s |",
+        f"| ground-truth positions (2nd difference, +-{accel['half_window_s'] * 1e3:.0f} ms) vs "
+        f"accelerometer (no camera) | {accel['best_shift_ms']:+.2f} ms | "
+        f"{accel['at_best']:.4f} m/s^2 | {accel['at_0']:.4f} m/s^2 |",
     ]
     for name, check in result["camera_vs_gyro"].items():
         lines.append(

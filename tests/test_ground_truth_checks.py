@@ -51,27 +51,42 @@ def _position(t: np.ndarray) -> np.ndarray:
     )
 
 
+def _acceleration(t: np.ndarray) -> np.ndarray:
+    """The second derivative of ``_position``."""
+    w1, w2, w3 = 2 * np.pi * 0.2, 2 * np.pi * 0.3, np.pi
+    return np.stack(
+        [-(w1**2) * np.sin(w1 * t), -0.5 * w2**2 * np.cos(w2 * t), -0.2 * w3**2 * np.sin(w3 * t)],
+        axis=-1,
+    )
+
+
 def _body_rate(t: np.ndarray) -> np.ndarray:
     """Body-frame angular rate (rad/s) by a fine central difference of the orientation."""
     step = 1e-5
     return (_orientation(t - step).inv() * _orientation(t + step)).as_rotvec() / (2 * step)
 
 
-def _ground_truth(late_s: float) -> GroundTruth:
-    """200 Hz body poses over [-0.5, 8.5] s whose stamps run ``late_s`` late."""
+def _ground_truth(late_s: float, rotation_late_s: float | None = None) -> GroundTruth:
+    """200 Hz body poses over [-0.5, 8.5] s whose stamps run ``late_s`` late (the rotations
+    ``rotation_late_s`` late when given)."""
     stamps = np.arange(-100, 1701) * 5_000_000
     t = stamps * 1e-9 - late_s
+    rotation_t = t if rotation_late_s is None else stamps * 1e-9 - rotation_late_s
     poses = np.tile(np.eye(4), (len(stamps), 1, 1))
-    poses[:, :3, :3] = _orientation(t).as_matrix()
+    poses[:, :3, :3] = _orientation(rotation_t).as_matrix()
     poses[:, :3, 3] = _position(t)
     return GroundTruth(stamps, poses)
 
 
 def _imu(rng: np.random.Generator, bias: np.ndarray) -> ImuBatch:
-    """200 Hz gyro on the true clock (half a sample off the ground-truth rows), biased, noisy."""
+    """200 Hz IMU on the true clock (half a sample off the ground-truth rows): gyro biased
+    by ``bias``, accelerometer by a fixed bias, both noisy."""
     stamps = np.arange(-90, 1690) * 5_000_000 + 2_500_000
-    gyro = _body_rate(stamps * 1e-9) + bias + rng.normal(0.0, 0.002, (len(stamps), 3))
-    return ImuBatch(stamps, gyro, np.zeros((len(stamps), 3)))
+    t = stamps * 1e-9
+    gyro = _body_rate(t) + bias + rng.normal(0.0, 0.002, (len(stamps), 3))
+    force = _orientation(t).inv().apply(_acceleration(t) + np.array([0.0, 0.0, 9.81]))
+    accel = force + np.array([0.05, -0.1, 0.2]) + rng.normal(0.0, 0.02, (len(stamps), 3))
+    return ImuBatch(stamps, gyro, accel)
 
 
 def _camera_run(
@@ -117,6 +132,17 @@ def test_gyro_against_ground_truth_finds_its_clock_offset(late_ms: float) -> Non
     assert not scan.at_edge
     assert scan.best_shift_s == pytest.approx(late_ms * 1e-3, abs=0.3e-3)
     assert scan.best_value < scan.value_at(late_ms * 1e-3 + 3e-3)
+
+
+@pytest.mark.parametrize("late_ms", [0.0, 7.0])
+def test_accelerometer_against_ground_truth_positions_finds_their_clock(late_ms: float) -> None:
+    rng = np.random.default_rng(7)
+    truth = _ground_truth(late_ms * 1e-3, rotation_late_s=0.0)  # as the real one
+    shifts = np.arange(-20, 21, 5) * 1e-3
+    scan = checks.accelerometer_ground_truth_offset(_imu(rng, np.zeros(3)), truth, shifts)
+    assert not scan.at_edge
+    assert scan.best_shift_s == pytest.approx(late_ms * 1e-3, abs=1.5e-3)
+    assert scan.best_value < 0.5 * scan.value_at(late_ms * 1e-3 + 10e-3)
 
 
 @pytest.mark.parametrize("late_ms", [0.0, 4.0])
@@ -209,10 +235,12 @@ def test_stored_diagnostic_matches_a_fresh_computation(mh01) -> None:
     folder = ground_truth_timing.DEFAULT_RESULTS / name
     fresh = {
         "gyro_vs_ground_truth": ground_truth_timing.gyro_check(mh01),
+        "accelerometer_vs_ground_truth": ground_truth_timing.accelerometer_check(mh01),
         "camera_vs_gyro": {name: ground_truth_timing.camera_check(mh01, folder)},
         "runs": {name: ground_truth_timing.run_check(mh01, folder)},
     }
-    _assert_close(stored["gyro_vs_ground_truth"], fresh["gyro_vs_ground_truth"])
+    for check in ("gyro_vs_ground_truth", "accelerometer_vs_ground_truth"):
+        _assert_close(stored[check], fresh[check])
     _assert_close(stored["camera_vs_gyro"][name], fresh["camera_vs_gyro"][name])
     run = fresh["runs"][name]
     _assert_close(stored["runs"][name], run)

@@ -45,6 +45,7 @@ __all__ = [
     "CorrectionKind",
     "HeldOutCheck",
     "ShiftScan",
+    "accelerometer_ground_truth_offset",
     "aligned_ate",
     "ate_versus_shift",
     "camera_gyro_offset",
@@ -252,6 +253,66 @@ def camera_gyro_offset(
         )
         residual = _log(_relative_rotations(gyro, vision))
         values.append(_rms_norm(residual - residual.mean(axis=0)))
+    return parabolic_minimum(np.asarray(shifts_s, dtype=float), np.array(values))
+
+
+def _triangle_smoothed(values: np.ndarray, half_width: int) -> np.ndarray:
+    """values (N, ...) averaged with triangular weights over +-half_width samples: what a
+    second difference over +-half_width samples does to the second derivative."""
+    weights = (half_width - np.abs(np.arange(1 - half_width, half_width))).astype(float)
+    weights /= weights.sum()
+    flat = values.reshape(len(values), -1)
+    smoothed = np.stack([np.convolve(column, weights, "same") for column in flat.T], axis=1)
+    return smoothed.reshape(values.shape)
+
+
+def accelerometer_ground_truth_offset(
+    imu: ImuBatch,
+    ground_truth: GroundTruth,
+    shifts_s: np.ndarray,
+    half_window_s: float = 0.1,
+) -> ShiftScan:
+    """RMS (m/s^2) of the ground-truth positions' second difference (over +-half_window_s,
+    read at ``t + shift``) against the accelerometer turned into the world by the ground
+    truth's orientation at ``t`` and smoothed alike; no camera involved.
+
+    An accelerometer bias (body frame) and a constant world term (gravity, whatever its
+    value) are fitted at every shift. The IMU must be uniformly sampled. Scan shifts that are
+    multiples of the ground truth's row spacing: reading between its rows interpolates, which
+    smooths the positions' noise and lowers the residual for a reason other than timing.
+    """
+    stamps = np.asarray(imu.timestamps_ns, dtype=np.int64)
+    steps = np.diff(stamps)
+    if len(stamps) < 3 or np.ptp(steps) > 0.01 * np.median(steps):
+        raise ValueError("the accelerometer check needs uniformly sampled IMU data")
+    half_width = round(float(half_window_s * 1e9 / np.median(steps)))
+    half_window_ns = int(half_width * np.median(steps))
+    reach = max(abs(_shift_ns(s)) for s in shifts_s) + half_window_ns
+    usable = ground_truth.covers(stamps - reach) & ground_truth.covers(stamps + reach)
+    if usable.sum() < 2 * half_width + 3:
+        raise ValueError("too few IMU samples inside the ground truth for this scan")
+    stamps = stamps[usable]
+    rotations = ground_truth.interpolate(stamps)[:, :3, :3]
+    force = _triangle_smoothed(
+        rotations @ np.asarray(imu.accel, float)[usable][:, :, None], half_width
+    )[..., 0]
+    design = np.concatenate(
+        [_triangle_smoothed(rotations, half_width), np.broadcast_to(np.eye(3), rotations.shape)],
+        axis=2,
+    )
+    inner = slice(half_width, len(stamps) - half_width)  # where the smoothing saw a full window
+    values = []
+    for shift in shifts_s:
+        query = stamps + _shift_ns(shift)
+        position = [
+            ground_truth.interpolate(query + k)[:, :3, 3]
+            for k in (-half_window_ns, 0, half_window_ns)
+        ]
+        second = (position[0] - 2.0 * position[1] + position[2]) / (half_window_ns * 1e-9) ** 2
+        target = (second - force)[inner].reshape(-1)
+        columns = design[inner].reshape(-1, 6)
+        residual = target - columns @ np.linalg.lstsq(columns, target, rcond=None)[0]
+        values.append(_rms_norm(residual.reshape(-1, 3)))
     return parabolic_minimum(np.asarray(shifts_s, dtype=float), np.array(values))
 
 
