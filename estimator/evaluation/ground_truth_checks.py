@@ -8,11 +8,13 @@ these checks ask what that comparison takes for granted:
   gyro, over a scan of time shifts);
 * whether the camera's stamps run on the IMU's clock, without any ground truth (vision's
   frame-to-frame rotations against the gyro integrated over the same intervals, shifted);
+* whether the ground truth's positions run on the IMU's clock, without any camera (their
+  second difference against the accelerometer);
 * how much of an estimate's ATE goes away when the ground-truth positions are read a little
   later or earlier, when the camera sits at a slightly different place in the ground truth's
   body frame (a lever arm), or both. Any free parameter fitted to one run lowers its ATE
-  somewhat; the same shift and lever arm coming out of runs of different estimators is what
-  says it belongs to the reference.
+  somewhat; whether a correction fitted on one half of a run also lowers the other half's
+  (``held_out_check``) is what says it belongs to the reference.
 
 Sign convention, everywhere: a shift ``s`` reads the *other* series (the ground truth, or the
 gyro in the camera check) at ``t + s`` for a sample stamped ``t``; a minimum at ``s > 0`` says
