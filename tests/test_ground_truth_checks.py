@@ -211,6 +211,18 @@ def test_bad_inputs_are_clear_errors() -> None:
         )
 
 
+def test_script_rejects_a_bad_path_with_one_line(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    for flag, message in (("--results", "no run folders at"), ("--data", "no EuRoC clip at")):
+        argv = ["ground_truth_timing.py", flag, str(tmp_path / "missing")]
+        monkeypatch.setattr(sys, "argv", argv)
+        with pytest.raises(SystemExit) as stop:
+            ground_truth_timing.main()
+        assert stop.value.code == 2
+        assert f"error: {message} {tmp_path / 'missing'}" in capsys.readouterr().err
+
+
 # ----------------------------------------------------------------------------- real data
 
 
