@@ -109,9 +109,10 @@ def decode_image(data: bytes | memoryview, name: str, limits: ImageLimits) -> np
             f"{limits.max_pixels}",
             status_code=413,
         )
-    import cv2  # here: the server process validates headers only, its workers decode
+    # here: the server process validates headers only, its workers decode
+    from estimator.formats.png import decode_image as decode_pixels
 
-    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    image = decode_pixels(data)
     if image is None:
         raise ImageError(f"{name}: the image data could not be decoded (corrupt file)")
     if image.shape[1] != width or image.shape[0] != height:

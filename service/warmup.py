@@ -46,6 +46,7 @@ def warm_up() -> WarmUp:
     from service.estimator_adapter import (
         EstimatorFactory,
         detector_kernels,
+        image_decoder_kernels,
         registration_kernels,
         synthetic_run,
     )
@@ -54,6 +55,7 @@ def warm_up() -> WarmUp:
     synthetic_run(EstimatorFactory())
     registration_kernels()
     detector_kernels()
+    image_decoder_kernels()
     seconds = time.perf_counter() - start
     counts = cached_kernels().values()
     return WarmUp(seconds, sum(m for m, _h in counts), sum(h for _m, h in counts))

@@ -15,11 +15,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-import cv2
 import numpy as np
 
 from estimator.formats.calibration import StereoRig
 from estimator.formats.calibration_files import load_euroc_rig, load_kitti_rig, read_opencv_yaml
+from estimator.formats.png import decode_image
 from estimator.types import ImuBatch, ImuNoise, StereoFrame
 
 __all__ = [
@@ -167,7 +167,10 @@ class UnreadableImageError(ValueError):
 
 
 def _read_image(path: Path) -> np.ndarray:
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        image = decode_image(path.read_bytes())
+    except OSError:
+        image = None
     if image is None:
         raise UnreadableImageError(f"cannot read image {path} (missing or not an image)")
     return image

@@ -22,12 +22,12 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 from rosbags.highlevel import AnyReader, AnyReaderError
 
 from estimator.formats.bag_calibration import BagCalibration
 from estimator.formats.datasets import FrameRecord, Sequence, UnreadableImageError
+from estimator.formats.png import decode_image as decode_compressed
 from estimator.formats.stereo_sync import pair_stamps
 from estimator.types import ImuBatch, StereoFrame
 
@@ -76,8 +76,8 @@ def decode_image(message: object, msgtype: str, topic: str) -> np.ndarray:
     decoded is an ``UnreadableImageError`` (the run skips that frame, as for a broken file).
     """
     if msgtype == COMPRESSED_TYPE:
-        data = np.frombuffer(bytes(message.data), dtype=np.uint8)  # type: ignore[attr-defined]
-        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if len(data) else None
+        data = bytes(message.data)  # type: ignore[attr-defined]
+        image = decode_compressed(data) if data else None
         if image is None:
             fmt = message.format  # type: ignore[attr-defined]
             raise UnreadableImageError(f"{topic}: cannot decode a compressed image ({fmt!r})")
