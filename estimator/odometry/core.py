@@ -11,11 +11,16 @@ from estimator.formats.calibration import StereoRig
 from estimator.frontend.features import FeatureDetector
 from estimator.frontend.photometric import normalise_contrast
 from estimator.frontend.stereo import StereoMatcher, StereoPoints
-from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel
+from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel, flow
 from estimator.frontend.temporal import PredictionUncertainty
 from estimator.frontend.tracks import Tracker
 from estimator.geometry import invert_pose, nearest_rigid
-from estimator.odometry.chains import Measured, combine_chain, inverse_covariance
+from estimator.odometry.chains import (
+    Measured,
+    combine_chain,
+    inverse_covariance,
+    link_bias_covariance,
+)
 from estimator.odometry.estimation import PoseEstimation
 from estimator.odometry.frames import (
     Estimate,
@@ -364,19 +369,33 @@ class Odometry:
         step = chained.reference_from_current
         if step is None or chained.covariance is None:
             return estimate, False
+        step_covariance = chained.covariance + self._link_bias(chained)
         fused = combine_chain(
             Measured(
                 measured, estimate.covariance, estimate.sensitivity,
                 estimate.reference_sensitivity,
             ),
             link,
-            Measured(step, chained.covariance, chained.sensitivity, chained.reference_sensitivity),
+            Measured(step, step_covariance, chained.sensitivity, chained.reference_sensitivity),
         )  # fmt: skip
         if fused is not None:
             estimate.reference_from_current, estimate.covariance = fused.pose, fused.covariance
             estimate.sensitivity, estimate.reference_sensitivity = fused.current, fused.reference
             estimate.reported_covariance = None  # the combination's is the one to report
         return estimate, True
+
+    def _link_bias(self, chained: Estimate) -> np.ndarray:
+        """Covariance of the chain link's rotation error that does not average out, from its
+        inliers' image motion (``frontend.chain_link_rotation_bias``, chains.py)."""
+        rate = self.config.frontend.chain_link_rotation_bias
+        if rate == 0.0 or chained.pairs is None or chained.result is None:
+            return np.zeros((6, 6))
+        inliers = chained.result.inliers
+        pairs = chained.pairs
+        moved = flow(
+            pairs.current_points[inliers], pairs.reference_points[inliers], self.rectification
+        )
+        return link_bias_covariance(rate, moved, self.rectification.fx)
 
     def _estimate_against(
         self,
