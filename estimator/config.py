@@ -172,10 +172,18 @@ class FrontendConfig(_Section):
     keyframe_max_parallax: float | None = Field(None, gt=0)
     # Also measure each frame against the previous one and combine that chain with the
     # keyframe measurement by their covariances and the cross-covariance of the points they
-    # share (estimator/odometry/chains.py). Off: on MH_01 vision alone 0.0167 instead of 0.0211
-    # deg per frame at the same 4.7 mm, but fused with the IMU 4.4 instead of 3.9 mm, the
-    # noisy rendered loop's front-end ATE 14 % worse, and one more registration per frame.
-    fuse_previous_frame: bool = False
+    # share (estimator/odometry/chains.py). None: on when the back end fuses no IMU (vision
+    # alone), off with the IMU. Vision alone on MH_01 it gives 0.0173 instead of 0.0211 deg
+    # per frame at 4.7 mm (with the link bias below); fused with the IMU it made MH_01 worse
+    # (4.4 instead of 3.9 mm). One more registration per frame.
+    fuse_previous_frame: bool | None = None
+    # Rotation error of the chain's frame-to-frame link that does not average out (motion
+    # blur moves consecutive frames' points alike), per unit of the link's image motion
+    # (median flow / focal length): sigma = this x flow / f per axis is added to the link's
+    # rotation covariance. 0.005: MH_01's links err beyond their covariance by 0.0047 x their
+    # motion (keyframe measurements 0.0050); it brings the noisy rendered loop's front end
+    # with the chain from +14 % to +8 % of the keyframe-only ATE (docs/frontend.md).
+    chain_link_rotation_bias: float = Field(0.005, ge=0)
     # ... and against the keyframe before the current one while it is still in view (off: on
     # MH_01 vision alone 4.5 mm instead of 4.6, but the rendered loop's ATE 5 % worse).
     fuse_previous_keyframe: bool = False

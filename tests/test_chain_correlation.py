@@ -14,6 +14,7 @@ from estimator.odometry.chains import (
     fuse_correlated,
     fuse_poses,
     fused_sensitivity,
+    link_bias_covariance,
     pose_difference,
     shared_covariance,
 )
@@ -236,3 +237,47 @@ def test_chain_through_the_previous_frame_counts_every_shared_point() -> None:
     # Counted as independent, the shared points make the naive covariance too small
     # (measured: 0.74-0.90 of the sampled variance).
     assert (np.diag(naive[1]) < 0.8 * np.diag(sampled["naive"])).any()
+
+
+def test_link_bias_grows_with_the_links_image_motion() -> None:
+    covariance = link_bias_covariance(0.005, np.array([1.0, 3.0, 100.0]), 400.0)
+    sigma = 0.005 * 3.0 / 400.0  # the median flow over the focal length
+    np.testing.assert_allclose(covariance[:3, :3], np.eye(3) * sigma**2)
+    assert not covariance[3:].any() and not covariance[:, 3:].any()
+    assert not link_bias_covariance(0.0, np.array([5.0]), 400.0).any()
+    assert not link_bias_covariance(0.005, np.array([]), 400.0).any()
+
+
+def test_a_biased_link_weighed_with_its_bias_pulls_the_combination_less() -> None:
+    """The step previous -> current carries a rotation bias (the same in every sample, as
+    blur gives consecutive frames): counted in the step's covariance, the combination leans
+    on the keyframe measurement and its error is smaller, bias and spread together."""
+    rng = np.random.default_rng(5)
+    world = _points(rng, 90)
+    poses = [np.eye(4), _pose([0.01, -0.03, 0.0], [0.05, 0.0, 0.02])]
+    poses.append(_pose([0.02, -0.06, 0.01], [0.1, 0.01, 0.04]))
+    views = [(world - pose[:3, 3]) @ pose[:3, :3] for pose in poses]
+    covariances = [_stereo_covariances(view, 2e-3, 2e-3) for view in views]
+    factors = [np.linalg.cholesky(covariance) for covariance in covariances]
+    bias = _pose([1.5e-3, 0.0, 0.0], [0.0, 0.0, 0.0])  # about x, as on the noisy loop
+    motion = 0.03  # the step's image motion over the focal length
+    extra = link_bias_covariance(1.5e-3 / motion, np.array([motion]), 1.0)
+    errors: dict[str, list[np.ndarray]] = {"plain": [], "bias counted": []}
+    for _ in range(150):
+        frames = [
+            view + np.einsum("nij,nj->ni", factor, rng.normal(size=view.shape))
+            for view, factor in zip(views, factors, strict=True)
+        ]
+        link = _measured(frames, covariances, 1, 0, poses[1], np.arange(0, 60))
+        between = np.linalg.inv(poses[1]) @ poses[2]
+        step = _measured(frames, covariances, 2, 1, between, np.arange(15, 80))
+        step.pose = step.pose @ bias
+        measured = _measured(frames, covariances, 2, 0, poses[2], np.arange(30, 90))
+        for name, added in (("plain", np.zeros((6, 6))), ("bias counted", extra)):
+            biased = Measured(step.pose, step.covariance + added, step.current, step.reference)
+            fused = combine_chain(measured, link, biased)
+            assert fused is not None
+            errors[name].append(pose_difference(poses[2], fused.pose)[:3])
+    plain, counted = np.array(errors["plain"]), np.array(errors["bias counted"])
+    assert abs(counted[:, 0].mean()) < 0.8 * abs(plain[:, 0].mean())
+    assert np.mean(counted**2) < np.mean(plain**2)

@@ -27,7 +27,7 @@ from estimator.odometry import Odometry, frame_seed, to_grey8
 from estimator.rendered.camera import CAMERA, T_BS_CAM0
 from estimator.rendered.trajectory import loop_for_length
 from estimator.rendered.world import build_world
-from estimator.types import FrameStatus, StereoFrame
+from estimator.types import FrameStatus, ImuNoise, StereoFrame
 
 FRAME_NS = 50_000_000  # 20 Hz
 
@@ -406,6 +406,29 @@ def test_coasting_scales_with_the_time_between_frames() -> None:
     assert coasted.status == FrameStatus.DEGRADED
     expected = scale_motion(reports[5].relative_pose, 3.0)
     np.testing.assert_allclose(coasted.relative_pose, expected, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("configured", "backend", "imu", "expected"),
+    [
+        (None, {"enabled": False}, False, True),  # front end alone: vision alone
+        (None, {}, False, True),  # back end without IMU samples (--no-imu)
+        (None, {"use_imu": False}, True, True),  # back end told to leave the IMU out
+        (None, {}, True, False),  # fused with the IMU
+        (True, {}, True, True),  # a configured value wins
+        (False, {"enabled": False}, False, False),
+    ],
+)
+def test_the_chain_through_the_previous_frame_is_on_by_default_only_without_the_imu(
+    configured: bool | None, backend: dict, imu: bool, expected: bool
+) -> None:
+    """Fused with the IMU the chain cost MH_01 ATE (docs/frontend.md); vision alone it lowers
+    the rotation error per frame, so unset it follows whether an IMU is fused."""
+    frontend = {} if configured is None else {"fuse_previous_frame": configured}
+    config = _config(backend=backend, frontend=frontend)
+    odometry = Odometry(_rendered_rig(), config, imu_noise=ImuNoise() if imu else None)
+    assert odometry.fuses_previous_frame is expected
+    assert config.frontend.fuse_previous_frame is configured  # the caller's config untouched
 
 
 @pytest.mark.slow

@@ -43,6 +43,7 @@ __all__ = [
     "fuse_poses",
     "fused_sensitivity",
     "inverse_covariance",
+    "link_bias_covariance",
     "pose_difference",
     "shared_covariance",
     "transported",
@@ -82,6 +83,23 @@ def chain_covariance(
     passes through unchanged.
     """
     return transport_covariance(first_covariance, second) + second_covariance
+
+
+def link_bias_covariance(rate: float, flow_px: np.ndarray, focal_px: float) -> np.ndarray:
+    """6x6 covariance of the rotation error of one frame-to-frame link that its registration
+    covariance leaves out: sigma = ``rate`` x median image motion / focal length per axis.
+
+    The registration's covariance counts only the points' random noise, so chaining links
+    treats their errors as averaging out; an error that grows with the image motion (motion
+    blur moves the points of consecutive frames alike) does not, and without this term the
+    chain gets too much weight where the camera moves fast.
+    """
+    covariance = np.zeros((6, 6))
+    if rate == 0.0 or len(flow_px) == 0:
+        return covariance
+    sigma = rate * float(np.median(flow_px)) / focal_px
+    covariance[:3, :3] = np.eye(3) * sigma**2
+    return covariance
 
 
 def inverse_covariance(pose: np.ndarray, covariance: np.ndarray) -> np.ndarray:

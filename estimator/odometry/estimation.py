@@ -25,11 +25,17 @@ class PoseEstimation:
     """Relative poses of frames against references, weighed by the measured stereo noise."""
 
     def __init__(
-        self, config: SwarmvoConfig, rectification: Rectification, noise: StereoNoiseModel
+        self,
+        config: SwarmvoConfig,
+        rectification: Rectification,
+        noise: StereoNoiseModel,
+        sensitivities: bool = False,
     ) -> None:
         self.config = config
         self.rectification = rectification
         self.noise = noise
+        # The points' sensitivities, which only the chain combinations use (chains.py).
+        self.sensitivities = sensitivities
 
     def against(
         self,
@@ -185,8 +191,7 @@ class PoseEstimation:
                 estimate.covariance = robust
             elif robust is not None and registration.refine_covariance == "sandwich-reported":
                 estimate.reported_covariance = robust
-            frontend = self.config.frontend
-            if frontend.fuse_previous_frame or frontend.fuse_previous_keyframe:
+            if self.sensitivities:
                 self._sensitivities(estimate, correspondences, pairs, refined)
         return estimate
 
