@@ -181,7 +181,7 @@ class FrontendConfig(_Section):
     # blur moves consecutive frames' points alike), per unit of the link's image motion
     # (median flow / focal length): sigma = this x flow / f per axis is added to the link's
     # rotation covariance. 0.005: MH_01's links err beyond their covariance by 0.0047 x their
-    # motion (keyframe measurements 0.0050); it brings the noisy rendered loop's front end
+    # motion (keyframe measurements 0.0049); it brings the noisy rendered loop's front end
     # with the chain from +14 % to +8 % of the keyframe-only ATE (docs/frontend.md).
     chain_link_rotation_bias: float = Field(0.005, ge=0)
     # ... and against the keyframe before the current one while it is still in view (off: on

@@ -15,6 +15,7 @@ from estimator.config import SwarmvoConfig
 from estimator.evaluation.metrics import camera_ground_truth, eq20_errors, relative_to_first
 from estimator.formats.calibration import StereoRig
 from estimator.formats.datasets import open_sequence
+from estimator.frontend.temporal import Correspondences
 from estimator.geometry import (
     invert_pose,
     make_pose,
@@ -24,6 +25,8 @@ from estimator.geometry import (
     scale_motion,
 )
 from estimator.odometry import Odometry, frame_seed, to_grey8
+from estimator.odometry.frames import Estimate
+from estimator.registration.result import RegistrationResult
 from estimator.rendered.camera import CAMERA, T_BS_CAM0
 from estimator.rendered.trajectory import loop_for_length
 from estimator.rendered.world import build_world
@@ -429,6 +432,28 @@ def test_the_chain_through_the_previous_frame_is_on_by_default_only_without_the_
     odometry = Odometry(_rendered_rig(), config, imu_noise=ImuNoise() if imu else None)
     assert odometry.fuses_previous_frame is expected
     assert config.frontend.fuse_previous_frame is configured  # the caller's config untouched
+
+
+def test_the_chain_links_bias_is_its_rate_times_the_inliers_image_motion() -> None:
+    """``frontend.chain_link_rotation_bias`` x the median flow of the link's inliers over the
+    focal length, per rotation axis; an outlier's motion does not count."""
+    config = _config(backend={"enabled": False}, frontend={"chain_link_rotation_bias": 0.01})
+    odometry = Odometry(_rendered_rig(), config)
+    focal = odometry.rectification.fx
+    depth = 4.0
+    shifts = np.array([0.01, 0.02, 0.03, 2.0])  # metres sideways at 4 m; the last an outlier
+    current = np.column_stack([np.linspace(-1, 1, 4), np.zeros(4), np.full(4, depth)])
+    reference = current + np.column_stack([shifts, np.zeros(4), np.zeros(4)])
+    index = np.arange(4)
+    pairs = Correspondences(index, index, reference, current)
+    inliers = np.array([True, True, True, False])
+    result = RegistrationResult(np.eye(3), np.zeros(3), np.array([1.0, 0, 0, 0]), inliers, 3,
+                                0.0, 1, 0.0, True)  # fmt: skip
+    estimate = Estimate(np.eye(4), result, "", pairs)
+    covariance = odometry._link_bias(estimate)
+    sigma = 0.01 * (focal * 0.02 / depth) / focal  # median inlier flow 0.02 m at 4 m, in px
+    np.testing.assert_allclose(np.diag(covariance)[:3], sigma**2, rtol=1e-9)
+    assert not np.diag(covariance)[3:].any()
 
 
 @pytest.mark.slow

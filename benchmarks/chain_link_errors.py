@@ -1,0 +1,131 @@
+"""Rotation errors of the previous-frame chain's links against their covariance, by image motion.
+
+Runs the sequence vision alone (``--imu``: with the IMU fused, as the rendered bench does) with
+``frontend.fuse_previous_frame`` on and records, for every frame, the keyframe measurement and
+the frame-to-frame link before they are combined: their rotation error against the ground truth,
+the rotation variance their covariance claims and their image motion (median flow of the
+inliers over the focal length). The excess of the squared error over the claimed variance,
+fitted as (rate x motion)^2 per axis, is what ``frontend.chain_link_rotation_bias`` models.
+Where the ground truth has its own noise (EuRoC) the fit is an upper bound.
+
+    OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/chain_link_errors.py DATASET [--imu]
+
+Prints a markdown table (nothing is written). It wraps two internal steps of ``Odometry`` to
+see the measurements before they are combined.
+"""
+
+from __future__ import annotations
+
+import argparse
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from estimator.evaluation.metrics import camera_ground_truth
+from estimator.formats.datasets import open_sequence
+from estimator.frontend.stereo_noise import flow
+from estimator.odometry import core
+from estimator.odometry.chains import pose_difference
+from estimator.odometry.frames import Estimate
+from estimator.pipeline import build_config, run_sequence
+
+# (kind, frame index, reference timestamp, T_ref_cur of the left camera, 6x6 covariance, motion)
+Record = tuple[str, int, int, np.ndarray, np.ndarray, float]
+
+
+def _record(odometry: core.Odometry, kind: str, estimate: Estimate, out: list[Record]) -> None:
+    if estimate.reference_from_current is None or estimate.covariance is None:
+        return
+    assert estimate.pairs is not None and estimate.result is not None
+    assert estimate.reference is not None
+    inliers = estimate.result.inliers
+    moved = flow(
+        estimate.pairs.current_points[inliers],
+        estimate.pairs.reference_points[inliers],
+        odometry.rectification,
+    )
+    motion = float(np.median(moved)) / odometry.rectification.fx if len(moved) else np.nan
+    pose = odometry._frames.in_camera(estimate.reference_from_current)
+    reference_ns = int(estimate.reference.timestamp_ns)
+    out.append((kind, odometry._index, reference_ns, pose, estimate.covariance.copy(), motion))
+
+
+@contextmanager
+def _recording() -> Iterator[list[Record]]:
+    """Every keyframe measurement and chain link of the runs inside, before combination."""
+    records: list[Record] = []
+    link_bias, with_others = core.Odometry._link_bias, core.Odometry._with_other_references
+
+    def recorded_link(self, chained):
+        _record(self, "link", chained, records)
+        return link_bias(self, chained)
+
+    def recorded_keyframe(self, estimate, *args):
+        _record(self, "keyframe", estimate, records)
+        return with_others(self, estimate, *args)
+
+    core.Odometry._link_bias = recorded_link
+    core.Odometry._with_other_references = recorded_keyframe
+    try:
+        yield records
+    finally:
+        core.Odometry._link_bias = link_bias
+        core.Odometry._with_other_references = with_others
+
+
+def _rows(kind: str, errors: np.ndarray, claimed: np.ndarray, motion: np.ndarray) -> list[str]:
+    """Per motion tercile and overall: error and claimed RMS (mdeg, norm over three axes) and
+    the fitted rate (excess variance per axis over motion squared)."""
+    rows = []
+    order = np.argsort(motion)
+    for label, part in [*(("tercile", p) for p in np.array_split(order, 3)), ("all", order)]:
+        excess = (errors[part] - claimed[part]).sum() / 3.0
+        rate = np.sign(excess) * np.sqrt(abs(excess) / (motion[part] ** 2).sum())
+        rows.append(
+            f"| {kind} | {label} {motion[part].min():.4f}-{motion[part].max():.4f} | "
+            f"{len(part)} | {np.degrees(np.sqrt(errors[part].mean())) * 1e3:.1f} | "
+            f"{np.degrees(np.sqrt(claimed[part].mean())) * 1e3:.1f} | {rate:.4f} |"
+        )
+    return rows
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("dataset", type=Path)
+    parser.add_argument("--imu", action="store_true", help="fuse the IMU (the rendered bench)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            sequence = open_sequence(args.dataset)
+        except (OSError, ValueError) as error:
+            parser.error(f"cannot read {args.dataset}: {error}")
+    if sequence.ground_truth is None:
+        parser.error(f"{args.dataset} has no ground truth")
+    config = build_config("pso-robust", args.seed, imu=args.imu, backend=True)
+    config.frontend.fuse_previous_frame = True
+    with _recording() as records:
+        run = run_sequence(sequence, config, use_imu=args.imu, progress=False)
+    truth = camera_ground_truth(sequence.ground_truth, run.timestamps_ns, sequence.rig.left.T_BS)
+    position = {int(stamp): n for n, stamp in enumerate(run.timestamps_ns)}
+    frame = {report.index: n for n, report in enumerate(run.reports)}
+    print("| measurement | motion (flow / f) | count | rot error mdeg RMS | claimed | rate |")
+    print("|---|---|---|---|---|---|")
+    for kind in ("link", "keyframe"):
+        chosen = [r for r in records if r[0] == kind]
+        errors, claimed, motion = (np.zeros(len(chosen)) for _ in range(3))
+        for n, (_, index, reference_ns, pose, covariance, moved) in enumerate(chosen):
+            current, reference = truth[frame[index]], truth[position[reference_ns]]
+            xi = pose_difference(np.linalg.inv(reference) @ current, pose)
+            errors[n], claimed[n], motion[n] = xi[:3] @ xi[:3], np.trace(covariance[:3, :3]), moved
+        for row in _rows(kind, errors, claimed, motion):
+            print(row)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
