@@ -456,6 +456,42 @@ def test_the_chain_links_bias_is_its_rate_times_the_inliers_image_motion() -> No
     assert not np.diag(covariance)[3:].any()
 
 
+def test_the_combined_measurement_counts_the_common_error_once_and_the_link_not_at_all(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Vision alone, a frame's combined measurement carries, on top of the combination's
+    covariance, the keyframe measurement's motion-proportional error (shared by both estimates
+    through the current frame's blur, so not averaged out); the next frame's chain link takes
+    the combination's covariance without it, since that link adds its own."""
+    frames, _ = _rendered_flight()
+    odometry = Odometry(_rendered_rig(), _config(backend={"enabled": False}))
+    assert odometry.fuses_previous_frame
+    original = Odometry._combined
+    combined: list[tuple[np.ndarray, object]] = []
+
+    def recording(self, estimate, *args, **kwargs):
+        common = self._link_bias(estimate)  # from the keyframe measurement's own inliers
+        result = original(self, estimate, *args, **kwargs)
+        if estimate.chain_covariance is not None:
+            combined.append((common, estimate))
+        return result
+
+    monkeypatch.setattr(Odometry, "_combined", recording)
+    links_checked = 0
+    for frame in frames:
+        odometry.process(frame)
+        references = odometry._references
+        if combined and combined[-1][1].chain_covariance is not None:
+            last = combined[-1][1]
+            if references.reference is last.reference:  # the keyframe was kept
+                assert references.reference_from_previous_covariance is last.chain_covariance
+                links_checked += 1
+    assert len(combined) >= 5 and links_checked >= 3
+    for common, estimate in combined:
+        assert np.diag(common)[:3].min() > 0
+        np.testing.assert_allclose(estimate.covariance - estimate.chain_covariance, common)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("loss", ["black", "foreign", "dropped"])
 def test_a_lost_frame_does_not_damage_the_frames_after_it(loss: str) -> None:

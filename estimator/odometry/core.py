@@ -379,14 +379,23 @@ class Odometry:
             Measured(step, step_covariance, chained.sensitivity, chained.reference_sensitivity),
         )  # fmt: skip
         if fused is not None:
-            estimate.reference_from_current, estimate.covariance = fused.pose, fused.covariance
+            # The same motion-proportional error that a link carries (``_link_bias``) is in
+            # the keyframe measurement too, and the blur of the current frame behind it errs
+            # both estimates alike: the combination cannot average it out. Its covariance is
+            # counted once on top of the combination's for the report and the back end; the
+            # next frame's link takes the combination's alone (its own bias is added then).
+            common = self._link_bias(estimate)
+            estimate.reference_from_current = fused.pose
+            estimate.chain_covariance = fused.covariance
+            estimate.covariance = fused.covariance + common
             estimate.sensitivity, estimate.reference_sensitivity = fused.current, fused.reference
             estimate.reported_covariance = None  # the combination's is the one to report
         return estimate, True
 
     def _link_bias(self, chained: Estimate) -> np.ndarray:
-        """Covariance of the chain link's rotation error that does not average out, from its
-        inliers' image motion (``frontend.chain_link_rotation_bias``, chains.py)."""
+        """Covariance of a measurement's rotation error that does not average out over its
+        points, from its inliers' image motion (``frontend.chain_link_rotation_bias``,
+        chains.py): for a chain link, and for the keyframe measurement it is combined with."""
         rate = self.config.frontend.chain_link_rotation_bias
         if rate == 0.0 or chained.pairs is None or chained.result is None:
             return np.zeros((6, 6))

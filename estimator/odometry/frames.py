@@ -87,6 +87,10 @@ class Estimate:
     # The covariance the frame report carries when it is not ``covariance`` (the one the back
     # end weighs; ``registration.refine_covariance``); None: ``covariance``.
     reported_covariance: np.ndarray | None = None
+    # The covariance the next frame's chain link takes when it is not ``covariance``: the
+    # combination's own, without this frame's common error, which ``covariance`` counts once
+    # (odometry/core.py, ``_combined``); None: ``covariance``.
+    chain_covariance: np.ndarray | None = None
     # (N, 3, 3) covariances of the current and reference points of ``pairs``.
     point_covariances: tuple[np.ndarray, np.ndarray] | None = None
     # How the refined pose moves with the current and with the reference points (only when

@@ -185,7 +185,10 @@ class References:
         else:
             assert reference_from_current is not None
             self.reference_from_previous = reference_from_current
-            self.reference_from_previous_covariance = estimate.covariance
+            self.reference_from_previous_covariance = (
+                estimate.covariance if estimate.chain_covariance is None
+                else estimate.chain_covariance
+            )  # fmt: skip
             self.previous_sensitivity = (estimate.sensitivity, estimate.reference_sensitivity)
         self.previous = current
 
