@@ -184,6 +184,13 @@ class FrontendConfig(_Section):
     # motion (keyframe measurements 0.0049); it brings the noisy rendered loop's front end
     # with the chain from +14 % to +8 % of the keyframe-only ATE (docs/frontend.md).
     chain_link_rotation_bias: float = Field(0.005, ge=0)
+    # The keyframe measurement's share of that error that the chain cannot average out (the
+    # current frame's blur and the calibration err both estimates alike), per unit of its image
+    # motion; the combined measurement's covariance counts it once. None: from the rig
+    # (estimator/rig_settings.py): 0.005 for a real rig (MH_01's keyframe measurements exceed
+    # their covariance by 0.0050 x their motion), 0 for one whose calibration is declared exact
+    # (a rendered rig: 0.005 made its rotation covariances some 30x too large).
+    chain_common_rotation_bias: float | None = Field(None, ge=0)
     # ... and against the keyframe before the current one while it is still in view (off: on
     # MH_01 vision alone 4.5 mm instead of 4.6, but the rendered loop's ATE 5 % worse).
     fuse_previous_keyframe: bool = False

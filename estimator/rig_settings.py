@@ -23,6 +23,9 @@ interval, with constants chosen so that the real EuRoC rig (436 px after rectifi
   dozens of wrong candidates; each point then gets its own window from the prediction's
   uncertainty and its depth, no narrower than ``NARROW_SEARCH_RADIUS_PX``
   (estimator/frontend/temporal.py). Rigs with EuRoC-like windows keep one window for all.
+- ``frontend.chain_common_rotation_bias``: the error a combined measurement cannot average out
+  (estimator/odometry/core.py, ``_combined``), per unit of image motion: 0.005 for a real rig
+  (MH_01's keyframe measurements), 0 for an exact one.
 - ``backend.calibration_rotation_gain`` / ``calibration_translation_gain``: the calibration
   error in the covariances reported without a gyro (``estimator.backend.systematic_noise``):
   1 % and 2 % of the motion for a real rig, 0 for one whose calibration declares itself exact
@@ -109,6 +112,9 @@ MAX_SEARCH_RADIUS_PX = 250.0
 # and of the session's first, still prior-sized, error level).
 NARROW_WINDOWS_ABOVE_PX = 50.0
 NARROW_SEARCH_RADIUS_PX = 10.0
+# MH_01's keyframe measurements: rotation error beyond their covariance per unit of image
+# motion (benchmarks/chain_link_errors.py).
+REAL_RIG_COMMON_ROTATION_BIAS = 0.005
 
 
 @dataclass(frozen=True)
@@ -164,6 +170,7 @@ def derive_rig_settings(
                     f"{NARROW_WINDOWS_ABOVE_PX:g} px",
                 )
             )
+    settings.append(common_rotation_bias(rig))
     return [
         DerivedSetting(
             s.name,
@@ -175,6 +182,19 @@ def derive_rig_settings(
         else s
         for s in settings
     ]
+
+
+def common_rotation_bias(rig: StereoRig) -> DerivedSetting:
+    """``frontend.chain_common_rotation_bias``: a real rig's measurements carry an error that
+    grows with their image motion and is common to the estimates a chain combines; an exact
+    (rendered) rig's hardly (its keyframe measurements 0.0016 x their motion, noisy loop)."""
+    if rig.calibration_exact:
+        return DerivedSetting("chain_common_rotation_bias", 0.0, "the rig's calibration is exact")
+    return DerivedSetting(
+        "chain_common_rotation_bias",
+        REAL_RIG_COMMON_ROTATION_BIAS,
+        "the rig's calibration is not declared exact",
+    )
 
 
 def _configured(value: float | None) -> float | None:

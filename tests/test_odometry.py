@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from functools import cache
 from itertools import pairwise
@@ -30,6 +31,7 @@ from estimator.registration.result import RegistrationResult
 from estimator.rendered.camera import CAMERA, T_BS_CAM0
 from estimator.rendered.trajectory import loop_for_length
 from estimator.rendered.world import build_world
+from estimator.rig_settings import apply_rig_settings
 from estimator.types import FrameStatus, ImuNoise, StereoFrame
 
 FRAME_NS = 50_000_000  # 20 Hz
@@ -456,6 +458,25 @@ def test_the_chain_links_bias_is_its_rate_times_the_inliers_image_motion() -> No
     assert not np.diag(covariance)[3:].any()
 
 
+@pytest.mark.parametrize(("exact", "configured", "expected"), [
+    (False, None, 0.005), (True, None, 0.0), (True, 0.002, 0.002), (False, 0.0, 0.0),
+])  # fmt: skip
+def test_the_common_error_rate_follows_the_rigs_calibration(
+    exact: bool, configured: float | None, expected: float
+) -> None:
+    """A real rig's measurements share an error the combination cannot average out; an exact
+    (rendered) rig's hardly: unset, the rate follows the rig; a configured rate wins, also in
+    the settings ``swarmvo run`` derives and prints."""
+    rig = dataclasses.replace(_rendered_rig(), calibration_exact=exact)
+    frontend = {} if configured is None else {"chain_common_rotation_bias": configured}
+    config = _config(backend={"enabled": False}, frontend=frontend)
+    assert Odometry(rig, config)._common_rate == expected
+    derived, settings = apply_rig_settings(config, rig, 0.05)
+    assert derived.frontend.chain_common_rotation_bias == expected
+    (setting,) = [s for s in settings if s.name == "chain_common_rotation_bias"]
+    assert setting.overridden is (configured is not None)
+
+
 def test_the_combined_measurement_counts_the_common_error_once_and_the_link_not_at_all(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -464,13 +485,17 @@ def test_the_combined_measurement_counts_the_common_error_once_and_the_link_not_
     through the current frame's blur, so not averaged out); the next frame's chain link takes
     the combination's covariance without it, since that link adds its own."""
     frames, _ = _rendered_flight()
-    odometry = Odometry(_rendered_rig(), _config(backend={"enabled": False}))
+    odometry = Odometry(
+        _rendered_rig(),
+        _config(backend={"enabled": False}, frontend={"chain_common_rotation_bias": 0.005}),
+    )
     assert odometry.fuses_previous_frame
     original = Odometry._combined
     combined: list[tuple[np.ndarray, object]] = []
 
     def recording(self, estimate, *args, **kwargs):
-        common = self._link_bias(estimate)  # from the keyframe measurement's own inliers
+        # from the keyframe measurement's own inliers, at the rig's common rate
+        common = self._link_bias(estimate, self._common_rate)
         result = original(self, estimate, *args, **kwargs)
         if estimate.chain_covariance is not None:
             combined.append((common, estimate))

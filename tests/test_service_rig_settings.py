@@ -43,7 +43,7 @@ def test_sessions_get_the_settings_of_their_rig(tmp_path: Path) -> None:
         assert record["frame_rate_hz"] == 10.0 and record["from_stamps"] is False
         assert {s["name"] for s in record["settings"]} == {
             "frontend.max_depth_m", "frontend.max_features", "frontend.search_radius_px",
-            "frontend.min_search_radius_px",
+            "frontend.min_search_radius_px", "frontend.chain_common_rotation_bias",
             "backend.calibration_rotation_gain", "backend.calibration_translation_gain",
             "backend.fit_min_rotation_sigma_rad", "backend.fit_min_translation_sigma_m",
             "backend.robust_parameter", "backend.answer_smoothing_s",

@@ -33,6 +33,7 @@ from estimator.odometry.frames import (
 from estimator.odometry.gyro_prediction import GyroPrediction
 from estimator.odometry.measurements import CameraFrames, Measurement
 from estimator.odometry.references import References
+from estimator.rig_settings import common_rotation_bias
 from estimator.types import (
     FrameReport,
     FrameStatus,
@@ -88,6 +89,8 @@ class Odometry:
             ),
         )
         self._fuse_previous_frame = self._chain_through_previous()
+        common = frontend.chain_common_rotation_bias
+        self._common_rate = common if common is not None else common_rotation_bias(rig).value
         chains = self._fuse_previous_frame or frontend.fuse_previous_keyframe
         self._estimation = PoseEstimation(self.config, self.rectification, self.noise, chains)
 
@@ -384,7 +387,7 @@ class Odometry:
             # both estimates alike: the combination cannot average it out. Its covariance is
             # counted once on top of the combination's for the report and the back end; the
             # next frame's link takes the combination's alone (its own bias is added then).
-            common = self._link_bias(estimate)
+            common = self._link_bias(estimate, self._common_rate)
             estimate.reference_from_current = fused.pose
             estimate.chain_covariance = fused.covariance
             estimate.covariance = fused.covariance + common
@@ -392,11 +395,12 @@ class Odometry:
             estimate.reported_covariance = None  # the combination's is the one to report
         return estimate, True
 
-    def _link_bias(self, chained: Estimate) -> np.ndarray:
+    def _link_bias(self, chained: Estimate, rate: float | None = None) -> np.ndarray:
         """Covariance of a measurement's rotation error that does not average out over its
         points, from its inliers' image motion (``frontend.chain_link_rotation_bias``,
         chains.py): for a chain link, and for the keyframe measurement it is combined with."""
-        rate = self.config.frontend.chain_link_rotation_bias
+        if rate is None:
+            rate = self.config.frontend.chain_link_rotation_bias
         if rate == 0.0 or chained.pairs is None or chained.result is None:
             return np.zeros((6, 6))
         inliers = chained.result.inliers
