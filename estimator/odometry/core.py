@@ -328,7 +328,9 @@ class Odometry:
         through the keyframe before this one (estimator/odometry/chains.py)."""
         references = self._references
         keyframe, previous, older = references.reference, references.previous, references.older
-        combine_previous = self._fuse_previous_frame and previous is not keyframe
+        combine_previous = (
+            self._fuse_previous_frame and previous is not keyframe and self._moving(estimate)
+        )
         if previous is not None and combine_previous:
             covariance = references.reference_from_previous_covariance
             link = None
@@ -394,6 +396,22 @@ class Odometry:
             estimate.sensitivity, estimate.reference_sensitivity = fused.current, fused.reference
             estimate.reported_covariance = None  # the combination's is the one to report
         return estimate, True
+
+    def _moving(self, estimate: Estimate) -> bool:
+        """Whether the keyframe measurement's inliers moved ``frontend.chain_min_flow_px`` or
+        more in the image (median): the chain through the previous frame pays only then."""
+        threshold = self.config.frontend.chain_min_flow_px
+        if threshold == 0.0:
+            return True
+        if estimate.pairs is None or estimate.result is None:
+            return False
+        inliers = estimate.result.inliers
+        moved = flow(
+            estimate.pairs.current_points[inliers],
+            estimate.pairs.reference_points[inliers],
+            self.rectification,
+        )
+        return len(moved) > 0 and float(np.median(moved)) >= threshold
 
     def _link_bias(self, chained: Estimate, rate: float | None = None) -> np.ndarray:
         """Covariance of a measurement's rotation error that does not average out over its
