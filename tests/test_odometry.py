@@ -458,6 +458,32 @@ def test_the_chain_links_bias_is_its_rate_times_the_inliers_image_motion() -> No
     assert not np.diag(covariance)[3:].any()
 
 
+@pytest.mark.parametrize(("min_flow_px", "chained"), [(1.0, False), (0.0, True)])
+def test_at_rest_the_chain_through_the_previous_frame_is_left_out(
+    monkeypatch: pytest.MonkeyPatch, min_flow_px: float, chained: bool
+) -> None:
+    """A camera at rest: the keyframe measurement alone is as good as the combination, which
+    would nearly double the frame's matching and estimation (``frontend.chain_min_flow_px``);
+    with the threshold at 0 the chain runs on the same frames."""
+    frames, _ = _rendered_flight()
+    still = [
+        StereoFrame(1_000 + k * FRAME_NS, frames[0].left, frames[0].right) for k in range(6)
+    ]
+    config = _config(backend={"enabled": False}, frontend={"chain_min_flow_px": min_flow_px})
+    odometry = Odometry(_rendered_rig(), config)
+    calls = []
+    original = Odometry._combined
+
+    def counting(self, *args, **kwargs):
+        calls.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(Odometry, "_combined", counting)
+    reports = _run(odometry, still)
+    assert all(report.status == FrameStatus.OK for report in reports)
+    assert (len(calls) >= 3) is chained and (len(calls) == 0) is not chained
+
+
 @pytest.mark.parametrize(("exact", "configured", "expected"), [
     (False, None, 0.005), (True, None, 0.0), (True, 0.002, 0.002), (False, 0.0, 0.0),
 ])  # fmt: skip
