@@ -27,6 +27,7 @@ from estimator.odometry.frames import (
     Reference,
     checked_pose,
     failed,
+    sensitivities_of,
     stage,
     to_grey8,
 )
@@ -376,13 +377,10 @@ class Odometry:
             return estimate, False
         step_covariance = chained.covariance + self._link_bias(chained)
         fused = combine_chain(
-            Measured(
-                measured, estimate.covariance, estimate.sensitivity,
-                estimate.reference_sensitivity,
-            ),
+            Measured(measured, estimate.covariance, *sensitivities_of(estimate)),
             link,
-            Measured(step, step_covariance, chained.sensitivity, chained.reference_sensitivity),
-        )  # fmt: skip
+            Measured(step, step_covariance, *sensitivities_of(chained)),
+        )
         if fused is not None:
             # The same motion-proportional error that a link carries (``_link_bias``) is in
             # the keyframe measurement too, and the blur of the current frame behind it errs

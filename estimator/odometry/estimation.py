@@ -3,6 +3,8 @@ plausibility check against the predicted motion, and the session's noise level i
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from estimator.config import SwarmvoConfig
@@ -192,7 +194,9 @@ class PoseEstimation:
             elif robust is not None and registration.refine_covariance == "sandwich-reported":
                 estimate.reported_covariance = robust
             if self.sensitivities:
-                self._sensitivities(estimate, correspondences, pairs, refined)
+                estimate.pending_sensitivity = functools.partial(
+                    self._sensitivities, estimate, correspondences, pairs, refined
+                )
         return estimate
 
     def _sensitivities(

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -97,6 +97,19 @@ class Estimate:
     # a chain is combined).
     sensitivity: PointSensitivity | None = None
     reference_sensitivity: PointSensitivity | None = None
+    # Fills in the two above when called: they cost a solve per point and only a chain uses
+    # them, so they are formed when one does (``sensitivities_of``).
+    pending_sensitivity: Callable[[], None] | None = None
+
+
+def sensitivities_of(
+    estimate: Estimate,
+) -> tuple[PointSensitivity | None, PointSensitivity | None]:
+    """The estimate's current and reference point sensitivities, formed now if still pending."""
+    pending, estimate.pending_sensitivity = estimate.pending_sensitivity, None
+    if pending is not None:
+        pending()
+    return estimate.sensitivity, estimate.reference_sensitivity
 
 
 def failed(estimate: Estimate, reason: str) -> Estimate:

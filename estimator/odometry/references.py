@@ -10,7 +10,7 @@ from estimator.frontend.stereo import StereoPoints
 from estimator.frontend.temporal import PredictionUncertainty
 from estimator.geometry import invert_pose, rotation_angle_deg, scale_motion
 from estimator.odometry.chains import PointSensitivity
-from estimator.odometry.frames import Estimate, Reference
+from estimator.odometry.frames import Estimate, Reference, sensitivities_of
 from estimator.odometry.gyro_prediction import GyroPrediction
 from estimator.order_statistics import median
 from estimator.types import ImuBatch
@@ -41,12 +41,9 @@ class References:
         self.reference_from_previous = np.eye(4)  # rectified; for predicting the search
         # ... and its 6x6 covariance (right perturbation); None when not measured
         self.reference_from_previous_covariance: np.ndarray | None = None
-        # ... and how it moves with the previous frame's and the keyframe's points (None:
-        # not known), for the chain through the previous frame (odometry/chains.py)
-        self.previous_sensitivity: tuple[PointSensitivity | None, PointSensitivity | None] = (
-            None,
-            None,
-        )
+        # ... and the estimate it came from, whose sensitivities to the previous frame's and
+        # the keyframe's points the chain through the previous frame takes (odometry/chains.py)
+        self.previous_estimate: Estimate | None = None
         # The keyframe before this one, with the keyframe's pose in it and its covariance,
         # while frames still register against it (None otherwise)
         self.older: Reference | None = None
@@ -120,6 +117,14 @@ class References:
             return frontend.keyframe_max_translation_m
         return parallax * median(depth)
 
+    @property
+    def previous_sensitivity(self) -> tuple[PointSensitivity | None, PointSensitivity | None]:
+        """How keyframe -> previous moves with the previous frame's and the keyframe's points
+        (None: not known); formed on first use (``sensitivities_of``)."""
+        if self.previous_estimate is None:
+            return None, None
+        return sensitivities_of(self.previous_estimate)
+
     def held(self, now_ns: int) -> bool:
         """Whether a frame without an estimate at ``now_ns`` holds the pose: the last vision fix
         is more than ``frontend.max_coast_s`` old (1 ms more for timestamp jitter)."""
@@ -181,7 +186,7 @@ class References:
             self.reference = current
             self.reference_from_previous = np.eye(4)
             self.reference_from_previous_covariance = np.zeros((6, 6))
-            self.previous_sensitivity = (None, None)
+            self.previous_estimate = None
         else:
             assert reference_from_current is not None
             self.reference_from_previous = reference_from_current
@@ -189,7 +194,7 @@ class References:
                 estimate.covariance if estimate.chain_covariance is None
                 else estimate.chain_covariance
             )  # fmt: skip
-            self.previous_sensitivity = (estimate.sensitivity, estimate.reference_sensitivity)
+            self.previous_estimate = estimate
         self.previous = current
 
     def _gyro_frame_done(self, failed: bool, estimate: Estimate) -> None:
