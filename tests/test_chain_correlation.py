@@ -177,6 +177,21 @@ def test_uncorrelated_combination_is_the_independent_one_and_bad_input_is_refuse
     assert fuse_correlated(first, -first_cov, second, second_cov, np.zeros((6, 6))) is None
 
 
+def _noisy(rng: np.random.Generator, views: list, factors: list) -> list[np.ndarray]:
+    """Each frame's camera-frame points with their stereo noise drawn."""
+    return [
+        view + np.einsum("nij,nj->ni", factor, rng.normal(size=view.shape))
+        for view, factor in zip(views, factors, strict=True)
+    ]
+
+
+def _chain_links(frames: list, covariances: list, poses: list) -> tuple[Measured, Measured]:
+    """keyframe -> previous and previous -> current, measured on shared and own points."""
+    link = _measured(frames, covariances, 1, 0, poses[1], np.arange(0, 60))
+    between = np.linalg.inv(poses[1]) @ poses[2]
+    return link, _measured(frames, covariances, 2, 1, between, np.arange(15, 80))
+
+
 def _measured(frames, covariances, current: int, reference: int, truth, ids) -> Measured:
     """T_reference_current registered from the noisy points ``ids`` of two frames (a frame's
     point index = the point's id), with its sensitivities to both frames' points."""
@@ -210,13 +225,8 @@ def test_chain_through_the_previous_frame_counts_every_shared_point() -> None:
     truth = poses[2]  # T_kc with k = identity
     errors: dict[str, list[np.ndarray]] = {"fused": [], "measured": [], "chain": [], "naive": []}
     for _ in range(600):
-        frames = [
-            view + np.einsum("nij,nj->ni", factor, rng.normal(size=view.shape))
-            for view, factor in zip(views, factors, strict=True)
-        ]
-        link = _measured(frames, covariances, 1, 0, poses[1], np.arange(0, 60))
-        between = np.linalg.inv(poses[1]) @ poses[2]
-        step = _measured(frames, covariances, 2, 1, between, np.arange(15, 80))
+        frames = _noisy(rng, views, factors)
+        link, step = _chain_links(frames, covariances, poses)
         measured = _measured(frames, covariances, 2, 0, truth, np.arange(30, 90))
         fused = combine_chain(measured, link, step)
         assert fused is not None
@@ -264,13 +274,8 @@ def test_a_biased_link_weighed_with_its_bias_pulls_the_combination_less() -> Non
     extra = link_bias_covariance(1.5e-3 / motion, np.array([motion]), 1.0)
     errors: dict[str, list[np.ndarray]] = {"plain": [], "bias counted": []}
     for _ in range(150):
-        frames = [
-            view + np.einsum("nij,nj->ni", factor, rng.normal(size=view.shape))
-            for view, factor in zip(views, factors, strict=True)
-        ]
-        link = _measured(frames, covariances, 1, 0, poses[1], np.arange(0, 60))
-        between = np.linalg.inv(poses[1]) @ poses[2]
-        step = _measured(frames, covariances, 2, 1, between, np.arange(15, 80))
+        frames = _noisy(rng, views, factors)
+        link, step = _chain_links(frames, covariances, poses)
         step.pose = step.pose @ bias
         measured = _measured(frames, covariances, 2, 0, poses[2], np.arange(30, 90))
         for name, added in (("plain", np.zeros((6, 6))), ("bias counted", extra)):
