@@ -179,7 +179,6 @@ class EstimatorFactory:
             synthetic_run(self)
             registration_kernels()
             detector_kernels()
-            image_decoder_kernels()
         except Exception:
             logger.debug("warm-up run failed", exc_info=True)
         # Minutes instead of seconds here mean an empty or unreadable JIT cache (docker/).
@@ -377,18 +376,6 @@ def detector_kernels() -> None:
     detector = FeatureDetector(FrontendConfig(detector="fast-brief", max_features=50))
     detector.detect(image)
     detector.detect(image, same_scene=True)
-
-
-def image_decoder_kernels() -> None:
-    """Decode one grey PNG, so that the compiled row unfilter (estimator/formats/png.py) is
-    loaded before the first frame arrives, not inside its CPU budget."""
-    import cv2
-
-    from service.images import ImageLimits, decode_image
-
-    ok, encoded = cv2.imencode(".png", np.zeros((8, 8), dtype=np.uint8))
-    if ok:
-        decode_image(encoded.tobytes(), "warm-up", ImageLimits(64, 64, 64 * 64))
 
 
 def _short_validation(error: ValueError) -> str:

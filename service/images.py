@@ -130,6 +130,17 @@ def decode_image(data: bytes | memoryview, name: str, limits: ImageLimits) -> np
     return image
 
 
+def warm_up_decoder() -> None:
+    """Decode one grey PNG in this process, so that the compiled row unfilter
+    (estimator/formats/png.py) is loaded (or, with an empty JIT cache, compiled) before the
+    first frame arrives, not inside its CPU budget."""
+    import cv2
+
+    ok, encoded = cv2.imencode(".png", np.zeros((8, 8), dtype=np.uint8))
+    if ok:
+        decode_image(encoded.tobytes(), "warm-up", ImageLimits(64, 64, 64 * 64))
+
+
 def decode_pair(
     left: bytes | memoryview,
     right: bytes | memoryview,

@@ -46,16 +46,16 @@ def warm_up() -> WarmUp:
     from service.estimator_adapter import (
         EstimatorFactory,
         detector_kernels,
-        image_decoder_kernels,
         registration_kernels,
         synthetic_run,
     )
+    from service.images import warm_up_decoder
 
     start = time.perf_counter()
     synthetic_run(EstimatorFactory())
     registration_kernels()
     detector_kernels()
-    image_decoder_kernels()
+    warm_up_decoder()
     seconds = time.perf_counter() - start
     counts = cached_kernels().values()
     return WarmUp(seconds, sum(m for m, _h in counts), sum(h for _m, h in counts))

@@ -76,6 +76,10 @@ def worker_init(factory: PipelineFactory) -> None:
     # (docs/performance.md), more than the page faults they spare are worth.
     if not logging.getLogger().handlers:  # spawned: the server's logging is not inherited
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    # The worker decodes every frame's images itself, whatever estimator it runs.
+    from service.images import warm_up_decoder
+
+    warm_up_decoder()
     warm_up = getattr(factory, "warm_up", None)
     if callable(warm_up):
         warm_up()
