@@ -59,9 +59,10 @@ def _recording() -> Iterator[list[Record]]:
     records: list[Record] = []
     link_bias, with_others = core.Odometry._link_bias, core.Odometry._with_other_references
 
-    def recorded_link(self, chained):
-        _record(self, "link", chained, records)
-        return link_bias(self, chained)
+    def recorded_link(self, chained, rate=None):
+        if rate is None:  # a link's own bias; with a rate given, the keyframe's common term
+            _record(self, "link", chained, records)
+        return link_bias(self, chained, rate)
 
     def recorded_keyframe(self, estimate, *args):
         _record(self, "keyframe", estimate, records)
