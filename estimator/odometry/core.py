@@ -401,14 +401,7 @@ class Odometry:
         threshold = self.config.frontend.chain_min_flow_px
         if threshold == 0.0:
             return True
-        if estimate.pairs is None or estimate.result is None:
-            return False
-        inliers = estimate.result.inliers
-        moved = flow(
-            estimate.pairs.current_points[inliers],
-            estimate.pairs.reference_points[inliers],
-            self.rectification,
-        )
+        moved = self._inlier_flow(estimate)
         return len(moved) > 0 and float(np.median(moved)) >= threshold
 
     def _link_bias(self, chained: Estimate, rate: float | None = None) -> np.ndarray:
@@ -417,14 +410,19 @@ class Odometry:
         chains.py): for a chain link, and for the keyframe measurement it is combined with."""
         if rate is None:
             rate = self.config.frontend.chain_link_rotation_bias
-        if rate == 0.0 or chained.pairs is None or chained.result is None:
+        if rate == 0.0:
             return np.zeros((6, 6))
-        inliers = chained.result.inliers
-        pairs = chained.pairs
-        moved = flow(
+        return link_bias_covariance(rate, self._inlier_flow(chained), self.rectification.fx)
+
+    def _inlier_flow(self, estimate: Estimate) -> np.ndarray:
+        """(N,) image motion (px) of the estimate's inliers; empty when it has none."""
+        if estimate.pairs is None or estimate.result is None:
+            return np.zeros(0)
+        inliers = estimate.result.inliers
+        pairs = estimate.pairs
+        return flow(
             pairs.current_points[inliers], pairs.reference_points[inliers], self.rectification
         )
-        return link_bias_covariance(rate, moved, self.rectification.fx)
 
     def _estimate_against(
         self,
