@@ -80,9 +80,10 @@ class FrontendConfig(_Section):
     normalise_contrast: bool = True
     normalised_mean: float = Field(128.0, gt=0, lt=255)
     normalised_std: float = Field(64.0, gt=0)
-    # "fast-brief": ORB's one-level corners (FAST-9, Harris, intensity-centroid angle) and
-    # steered binary descriptors in compiled kernels with array output (frontend/fast_kernels.py,
-    # frontend/steered_brief.py); the same 32-byte descriptors, matched the same way.
+    # "orb" on one level runs as compiled kernels with array output that give OpenCV's ORB
+    # features to the bit (frontend/fast_kernels.py, frontend/steered_brief.py); on several
+    # levels OpenCV's ORB runs. "fast-brief": the same kernels with this project's own seeded
+    # test pairs instead of ORB's; the same 32-byte descriptors, matched the same way.
     detector: Literal["orb", "sift", "fast-brief"] = "orb"
     max_features: int = Field(1200, gt=0)
     # Detection: over-sample, then keep the best corners cell by cell (docs/frontend.md).

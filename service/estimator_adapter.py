@@ -363,9 +363,10 @@ def registration_kernels() -> None:
 
 
 def detector_kernels() -> None:
-    """Run the compiled detector (``frontend.detector: fast-brief``), which the default
-    configuration of the synthetic frames does not use, for the reason given above: a session
-    that picks it must not compile its kernels inside a frame's CPU budget."""
+    """Run the compiled detector on a small image whatever the session's configuration: its
+    kernels compile (or load) here and ORB's test pairs are measured here (once per process,
+    ``steered_brief.orb_pattern``), not inside a frame's CPU budget. ``fast-brief`` runs the
+    same kernels."""
     import cv2
 
     from estimator.config import FrontendConfig
@@ -373,7 +374,7 @@ def detector_kernels() -> None:
 
     noise = (np.random.default_rng(0).random((120, 160)) * 255).astype(np.uint8)
     image = cv2.GaussianBlur(noise, (0, 0), 1.2)
-    detector = FeatureDetector(FrontendConfig(detector="fast-brief", max_features=50))
+    detector = FeatureDetector(FrontendConfig(max_features=50))
     detector.detect(image)
     detector.detect(image, same_scene=True)
 

@@ -61,12 +61,14 @@ def _textured(seed: int) -> np.ndarray:
 def test_orb_detection_equals_joint_detect_and_compute(levels: int) -> None:
     image = _textured(0)
     config = FrontendConfig(max_features=300, orb_levels=levels)
-    detector = FeatureDetector(config)
+    detector = FeatureDetector(config, opencv_orb=True)
     features = detector.detect(image)
 
     keypoints, descriptors = detector._detector.detectAndCompute(image, None)
     points = cv2.KeyPoint_convert(keypoints).astype(float)
-    response = np.array([k.response for k in keypoints])
+    raster = np.lexsort((points[:, 0], points[:, 1]))  # the detector's order
+    points, descriptors = points[raster], descriptors[raster]
+    response = np.array([k.response for k in keypoints])[raster]
     assert len(keypoints) > config.max_features  # the grid has to drop candidates
     keep = grid_select(points, response, (752, 480), (config.grid_rows, config.grid_cols), 300)
     np.testing.assert_array_equal(features.points, points[keep])

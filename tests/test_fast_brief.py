@@ -1,5 +1,6 @@
-"""The fast-brief detector: compiled FAST, Harris, orientation and descriptors against slow
-references, the rotation behaviour of the descriptor, and the same corners as ORB."""
+"""The compiled detector: FAST, Harris, orientation and descriptors against slow references
+and against OpenCV's ORB (the same features to the bit), the rotation behaviour of the
+descriptor, and the seeded test pairs of fast-brief."""
 
 from __future__ import annotations
 
@@ -13,11 +14,12 @@ from estimator.config import FrontendConfig
 from estimator.frontend import steered_brief
 from estimator.frontend.fast_kernels import CIRCLE, HARRIS_K, fast_corners, harris_response
 from estimator.frontend.features import FeatureDetector
+from estimator.frontend.orb_pattern import measure_orb_pattern
 from estimator.frontend.steered_brief import (
-    ANGLE_STEPS,
     PATCH_RADIUS,
     PATTERN,
     describe,
+    orb_pattern,
     orientation,
     seeded_pattern,
     smoothed,
@@ -117,27 +119,33 @@ def test_harris_matches_a_slow_reference() -> None:
         bx, by = gx[y - 3 : y + 4, x - 3 : x + 4], gy[y - 3 : y + 4, x - 3 : x + 4]
         a, b, c = (bx * bx).sum(), (by * by).sum(), (bx * by).sum()
         expected.append((a * b - c * c - HARRIS_K * (a + b) ** 2) / (4 * 7 * 255.0) ** 4)
-    np.testing.assert_allclose(harris_response(image, xs, ys), expected, rtol=1e-12)
+    # Formed in float32 as ORB forms it: a few units in the last place of float32.
+    np.testing.assert_allclose(harris_response(image, xs, ys), expected, rtol=1e-5)
 
 
 def _slow_angle(image: np.ndarray, x: int, y: int) -> float:
+    """Degrees of the intensity centroid over ORB's disc: rows |v| <= 15 of half width
+    round(sqrt(15^2 - v^2)), the rows past the diagonal mirrored from the columns."""
+    widths = [round(math.sqrt(PATCH_RADIUS**2 - v * v)) for v in range(PATCH_RADIUS + 1)]
+    for v in range(11, PATCH_RADIUS + 1):  # past the diagonal: the disc is symmetric in u, v
+        widths[v] = max(u for u in range(PATCH_RADIUS + 1) if widths[u] >= v)
     m10 = m01 = 0.0
     for v in range(-PATCH_RADIUS, PATCH_RADIUS + 1):
-        for u in range(-PATCH_RADIUS, PATCH_RADIUS + 1):
-            if u * u + v * v <= PATCH_RADIUS * PATCH_RADIUS:
-                m10 += u * float(image[y + v, x + u])
-                m01 += v * float(image[y + v, x + u])
-    return math.atan2(m01, m10)
+        for u in range(-widths[abs(v)], widths[abs(v)] + 1):
+            m10 += u * float(image[y + v, x + u])
+            m01 += v * float(image[y + v, x + u])
+    return math.degrees(math.atan2(m01, m10)) % 360.0
 
 
-def _slow_descriptor(smooth: np.ndarray, x: int, y: int, angle: float) -> np.ndarray:
-    step = round(angle * ANGLE_STEPS / (2 * math.pi)) % ANGLE_STEPS
-    theta = step * 2 * math.pi / ANGLE_STEPS
+def _slow_descriptor(
+    smooth: np.ndarray, x: int, y: int, degrees: float, pattern: np.ndarray
+) -> np.ndarray:
+    theta = math.radians(degrees)
     cos, sin = math.cos(theta), math.sin(theta)
     bits = []
-    for x1, y1, x2, y2 in PATTERN.tolist():
-        u1, v1 = math.floor(x1 * cos - y1 * sin + 0.5), math.floor(x1 * sin + y1 * cos + 0.5)
-        u2, v2 = math.floor(x2 * cos - y2 * sin + 0.5), math.floor(x2 * sin + y2 * cos + 0.5)
+    for x1, y1, x2, y2 in pattern.tolist():
+        u1, v1 = round(x1 * cos - y1 * sin), round(x1 * sin + y1 * cos)
+        u2, v2 = round(x2 * cos - y2 * sin), round(x2 * sin + y2 * cos)
         bits.append(int(smooth[y + v1, x + u1] < smooth[y + v2, x + u2]))
     return np.packbits(np.array(bits, dtype=np.uint8), bitorder="little")
 
@@ -146,15 +154,50 @@ def test_orientation_and_descriptor_match_slow_references() -> None:
     image = _texture((90, 100), 4)
     xs, ys = np.array([30, 50, 66, 40]), np.array([30, 45, 58, 60])
     angle = orientation(image, xs, ys)
+    assert angle.dtype == np.float32
     expected = [_slow_angle(image, x, y) for x, y in zip(xs, ys, strict=True)]
-    np.testing.assert_allclose(angle, expected)
+    # OpenCV's polynomial arctangent: within 0.01 deg of the exact angle.
+    np.testing.assert_allclose(angle, expected, atol=0.01)
     smooth = smoothed(image)
-    descriptors = describe(smooth, xs, ys, angle)
-    assert descriptors.shape == (4, 32) and descriptors.dtype == np.uint8
-    for k in range(4):
-        np.testing.assert_array_equal(
-            descriptors[k], _slow_descriptor(smooth, int(xs[k]), int(ys[k]), float(angle[k]))
-        )
+    for pattern in (PATTERN, orb_pattern()):
+        descriptors = describe(smooth, xs, ys, angle, pattern)
+        assert descriptors.shape == (4, 32) and descriptors.dtype == np.uint8
+        for k in range(4):
+            slow = _slow_descriptor(smooth, int(xs[k]), int(ys[k]), float(angle[k]), pattern)
+            # A test point exactly half-way between pixels may round the other way.
+            assert _hamming(descriptors[k], slow) <= 2
+
+
+def _orb_reference(image: np.ndarray, count: int) -> tuple[list, np.ndarray]:
+    orb = cv2.ORB_create(nfeatures=count, nlevels=1)
+    return orb.detectAndCompute(image, None)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_compiled_kernels_equal_opencvs_orb(seed: int) -> None:
+    """Angles, Harris responses and descriptors of ORB's own corners, to the bit."""
+    image = _texture((240, 320), 10 + seed, blur=1.0)
+    keypoints, expected = _orb_reference(image, 500)
+    assert len(keypoints) > 300
+    xs = np.array([round(k.pt[0]) for k in keypoints])
+    ys = np.array([round(k.pt[1]) for k in keypoints])
+    angle = orientation(image, xs, ys)
+    np.testing.assert_array_equal(angle, np.array([k.angle for k in keypoints], np.float32))
+    response = harris_response(image, xs, ys)
+    np.testing.assert_array_equal(response, [k.response for k in keypoints])
+    np.testing.assert_array_equal(describe(smoothed(image), xs, ys, angle, orb_pattern()), expected)
+
+
+def test_measured_orb_pattern() -> None:
+    """ORB's tests read back from OpenCV: 256 distinct pairs of distinct points in the patch,
+    and ORB's descriptors depend on exactly those pixels (a fresh measurement agrees)."""
+    pattern = orb_pattern()
+    assert pattern is not None and pattern.shape == (256, 4)
+    np.testing.assert_array_equal(measure_orb_pattern(), pattern)
+    assert np.abs(pattern).max() <= PATCH_RADIUS
+    assert not np.any((pattern[:, 0] == pattern[:, 2]) & (pattern[:, 1] == pattern[:, 3]))
+    assert len({tuple(row) for row in pattern.tolist()}) == 256
+    assert not np.array_equal(pattern, PATTERN)
 
 
 def _hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -178,7 +221,7 @@ def test_descriptor_follows_a_rotated_patch(degrees: int) -> None:
     before = orientation(image, xs, ys)
     after = orientation(turned, moved[0], moved[1])
     # Image rows point down: a counter-clockwise turn on screen lowers the angle.
-    turn = np.angle(np.exp(1j * (before - after - np.radians(degrees))))
+    turn = np.angle(np.exp(1j * np.radians(before - after - degrees)))
     # Off the right angles the turned corner lands up to 0.7 px off a pixel and is resampled.
     assert np.abs(turn).max() < np.radians(0.01 if degrees == 90 else 10)
     d_before = describe(smoothed(image), xs, ys, before)
@@ -200,16 +243,42 @@ def test_pattern_is_seeded_and_inside_the_patch() -> None:
     assert radius + 0.5 + steered_brief.SMOOTHING_KERNEL // 2 <= steered_brief.DESCRIPTOR_BORDER
 
 
-def test_detector_keeps_orbs_corners_and_is_reproducible() -> None:
+def _assert_same_features(a, b) -> None:
+    np.testing.assert_array_equal(a.points, b.points)
+    np.testing.assert_array_equal(a.response, b.response)
+    np.testing.assert_array_equal(a.descriptors, b.descriptors)
+
+
+@pytest.mark.parametrize("shape", [(480, 752), (376, 1241)])
+def test_compiled_orb_gives_opencvs_features(shape: tuple[int, int]) -> None:
+    """The default detector runs compiled and gives what OpenCV's ORB gives, in raster
+    order, image after image (the adaptive thresholds of both at work on wide images)."""
+    config = FrontendConfig(max_features=600 if shape[1] > 1000 else 1200)
+    compiled, reference = FeatureDetector(config), FeatureDetector(config, opencv_orb=True)
+    assert compiled.compiled and not reference.compiled
+    for index in range(4):  # two stereo-like pairs: the second image is the first shifted
+        image = _texture(shape, 6 + index // 2, blur=1.0 + 0.3 * (index // 2))
+        same_scene = index % 2 == 1
+        if same_scene:
+            image = np.roll(image, -4, axis=1)
+        ours, theirs = compiled.detect(image, same_scene), reference.detect(image, same_scene)
+        assert len(ours) == config.max_features
+        _assert_same_features(ours, theirs)
+        raster = list(zip(ours.points[:, 1].tolist(), ours.points[:, 0].tolist(), strict=True))
+        assert raster == sorted(raster)
+
+
+def test_opencvs_orb_runs_for_pyramids_and_fast_brief_keeps_orbs_corners() -> None:
+    assert not FeatureDetector(FrontendConfig(orb_levels=3)).compiled
     image = _texture((480, 752), 6, blur=1.2)
     orb = FeatureDetector(FrontendConfig()).detect(image)
     compiled = FeatureDetector(FrontendConfig(detector="fast-brief"))
     first, second = compiled.detect(image), compiled.detect(image.copy())
     assert first.binary and first.descriptors.shape == (len(first), 32)
     assert len(first) == FrontendConfig().max_features
-    assert set(map(tuple, first.points.tolist())) == set(map(tuple, orb.points.tolist()))
-    np.testing.assert_array_equal(first.points, second.points)
-    np.testing.assert_array_equal(first.descriptors, second.descriptors)
+    np.testing.assert_array_equal(first.points, orb.points)
+    assert (first.descriptors != orb.descriptors).any(axis=1).mean() > 0.9  # its own tests
+    _assert_same_features(first, second)
     blank = compiled.detect(np.full((480, 752), 128, dtype=np.uint8))
     assert len(blank) == 0 and blank.descriptors.shape == (0, 32)
 
@@ -231,3 +300,13 @@ def test_raised_threshold_keeps_the_same_corners() -> None:
         np.testing.assert_array_equal(features.points, fresh.points)
         np.testing.assert_array_equal(features.descriptors, fresh.descriptors)
     assert raised >= 4  # the raised threshold was in use for most images
+
+
+def test_compiled_detector_without_the_adaptive_threshold_keeps_the_configured_one() -> None:
+    image = _texture((376, 1241), 3, blur=0.8)
+    fixed = FeatureDetector(FrontendConfig(adaptive_fast_threshold=False, max_features=600))
+    adaptive = FeatureDetector(FrontendConfig(max_features=600))
+    for _ in range(2):
+        _assert_same_features(fixed.detect(image), adaptive.detect(image))
+    assert fixed._raised_threshold == 12 and adaptive._raised_threshold > 12
+

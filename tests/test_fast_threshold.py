@@ -1,4 +1,5 @@
-"""The adaptive FAST threshold: ORB keeps the same corners, found among far fewer."""
+"""The adaptive FAST threshold of OpenCV's ORB (run when the compiled detector is not): ORB
+keeps the same corners, found among far fewer."""
 
 from __future__ import annotations
 
@@ -74,8 +75,8 @@ def test_threshold_converges_to_the_wanted_count_on_a_street(street_images) -> N
 
 
 def test_adaptive_detection_keeps_the_same_corners_and_descriptors(street_images) -> None:
-    fixed = FeatureDetector(FrontendConfig(adaptive_fast_threshold=False))
-    adaptive = FeatureDetector(FrontendConfig())
+    fixed = FeatureDetector(FrontendConfig(adaptive_fast_threshold=False), opencv_orb=True)
+    adaptive = FeatureDetector(FrontendConfig(), opencv_orb=True)
     assert fixed.fast_threshold is None and adaptive.fast_threshold is not None
     for image in street_images:
         expected = fixed.detect(image)
@@ -104,8 +105,9 @@ def test_an_overestimate_falls_back_to_the_configured_threshold(street_images, m
     """Should the strips promise corners that the image does not have, ORB runs again at the
     configured threshold: the result is the fixed threshold's."""
     image = street_images[2]
-    fixed = FeatureDetector(FrontendConfig(adaptive_fast_threshold=False)).detect(image)
-    detector = FeatureDetector(FrontendConfig())
+    fixed_config = FrontendConfig(adaptive_fast_threshold=False)
+    fixed = FeatureDetector(fixed_config, opencv_orb=True).detect(image)
+    detector = FeatureDetector(FrontendConfig(), opencv_orb=True)
     monkeypatch.setattr(detector.fast_threshold, "choose", lambda _image: 120)
     features = detector.detect(image)
     np.testing.assert_array_equal(features.points, fixed.points)
@@ -113,8 +115,8 @@ def test_an_overestimate_falls_back_to_the_configured_threshold(street_images, m
 
 
 def test_several_orb_levels_keep_the_fixed_threshold() -> None:
-    assert FeatureDetector(FrontendConfig(orb_levels=3)).fast_threshold is None
-    assert FeatureDetector(FrontendConfig(detector="sift")).fast_threshold is None
+    assert FeatureDetector(FrontendConfig(orb_levels=3), opencv_orb=True).fast_threshold is None
+    assert FeatureDetector(FrontendConfig(detector="sift"), opencv_orb=True).fast_threshold is None
 
 
 def test_right_image_at_the_left_threshold_keeps_the_base_thresholds_corners(
@@ -123,8 +125,9 @@ def test_right_image_at_the_left_threshold_keeps_the_base_thresholds_corners(
     """The right image, detected at the threshold the left one chose (no sampling), keeps
     exactly the corners and descriptors of a detection at the configured threshold."""
     config = FrontendConfig(max_features=1551)
-    adaptive = FeatureDetector(config)
-    plain = FeatureDetector(config.model_copy(update={"adaptive_fast_threshold": False}))
+    adaptive = FeatureDetector(config, opencv_orb=True)
+    plain_config = config.model_copy(update={"adaptive_fast_threshold": False})
+    plain = FeatureDetector(plain_config, opencv_orb=True)
     raised = 0
     for left, right in zip(street_images[0::2], street_images[1::2], strict=True):
         adaptive.detect(left)

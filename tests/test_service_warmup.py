@@ -74,7 +74,7 @@ def test_a_worker_warm_up_reaches_the_registration_kernels_of_real_frames() -> N
     for kernel in ("fit_pose", "degenerate_points"):
         misses, hits = counts[f"estimator.registration.swarm_kernels.{kernel}"]
         assert misses + hits > 0, (kernel, counts)
-    # The compiled detector a session may choose (frontend.detector: fast-brief).
+    # The compiled detector (ORB on one level, the default, and fast-brief).
     for kernel in ("fast_kernels._fast_corners", "steered_brief._describe"):
         misses, hits = counts[f"estimator.frontend.{kernel}"]
         assert misses + hits > 0, (kernel, counts)

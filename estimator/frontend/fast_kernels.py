@@ -30,8 +30,12 @@ CIRCLE = np.array(
 HARRIS_BLOCK = 7
 HARRIS_K = 0.04
 # Gradients are scaled to [-1, 1] per unit step (Sobel weights sum 4, over 255 grey levels)
-# and averaged over the block, so responses are comparable between images.
-_HARRIS_SCALE = 1.0 / (4.0 * HARRIS_BLOCK * 255.0)
+# and averaged over the block, so responses are comparable between images. The response is
+# formed in float32, operation for operation as OpenCV's ORB forms it, so that both rank the
+# corners alike to the last bit (ties at ORB's cut included).
+_HARRIS_K32 = np.float32(HARRIS_K)
+_HARRIS_SCALE32 = np.float32(1.0) / (np.float32(4 * HARRIS_BLOCK) * np.float32(255.0))
+_HARRIS_SCALE4 = _HARRIS_SCALE32 * _HARRIS_SCALE32 * _HARRIS_SCALE32 * _HARRIS_SCALE32
 
 
 @numba.njit(cache=True, nogil=True)
@@ -230,7 +234,6 @@ def harris_response(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.nda
 def _harris_response(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
     """The block and its gradients reach 4 pixels from the point: no bounds checks here."""
     radius = HARRIS_BLOCK // 2
-    scale4 = _HARRIS_SCALE**4
     response = np.empty(len(xs), dtype=np.float64)
     for k in range(len(xs)):
         sxx = np.int64(0)
@@ -251,6 +254,7 @@ def _harris_response(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.nd
                 sxx += gx * gx
                 syy += gy * gy
                 sxy += gx * gy
-        a, b, c = float(sxx), float(syy), float(sxy)
-        response[k] = (a * b - c * c - HARRIS_K * (a + b) * (a + b)) * scale4
+        a, b, c = np.float32(sxx), np.float32(syy), np.float32(sxy)
+        trace = a + b
+        response[k] = (a * b - c * c - _HARRIS_K32 * trace * trace) * _HARRIS_SCALE4
     return response

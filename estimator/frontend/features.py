@@ -22,7 +22,14 @@ from estimator.config import FrontendConfig
 from estimator.frontend.fast_kernels import fast_corners, harris_response
 from estimator.frontend.fast_threshold import AdaptiveFastThreshold
 from estimator.frontend.match_kernels import as_words
-from estimator.frontend.steered_brief import DESCRIPTOR_BORDER, describe, orientation, smoothed
+from estimator.frontend.steered_brief import (
+    DESCRIPTOR_BORDER,
+    PATTERN,
+    describe,
+    orb_pattern,
+    orientation,
+    smoothed,
+)
 
 __all__ = [
     "FeatureDetector",
@@ -36,7 +43,7 @@ __all__ = [
 _RESPONSE = attrgetter("response")  # cheaper per keypoint than a generator expression
 # ORB's edge threshold: its corners keep 31 px to the image's edge (more than the descriptor needs).
 CORNER_BORDER = max(31, DESCRIPTOR_BORDER)
-# fast-brief raises FAST's threshold to this many grey levels below the last image's cut.
+# The compiled detector raises FAST's threshold to this many grey levels below the last image's cut.
 FAST_CUT_MARGIN = 6
 
 
@@ -114,15 +121,28 @@ def _round_robin(cell: np.ndarray, strongest: np.ndarray, cells: int) -> np.ndar
 
 
 class FeatureDetector:
-    """ORB (default), compiled FAST + steered BRIEF, or SIFT corners with descriptors,
-    bucketed over a grid."""
+    """ORB corners with descriptors (default), or SIFT's, bucketed over a grid.
 
-    def __init__(self, config: FrontendConfig) -> None:
+    ORB on one pyramid level (the default) runs as compiled kernels with array output: the
+    same corners, angles, responses and descriptors as OpenCV's ORB, to the bit, for about
+    a third less CPU (docs/performance.md). ``fast-brief`` is the same with this project's
+    own test pairs. OpenCV's ORB runs for pyramids, or when its tests cannot be reproduced.
+    """
+
+    def __init__(self, config: FrontendConfig, opencv_orb: bool = False) -> None:
+        """``opencv_orb``: run OpenCV's ORB even where the compiled kernels reproduce it (the
+        reference for tests and benchmarks)."""
         self.config = config
         candidates = int(np.ceil(config.max_features * config.detection_oversampling))
-        # fast-brief works on one level (orb_levels and orb_scale_factor are ORB's alone).
+        # The compiled kernels' test pairs, when they run (one level: orb_levels and
+        # orb_scale_factor are the pyramid's alone).
+        self._pattern: np.ndarray | None = None
+        if config.detector == "fast-brief":
+            self._pattern = PATTERN
+        elif config.detector == "orb" and config.orb_levels == 1 and not opencv_orb:
+            self._pattern = orb_pattern()
         self._detector: cv2.Feature2D | None = None
-        if config.detector == "orb":
+        if config.detector == "orb" and self._pattern is None:
             self._detector = cv2.ORB_create(
                 nfeatures=candidates,
                 scaleFactor=config.orb_scale_factor,
@@ -133,10 +153,11 @@ class FeatureDetector:
             self._detector = cv2.SIFT_create(nfeatures=candidates)
         self.binary = config.detector != "sift"
         self._candidates = candidates
-        # fast-brief: the last left image's 2 n-th best FAST score, when it had a surplus.
+        # Compiled: the last left image's 2 n-th best FAST score, when it had a surplus.
         self._last_cut: int | None = None
         self._raised_threshold = config.fast_threshold
-        # ORB on one level looks at the 2 x candidates best FAST corners (fast_threshold.py).
+        # OpenCV's ORB on one level looks at the 2 x candidates best FAST corners
+        # (fast_threshold.py).
         self.fast_threshold: AdaptiveFastThreshold | None = None
         orb = config.detector == "orb" and self._detector is not None
         if orb and config.orb_levels == 1 and config.adaptive_fast_threshold:
@@ -144,29 +165,41 @@ class FeatureDetector:
                 config.fast_threshold, 2 * candidates, self._detector.getEdgeThreshold()
             )
 
+    @property
+    def compiled(self) -> bool:
+        """Whether the compiled kernels detect (rather than OpenCV's ORB or SIFT)."""
+        return self._pattern is not None
+
     def detect(self, image: np.ndarray, same_scene: bool = False) -> Features:
         """Keypoints and descriptors of one 8-bit grey image.
 
         ORB corners are detected first and bucketed, and descriptors are computed only for
         the kept ones: describing the over-sampled candidates that the grid drops is work
         thrown away (docs/performance.md). Points and descriptors are identical to those of a
-        joint detect-and-compute call. ``same_scene``: the other image of the pair just
-        detected, whose adaptive FAST threshold is reused (fast_threshold.py).
+        joint detect-and-compute call. ORB's corners come in raster order (by row, then
+        column) from either implementation, not in the order OpenCV's selection happens to
+        leave them, so that both give the same features. ``same_scene``: the other image of
+        the pair just detected, whose adaptive FAST threshold is reused.
         """
         if not self.binary:  # SIFT's compute rebuilds its scale space: one call is cheaper
             return self._detect_and_compute(image)
-        if self._detector is None:
-            return self._fast_brief(image, same_scene)
+        if self._pattern is not None:
+            return self._compiled(image, self._pattern, same_scene)
         keypoints = self._orb_corners(image, same_scene)
         if not keypoints:
             return self._empty()
         points = cv2.KeyPoint_convert(keypoints).astype(float)
         response = np.fromiter(map(_RESPONSE, keypoints), float, len(keypoints))
-        keep = self._select(points, response, image.shape)
-        if len(keep) < len(keypoints):
-            keypoints = [keypoints[i] for i in keep]
-            points, response = points[keep], response[keep]
-        return self._describe(image, keypoints, points, response)
+        raster = np.lexsort((points[:, 0], points[:, 1]))
+        # The grid sees the corners in raster order; ORB describes them in its own order
+        # (grouped by pyramid level), and the result is put in raster order again.
+        keep = np.sort(raster[self._select(points[raster], response[raster], image.shape)])
+        keypoints = [keypoints[i] for i in keep]
+        features = self._describe(image, keypoints, points[keep], response[keep])
+        order = np.lexsort((features.points[:, 0], features.points[:, 1]))
+        return Features(
+            features.points[order], features.descriptors[order], features.response[order], True
+        )
 
     def _fast_corners(
         self, image: np.ndarray, same_scene: bool
@@ -182,6 +215,8 @@ class FeatureDetector:
         configured threshold. ``same_scene`` (the right image of the pair) reuses the guess.
         """
         base = self.config.fast_threshold
+        if not self.config.adaptive_fast_threshold:
+            return fast_corners(image, base, CORNER_BORDER)
         if not same_scene:
             self._raised_threshold = base if self._last_cut is None else max(
                 base, min(self._last_cut - FAST_CUT_MARGIN, 254)
@@ -196,7 +231,7 @@ class FeatureDetector:
             self._last_cut = int(np.partition(score, -wanted)[-wanted]) if surplus else None
         return xs, ys, score
 
-    def _fast_brief(self, image: np.ndarray, same_scene: bool = False) -> Features:
+    def _compiled(self, image: np.ndarray, pattern: np.ndarray, same_scene: bool) -> Features:
         """ORB's selection on arrays: FAST-9 corners, the ``2 n`` best by FAST score, the
         ``n`` best of those by Harris, the grid's share of them; angles and descriptors only
         for the corners kept (n = ``max_features`` x ``detection_oversampling``)."""
@@ -214,7 +249,8 @@ class FeatureDetector:
         keep = self._select(points, response, image.shape)
         if len(keep) < len(xs):
             xs, ys, points, response = xs[keep], ys[keep], points[keep], response[keep]
-        descriptors = describe(smoothed(image), xs, ys, orientation(image, xs, ys))
+        angle = orientation(image, xs, ys)
+        descriptors = describe(smoothed(image), xs, ys, angle, pattern)
         return Features(points, descriptors, response, True)
 
     def _orb_corners(self, image: np.ndarray, same_scene: bool = False) -> list:
