@@ -8,7 +8,7 @@ from evo.core import metrics
 from evo.core.trajectory import PoseTrajectory3D
 from scipy.spatial.transform import Rotation
 
-from estimator.evaluation.metrics import eq20_errors, evaluate_trajectory
+from estimator.evaluation.metrics import eq20_errors, evaluate_trajectory, similarity_scale
 from estimator.formats.datasets import GroundTruth
 from estimator.geometry import invert_pose, kabsch, make_pose
 
@@ -163,3 +163,14 @@ def test_bad_input_is_rejected():
     broken[3, 0, 3] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         evaluate_trajectory(timestamps, broken, ground_truth)
+
+
+@pytest.mark.parametrize("shrink", [0.98, 1.0, 1.03])
+def test_similarity_scale_recovers_a_shrunk_path_in_another_world_frame(shrink: float) -> None:
+    timestamps, poses = _circle()
+    estimate = poses.copy()
+    estimate[:, :3, 3] *= shrink
+    offset = make_pose(Rotation.from_rotvec([0.2, 0.1, -0.7]).as_matrix(), [3.0, 1.0, -2.0])
+    scale = similarity_scale(timestamps, offset @ estimate, poses)
+    assert scale == pytest.approx(1.0 / shrink, rel=1e-9)
+

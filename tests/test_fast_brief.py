@@ -251,8 +251,8 @@ def _assert_same_features(a, b) -> None:
 
 @pytest.mark.parametrize("shape", [(480, 752), (376, 1241)])
 def test_compiled_orb_gives_opencvs_features(shape: tuple[int, int]) -> None:
-    """The default detector runs compiled and gives what OpenCV's ORB gives, in raster
-    order, image after image (the adaptive thresholds of both at work on wide images)."""
+    """The default detector runs compiled and gives what OpenCV's ORB gives, strongest
+    first, image after image (the adaptive thresholds of both at work on wide images)."""
     config = FrontendConfig(max_features=600 if shape[1] > 1000 else 1200)
     compiled, reference = FeatureDetector(config), FeatureDetector(config, opencv_orb=True)
     assert compiled.compiled and not reference.compiled
@@ -264,8 +264,9 @@ def test_compiled_orb_gives_opencvs_features(shape: tuple[int, int]) -> None:
         ours, theirs = compiled.detect(image, same_scene), reference.detect(image, same_scene)
         assert len(ours) == config.max_features
         _assert_same_features(ours, theirs)
-        raster = list(zip(ours.points[:, 1].tolist(), ours.points[:, 0].tolist(), strict=True))
-        assert raster == sorted(raster)
+        order = list(zip((-ours.response).tolist(), ours.points[:, 1].tolist(),
+                         ours.points[:, 0].tolist(), strict=True))  # fmt: skip
+        assert order == sorted(order)  # strongest first, ties by row, then column
 
 
 def test_opencvs_orb_runs_for_pyramids_and_fast_brief_keeps_orbs_corners() -> None:

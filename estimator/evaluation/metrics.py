@@ -49,6 +49,7 @@ __all__ = [
     "evaluate_trajectory",
     "kitti_segment_errors",
     "path_length",
+    "similarity_scale",
 ]
 
 MIN_PATH_FOR_PCT_M = 1.0
@@ -80,6 +81,23 @@ def camera_ground_truth(
 
 def path_length(poses: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
+
+
+def similarity_scale(
+    timestamps_ns: np.ndarray, estimate: np.ndarray, reference: np.ndarray
+) -> float:
+    """Scale of the Sim(3) Umeyama fit of the estimate's positions onto the reference's (evo):
+    above 1 when the estimated path is too short.
+
+    A stereo rig's metric scale comes from its calibrated baseline (and focal length), which
+    the ATE after an SE(3) alignment cannot tell apart from other errors; a scale away from 1
+    in every run and every estimator points at the calibration, or at the reference.
+    """
+    aligned = _evo_trajectory(np.asarray(timestamps_ns), np.asarray(estimate))
+    _, _, scale = aligned.align(
+        _evo_trajectory(np.asarray(timestamps_ns), np.asarray(reference)), correct_scale=True
+    )
+    return float(scale)
 
 
 def relative_to_first(poses: np.ndarray) -> np.ndarray:

@@ -1,8 +1,9 @@
 """FAST-9 corners and their Harris score as compiled kernels with array output.
 
-The ``fast-brief`` detector (features.py) finds the corners ORB finds on one pyramid level, but
-returns arrays instead of one Python object per corner: on a 752 x 480 EuRoC image the objects
-of ~2 000 candidates cost about as much as finding them (docs/performance.md).
+The compiled detector (features.py: ORB on one pyramid level, and ``fast-brief``) finds the
+corners OpenCV's ORB finds, but returns arrays instead of one Python object per corner: on a
+752 x 480 EuRoC image the objects of ~2 000 candidates cost about as much as finding them
+(docs/performance.md).
 
 FAST-9: a pixel p is a corner when 9 contiguous pixels of the 16 on the radius-3 Bresenham
 circle are all brighter than p + t or all darker than p - t. Its score is the largest t for

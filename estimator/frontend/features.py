@@ -176,10 +176,11 @@ class FeatureDetector:
         ORB corners are detected first and bucketed, and descriptors are computed only for
         the kept ones: describing the over-sampled candidates that the grid drops is work
         thrown away (docs/performance.md). Points and descriptors are identical to those of a
-        joint detect-and-compute call. ORB's corners come in raster order (by row, then
+        joint detect-and-compute call. ORB's corners come strongest first (ties by row, then
         column) from either implementation, not in the order OpenCV's selection happens to
-        leave them, so that both give the same features. ``same_scene``: the other image of
-        the pair just detected, whose adaptive FAST threshold is reused.
+        leave them, so that both give the same features; the tie rules of the matching
+        further on then favour the stronger corner (docs/frontend.md). ``same_scene``: the
+        other image of the pair just detected, whose adaptive FAST threshold is reused.
         """
         if not self.binary:  # SIFT's compute rebuilds its scale space: one call is cheaper
             return self._detect_and_compute(image)
@@ -191,15 +192,11 @@ class FeatureDetector:
         points = cv2.KeyPoint_convert(keypoints).astype(float)
         response = np.fromiter(map(_RESPONSE, keypoints), float, len(keypoints))
         raster = np.lexsort((points[:, 0], points[:, 1]))
-        # The grid sees the corners in raster order; ORB describes them in its own order
-        # (grouped by pyramid level), and the result is put in raster order again.
+        # The grid sees the corners in raster order, as the compiled detector's; ORB describes
+        # them in its own order (grouped by pyramid level).
         keep = np.sort(raster[self._select(points[raster], response[raster], image.shape)])
         keypoints = [keypoints[i] for i in keep]
-        features = self._describe(image, keypoints, points[keep], response[keep])
-        order = np.lexsort((features.points[:, 0], features.points[:, 1]))
-        return Features(
-            features.points[order], features.descriptors[order], features.response[order], True
-        )
+        return _strongest_first(self._describe(image, keypoints, points[keep], response[keep]))
 
     def _fast_corners(
         self, image: np.ndarray, same_scene: bool
@@ -251,7 +248,7 @@ class FeatureDetector:
             xs, ys, points, response = xs[keep], ys[keep], points[keep], response[keep]
         angle = orientation(image, xs, ys)
         descriptors = describe(smoothed(image), xs, ys, angle, pattern)
-        return Features(points, descriptors, response, True)
+        return _strongest_first(Features(points, descriptors, response, True))
 
     def _orb_corners(self, image: np.ndarray, same_scene: bool = False) -> list:
         """ORB's corners, found at the adaptive FAST threshold when there is one.
@@ -306,6 +303,16 @@ class FeatureDetector:
         width = 32 if self.binary else 128
         dtype = np.uint8 if self.binary else np.float32
         return Features(np.zeros((0, 2)), np.zeros((0, width), dtype), np.zeros(0), self.binary)
+
+
+def _strongest_first(features: Features) -> Features:
+    """The features by decreasing corner response, equal responses by row, then column: an
+    order that does not depend on the implementation and puts no part of the image first."""
+    points = features.points
+    order = np.lexsort((points[:, 0], points[:, 1], -features.response))
+    return Features(
+        points[order], features.descriptors[order], features.response[order], features.binary
+    )
 
 
 def _best(values: np.ndarray, count: int) -> np.ndarray:
