@@ -11,7 +11,9 @@ vision alone and fused, four estimators) and the clip's IMU and ground truth
 * per run: the ATE at 0 (= the headline), with the ground-truth positions read later or
   earlier (best shift), with a lever arm of the camera in the body frame fitted, with both;
 * per run, held out: each correction fitted on one half of the frames and applied to the
-  other half (a correction that belongs to the reference carries over).
+  other half (a correction that belongs to the reference carries over);
+* per run: the scale of the Sim(3) fit onto the ground truth, on the whole run and on each
+  half (above 1: the estimated path is too short; the rig's calibration sets the scale).
 
     python benchmarks/ground_truth_timing.py [--results DIR] [--data SEQUENCE] [--out DIR]
 
@@ -32,6 +34,7 @@ import numpy as np
 
 from estimator.evaluation import ground_truth_checks as checks
 from estimator.evaluation.ground_truth_checks import CorrectionKind
+from estimator.evaluation.metrics import camera_ground_truth, similarity_scale
 from estimator.formats.datasets import Sequence, open_sequence
 from estimator.formats.trajectory_io import read_tum
 
@@ -146,6 +149,20 @@ def run_check(sequence: Sequence, folder: Path) -> dict[str, Any]:
     return result
 
 
+def scale_check(sequence: Sequence, folder: Path) -> dict[str, float]:
+    """Sim(3) scale of the run onto the ground truth: whole run, first and second half."""
+    stamps, poses = read_run(folder)
+    covered = sequence.ground_truth.covers(stamps)
+    stamps, poses = stamps[covered], poses[covered]
+    truth = camera_ground_truth(sequence.ground_truth, stamps, sequence.rig.left.T_BS)
+    half = len(stamps) // 2
+    parts = {"all": slice(None), "first_half": slice(0, half), "second_half": slice(half, None)}
+    return {
+        name: similarity_scale(stamps[part], poses[part], truth[part])
+        for name, part in parts.items()
+    }
+
+
 def compute(results: Path, data: Path) -> dict[str, Any]:
     sequence = open_clip(data)
     folders = {run_name(e, m): results / run_name(e, m) for m in MODES for e in ESTIMATORS}
@@ -168,6 +185,7 @@ def compute(results: Path, data: Path) -> dict[str, Any]:
             if name.endswith("_vision")
         },
         "runs": {name: run_check(sequence, path) for name, path in present.items()},
+        "scale": {name: scale_check(sequence, path) for name, path in present.items()},
     }
 
 
@@ -220,6 +238,19 @@ def markdown(result: dict[str, Any]) -> str:
     for name, run in result["runs"].items():
         cells = [_held_out(run[kind.value]["held_out"], kind) for kind in CorrectionKind]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "Scale of the Sim(3) fit of each run onto the ground truth (above 1: the estimated "
+        "path is too short; a stereo rig's scale comes from its calibration):",
+        "",
+        "| run | whole run | first half | second half |",
+        "|---|---|---|---|",
+    ]
+    for name, scale in result["scale"].items():
+        lines.append(
+            f"| {name} | {scale['all']:.4f} | {scale['first_half']:.4f} | "
+            f"{scale['second_half']:.4f} |"
+        )
     return "\n".join(lines) + "\n"
 
 

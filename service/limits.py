@@ -46,7 +46,7 @@ CONFIG_BOUNDS: tuple[Bound, ...] = (
 )
 
 # SIFT costs about 16x ORB per EuRoC frame (440 ms against 27 ms): not offered on shared workers.
-# fast-brief costs less than ORB (docs/performance.md).
+# ORB on one level and fast-brief run the same compiled kernels (docs/performance.md).
 ALLOWED_DETECTORS = ("orb", "fast-brief")
 
 # registration.options of each estimator that scale its work (other options are checked by the
