@@ -11,30 +11,17 @@ from estimator.formats.calibration import StereoRig
 from estimator.frontend.features import FeatureDetector
 from estimator.frontend.photometric import normalise_contrast
 from estimator.frontend.stereo import StereoMatcher, StereoPoints
-from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel, flow
-from estimator.frontend.temporal import PredictionUncertainty
+from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel
 from estimator.frontend.tracks import Tracker
 from estimator.geometry import invert_pose, nearest_rigid
-from estimator.odometry.chains import (
-    Measured,
-    combine_chain,
-    inverse_covariance,
-    link_bias_covariance,
-)
+from estimator.odometry.combination import ChainCombination, chains_through_previous
 from estimator.odometry.estimation import PoseEstimation
-from estimator.odometry.frames import (
-    Estimate,
-    Reference,
-    checked_pose,
-    failed,
-    sensitivities_of,
-    stage,
-    to_grey8,
-)
+from estimator.odometry.frames import CurrentFrame, Estimate, checked_pose, failed, stage, to_grey8
 from estimator.odometry.gyro_prediction import GyroPrediction
 from estimator.odometry.measurements import CameraFrames, Measurement
+from estimator.odometry.observation import MeasurementObserver
 from estimator.odometry.references import References
-from estimator.rig_settings import common_rotation_bias
+from estimator.odometry.tracking import Tracking
 from estimator.types import (
     FrameReport,
     FrameStatus,
@@ -60,7 +47,9 @@ class Odometry:
         imu_noise: ImuNoise | None = None,
         initial_pose: np.ndarray | None = None,
         first_index: int = 0,
+        observer: MeasurementObserver | None = None,
     ) -> None:
+        """``observer``, when given, sees every measurement the frames make (observation.py)."""
         self.rig = rig
         self.config = config if config is not None else SwarmvoConfig()
         self.rectification = rig.rectification
@@ -89,24 +78,16 @@ class Odometry:
                 frontend.pixel_sigma_u_px, frontend.pixel_sigma_v_px, frontend.disparity_sigma_px
             ),
         )
-        self._fuse_previous_frame = self._chain_through_previous()
-        common = frontend.chain_common_rotation_bias
-        self._common_rate = common if common is not None else common_rotation_bias(rig).value
-        chains = self._fuse_previous_frame or frontend.fuse_previous_keyframe
-        self._estimation = PoseEstimation(self.config, self.rectification, self.noise, chains)
-
-    def _chain_through_previous(self) -> bool:
-        """``frontend.fuse_previous_frame``; unset, on only when no IMU is fused.
-
-        Vision alone the chain through the previous frame lowers MH_01's rotation error per
-        frame by a fifth; with the IMU the back end already smooths the rotation, and the
-        chain's errors, shared by consecutive combined measurements, cost fused ATE
-        (docs/frontend.md, "Tracking against a keyframe").
-        """
-        configured = self.config.frontend.fuse_previous_frame
-        if configured is not None:
-            return configured
-        return not (self._backend is not None and self._backend.use_imu)
+        imu_fused = self._backend is not None and self._backend.use_imu
+        through_previous = chains_through_previous(frontend, imu_fused)
+        chains = through_previous or frontend.fuse_previous_keyframe
+        self._estimation = PoseEstimation(
+            self.config, self.rectification, self.noise, chains, observer
+        )
+        self._chains = ChainCombination(
+            frontend, rig, self._estimation, self._references, through_previous
+        )
+        self._tracking = Tracking(self._estimation, self._references, self._chains)
 
     def _gyro_prediction(self) -> GyroPrediction | None:
         """The gyro's rotation for the per-point search windows (``frontend.gyro_prediction``).
@@ -137,7 +118,7 @@ class Odometry:
     def fuses_previous_frame(self) -> bool:
         """Whether each frame is also measured through the previous frame
         (``frontend.fuse_previous_frame``, its default resolved by the IMU's presence)."""
-        return self._fuse_previous_frame
+        return self._chains.through_previous
 
     @property
     def reference_index(self) -> int | None:
@@ -201,7 +182,8 @@ class Odometry:
             if self._references.reference is None:
                 estimate = Estimate(None, None, "")
             else:
-                estimate = self._track(points, left, timings)
+                current = CurrentFrame(self._index, int(frame.timestamp_ns), points, left, timings)
+                estimate = self._tracking.track(current)
             previous_pose = self._pose
             frontend_pose, status, message = self._chain(estimate)
             relative_pose = invert_pose(previous_pose) @ frontend_pose
@@ -277,166 +259,6 @@ class Odometry:
         if not frontend.normalise_contrast:
             return image
         return normalise_contrast(image, frontend.normalised_mean, frontend.normalised_std)
-
-    def _track(
-        self, points: StereoPoints, image: np.ndarray, timings: dict[str, float]
-    ) -> Estimate:
-        """Relative pose against the keyframe; if that fails, against the previous good frame,
-        and then against the last failed frame that had points (its pose coasted). An estimate
-        far from the constant-velocity prediction counts as failed."""
-        references = self._references
-        keyframe, previous = references.reference, references.previous
-        fallback = references.fallback
-        assert keyframe is not None and previous is not None
-        assert self._last_timestamp_ns is not None
-        previous_ns = self._last_timestamp_ns - previous.timestamp_ns
-        since_previous = references.motion_over(previous_ns)
-        keyframe_prediction = references.reference_from_previous @ since_previous
-        estimate = self._estimate_against(
-            keyframe, keyframe_prediction, points, image, timings,
-            references.prediction_uncertainty(previous_ns),
-        )  # fmt: skip
-        estimate = self._estimation.plausible(estimate, keyframe_prediction, previous_ns)
-        if self._fuse_previous_frame or self.config.frontend.fuse_previous_keyframe:
-            estimate = self._with_other_references(estimate, points, image, timings)
-        retries = [(previous, since_previous, previous_ns, "the previous frame")]
-        if fallback is not None:
-            since_fallback = self._last_timestamp_ns - fallback.timestamp_ns
-            retries.append(
-                (fallback, references.motion_over(since_fallback), since_fallback,
-                 "the last frame with points")
-            )  # fmt: skip
-        for reference, prediction, span_ns, name in retries:
-            if estimate.reference_from_current is not None or reference is keyframe:
-                continue
-            retry = self._estimate_against(
-                reference, prediction, points, image, timings,
-                references.prediction_uncertainty(span_ns),
-            )  # fmt: skip
-            retry = self._estimation.plausible(retry, prediction, span_ns)
-            if retry.reference_from_current is not None:
-                retry.message = (
-                    f"keyframe {keyframe.index} not tracked ({estimate.message}); "
-                    f"tracked against {name}"
-                )
-                return retry
-        return estimate
-
-    def _with_other_references(
-        self, estimate: Estimate, points: StereoPoints, image: np.ndarray, timings: dict[str, float]
-    ) -> Estimate:
-        """The keyframe estimate combined with the chains through the previous frame and
-        through the keyframe before this one (estimator/odometry/chains.py)."""
-        references = self._references
-        keyframe, previous, older = references.reference, references.previous, references.older
-        combine_previous = (
-            self._fuse_previous_frame and previous is not keyframe and self._moving(estimate)
-        )
-        if previous is not None and combine_previous:
-            covariance = references.reference_from_previous_covariance
-            link = None
-            if covariance is not None:
-                link = Measured(
-                    references.reference_from_previous, covariance, *references.previous_sensitivity
-                )
-            estimate, _ = self._combined(estimate, previous, link, points, image, timings)
-        if older is not None and self.config.frontend.fuse_previous_keyframe:
-            to_older = invert_pose(references.older_from_reference)
-            covariance = inverse_covariance(
-                references.older_from_reference, references.older_from_reference_covariance
-            )
-            estimate, tracked = self._combined(
-                estimate, older, Measured(to_older, covariance), points, image, timings
-            )
-            if not tracked:
-                references.older = None  # out of view: not tried again
-        return estimate
-
-    def _combined(
-        self,
-        estimate: Estimate,
-        reference: Reference,
-        link: Measured | None,
-        points: StereoPoints,
-        image: np.ndarray,
-        timings: dict[str, float],
-    ) -> tuple[Estimate, bool]:
-        """``estimate`` (against the keyframe) combined with the chain keyframe -> ``reference``
-        -> current (``link`` = keyframe -> ``reference``), and whether ``reference`` was
-        tracked; the estimate is kept as it was when either part has no covariance."""
-        measured = estimate.reference_from_current
-        if measured is None or estimate.covariance is None or link is None:
-            return estimate, True
-        assert self._last_timestamp_ns is not None
-        prediction = invert_pose(link.pose) @ measured  # sharper than velocity
-        chained = self._estimate_against(reference, prediction, points, image, timings)
-        span_ns = self._last_timestamp_ns - reference.timestamp_ns
-        chained = self._estimation.plausible(chained, prediction, span_ns)
-        step = chained.reference_from_current
-        if step is None or chained.covariance is None:
-            return estimate, False
-        step_covariance = chained.covariance + self._link_bias(chained)
-        fused = combine_chain(
-            Measured(measured, estimate.covariance, *sensitivities_of(estimate)),
-            link,
-            Measured(step, step_covariance, *sensitivities_of(chained)),
-        )
-        if fused is not None:
-            # The same motion-proportional error that a link carries (``_link_bias``) is in
-            # the keyframe measurement too, and the blur of the current frame behind it errs
-            # both estimates alike: the combination cannot average it out. Its covariance is
-            # counted once on top of the combination's for the report and the back end; the
-            # next frame's link takes the combination's alone (its own bias is added then).
-            common = self._link_bias(estimate, self._common_rate)
-            estimate.reference_from_current = fused.pose
-            estimate.chain_covariance = fused.covariance
-            estimate.covariance = fused.covariance + common
-            estimate.sensitivity, estimate.reference_sensitivity = fused.current, fused.reference
-            estimate.reported_covariance = None  # the combination's is the one to report
-        return estimate, True
-
-    def _moving(self, estimate: Estimate) -> bool:
-        """Whether the keyframe measurement's inliers moved ``frontend.chain_min_flow_px`` or
-        more in the image (median): the chain through the previous frame pays only then."""
-        threshold = self.config.frontend.chain_min_flow_px
-        if threshold == 0.0:
-            return True
-        moved = self._inlier_flow(estimate)
-        return len(moved) > 0 and float(np.median(moved)) >= threshold
-
-    def _link_bias(self, chained: Estimate, rate: float | None = None) -> np.ndarray:
-        """Covariance of a measurement's rotation error that does not average out over its
-        points, from its inliers' image motion (``frontend.chain_link_rotation_bias``,
-        chains.py): for a chain link, and for the keyframe measurement it is combined with."""
-        if rate is None:
-            rate = self.config.frontend.chain_link_rotation_bias
-        if rate == 0.0:
-            return np.zeros((6, 6))
-        return link_bias_covariance(rate, self._inlier_flow(chained), self.rectification.fx)
-
-    def _inlier_flow(self, estimate: Estimate) -> np.ndarray:
-        """(N,) image motion (px) of the estimate's inliers; empty when it has none."""
-        if estimate.pairs is None or estimate.result is None:
-            return np.zeros(0)
-        inliers = estimate.result.inliers
-        pairs = estimate.pairs
-        return flow(
-            pairs.current_points[inliers], pairs.reference_points[inliers], self.rectification
-        )
-
-    def _estimate_against(
-        self,
-        reference: Reference,
-        predicted_reference_from_current: np.ndarray,
-        points: StereoPoints,
-        image: np.ndarray,
-        timings: dict[str, float],
-        uncertainty: PredictionUncertainty | None = None,
-    ) -> Estimate:
-        return self._estimation.against(
-            reference, predicted_reference_from_current, points, image, timings, self._index,
-            uncertainty,
-        )  # fmt: skip
 
     def _chain(self, estimate: Estimate) -> tuple[np.ndarray, FrameStatus, str]:
         """pose_k = pose_ref @ T_ref_cur (paper eq. 2), in the original left camera frame."""

@@ -10,17 +10,21 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from estimator.formats.calibration import Rectification
 from estimator.frontend.stereo import StereoPoints
+from estimator.frontend.stereo_noise import flow
 from estimator.frontend.temporal import Correspondences
 from estimator.odometry.chains import PointSensitivity
 from estimator.registration.registry import RegistrationResult
 
 __all__ = [
+    "CurrentFrame",
     "Estimate",
     "Reference",
     "checked_pose",
     "failed",
     "frame_seed",
+    "inlier_flow",
     "stage",
     "to_grey8",
 ]
@@ -74,6 +78,17 @@ class Reference:
 
 
 @dataclass
+class CurrentFrame:
+    """The frame being measured: what every measurement of it against a reference takes."""
+
+    index: int
+    timestamp_ns: int
+    points: StereoPoints
+    image: np.ndarray  # rectified left image
+    timings: dict[str, float]  # the frame report's stage timings, added to as it goes
+
+
+@dataclass
 class Estimate:
     """A relative pose of the current frame w.r.t. the reference, or why there is none."""
 
@@ -89,7 +104,7 @@ class Estimate:
     reported_covariance: np.ndarray | None = None
     # The covariance the next frame's chain link takes when it is not ``covariance``: the
     # combination's own, without this frame's common error, which ``covariance`` counts once
-    # (odometry/core.py, ``_combined``); None: ``covariance``.
+    # (odometry/combination.py, ``ChainCombination``); None: ``covariance``.
     chain_covariance: np.ndarray | None = None
     # (N, 3, 3) covariances of the current and reference points of ``pairs``.
     point_covariances: tuple[np.ndarray, np.ndarray] | None = None
@@ -110,6 +125,15 @@ def sensitivities_of(
     if pending is not None:
         pending()
     return estimate.sensitivity, estimate.reference_sensitivity
+
+
+def inlier_flow(estimate: Estimate, rectification: Rectification) -> np.ndarray:
+    """(N,) image motion (px) of the estimate's inliers; empty when it has none."""
+    if estimate.pairs is None or estimate.result is None:
+        return np.zeros(0)
+    inliers = estimate.result.inliers
+    pairs = estimate.pairs
+    return flow(pairs.current_points[inliers], pairs.reference_points[inliers], rectification)
 
 
 def failed(estimate: Estimate, reason: str) -> Estimate:
