@@ -601,13 +601,13 @@ def test_the_back_end_gets_the_keyframe_measurement_with_its_reference_and_point
     config = _config(backend={"enabled": True, "use_imu": False}, registration={"method": "msac"})
     odometry = Odometry(_rendered_rig(), config)
     calls: list[dict] = []
-    add_frame = odometry._backend.add_frame
+    add_frame = odometry._fusion.backend.add_frame
 
     def spy(timestamp_ns, **kwargs):
         calls.append({"timestamp_ns": timestamp_ns, **kwargs})
         return add_frame(timestamp_ns, **kwargs)
 
-    odometry._backend.add_frame = spy
+    odometry._fusion.backend.add_frame = spy
     black = StereoFrame(frames[6].timestamp_ns, *(np.zeros_like(frames[6].left),) * 2)
     reports = [odometry.process(frame) for frame in [*frames[:6], black, *frames[7:10]]]
     stamps = [frame.timestamp_ns for frame in frames]

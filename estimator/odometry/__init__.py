@@ -32,6 +32,8 @@ Modules, one job each:
   frame and the keyframe before (``chains``: the combination's math).
 - ``references``: the reference (keyframe) policy and the measured motion that predicts.
 - ``measurements``: a rectified estimate as the back end and the reports take it.
+- ``fusion_step``: the fuse step: the frame handed to the back end, its answer in the world.
+- ``gyro_prediction``: the gyro's rotation that centres the search windows.
 - ``observation``: the measurements of a frame as an optional observer sees them
   (evaluations, benchmarks).
 """

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -17,8 +17,9 @@ from estimator.geometry import invert_pose, nearest_rigid
 from estimator.odometry.combination import ChainCombination, chains_through_previous
 from estimator.odometry.estimation import PoseEstimation
 from estimator.odometry.frames import CurrentFrame, Estimate, checked_pose, failed, stage, to_grey8
+from estimator.odometry.fusion_step import FusionStep
 from estimator.odometry.gyro_prediction import GyroPrediction
-from estimator.odometry.measurements import CameraFrames, Measurement
+from estimator.odometry.measurements import CameraFrames
 from estimator.odometry.observation import MeasurementObserver
 from estimator.odometry.references import References
 from estimator.odometry.tracking import Tracking
@@ -30,9 +31,6 @@ from estimator.types import (
     StereoFrame,
     check_timestamp_order,
 )
-
-if TYPE_CHECKING:
-    from estimator.backend import FusedEstimate
 
 __all__ = ["Odometry"]
 
@@ -59,18 +57,14 @@ class Odometry:
         self._tracker = Tracker(self.config.frontend, self.rectification) if track_mode else None
         self._frames = CameraFrames(self.rectification.R_left, self.rectification)
         self._initial_pose = checked_pose(initial_pose) if initial_pose is not None else None
-        self._backend = self._make_backend(imu_noise) if self.config.backend.enabled else None
-        self._world_from_backend = np.eye(4)  # anchors the back end's world on initial_pose
         self._index = int(first_index) - 1
         self._count = 0
         self._last_timestamp_ns: int | None = None
         self._pose = self._initial_pose if self._initial_pose is not None else np.eye(4)
         self._references = References(self.config.frontend, self._gyro_prediction())
         self._frame_interval_ns = 0  # time since the previous frame
-        self._final_poses: tuple[tuple[int, np.ndarray], ...] = ()  # from the back end
         self._restored = False  # continued from state(): the first frame is predicted
         self._answered = self._pose  # the pose answered for the last frame (fused or not)
-        self._fused: FusedEstimate | None = None  # the back end's latest answer
         frontend = self.config.frontend
         self.noise = StereoNoiseModel(
             self.rectification,
@@ -78,7 +72,10 @@ class Odometry:
                 frontend.pixel_sigma_u_px, frontend.pixel_sigma_v_px, frontend.disparity_sigma_px
             ),
         )
-        imu_fused = self._backend is not None and self._backend.use_imu
+        self._fusion: FusionStep | None = None
+        if self.config.backend.enabled:
+            self._fusion = FusionStep(self.config.backend, rig, imu_noise, self._frames, self.noise)
+        imu_fused = self._fusion is not None and self._fusion.backend.use_imu
         through_previous = chains_through_previous(frontend, imu_fused)
         chains = through_previous or frontend.fuse_previous_keyframe
         self._estimation = PoseEstimation(
@@ -102,13 +99,6 @@ class Odometry:
             return None
         rect_from_body = self.rectification.R_left @ self.rig.left.T_BS[:3, :3].T
         return GyroPrediction(rect_from_body, np.radians(frontend.prediction_gyro_error_deg_s))
-
-    def _make_backend(self, imu_noise: ImuNoise | None):
-        from estimator.backend import FusionBackend  # GTSAM loads only when the back end runs
-
-        return FusionBackend(
-            self.config.backend, body_from_camera=self.rig.left.T_BS, imu_noise=imu_noise
-        )
 
     @property
     def frame_count(self) -> int:
@@ -148,7 +138,7 @@ class Odometry:
             "keyframe_pose": keyframe.tolist(),
             "motion": references.motion.tolist(),
             "motion_interval_ns": references.motion_interval_ns,
-            "backend": self._backend.state() if self._backend is not None else None,
+            "backend": self._fusion.backend.state() if self._fusion is not None else None,
         }
 
     def restore(self, state: dict[str, Any]) -> None:
@@ -161,8 +151,8 @@ class Odometry:
         self._initial_pose = self._pose
         self._references.motion = nearest_rigid(np.array(state["motion"], dtype=float))
         self._references.motion_interval_ns = max(int(state["motion_interval_ns"]), 1)
-        if self._backend is not None and state.get("backend"):
-            self._backend.restore(state["backend"])
+        if self._fusion is not None and state.get("backend"):
+            self._fusion.backend.restore(state["backend"])
         self._restored = True
 
     # ------------------------------------------------------------------ the algorithm
@@ -171,27 +161,18 @@ class Odometry:
         """Pose of the left camera at ``frame``; ``imu`` holds the samples since the last frame."""
         timings: dict[str, float] = {}
         with stage(timings, "total"):
-            left, right = self._validated(frame)
-            self._index += 1
-            self._count += 1
-            with stage(timings, "rectify"):
-                left, right = self.rectification.rectify(left, right)
-                left, right = self._normalised(left), self._normalised(right)
+            left, right = self._rectified(frame, timings)
             self._references.advance_gyro(imu, frame.timestamp_ns)
             points = self._stereo_points(left, right, timings)
-            if self._references.reference is None:
-                estimate = Estimate(None, None, "")
-            else:
-                current = CurrentFrame(self._index, int(frame.timestamp_ns), points, left, timings)
-                estimate = self._tracking.track(current)
+            current = CurrentFrame(self._index, int(frame.timestamp_ns), points, left, timings)
+            estimate = self._track(current)
             previous_pose = self._pose
             frontend_pose, status, message = self._chain(estimate)
             relative_pose = invert_pose(previous_pose) @ frontend_pose
             with stage(timings, "fuse"):
-                pose, status, message = self._fuse(
-                    frame, imu, frontend_pose, relative_pose, estimate, status, message
-                )
-            if self._fused is not None and self._fused.vision_rejected:
+                poses = (frontend_pose, relative_pose)
+                pose, status, message = self._fuse(frame, imu, poses, estimate, status, message)
+            if self._vision_rejected():
                 estimate = failed(estimate, "rejected by the back end's gate")
                 frontend_pose = self._chain(estimate)[0]
                 relative_pose = invert_pose(previous_pose) @ frontend_pose
@@ -210,16 +191,26 @@ class Odometry:
         With the back end, every frame's final estimate arrives once: in a later
         ``FrameReport.final_poses`` or here. Without it there is nothing to smooth.
         """
-        if self._backend is None:
-            return ()
-        return self._in_world(self._backend.flush())
-
-    def _in_world(
-        self, final_poses: tuple[tuple[int, np.ndarray], ...]
-    ) -> tuple[tuple[int, np.ndarray], ...]:
-        return tuple((stamp, self._world_from_backend @ pose) for stamp, pose in final_poses)
+        return self._fusion.finish() if self._fusion is not None else ()
 
     # ------------------------------------------------------------------ stages
+
+    def _rectified(
+        self, frame: StereoFrame, timings: dict[str, float]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The frame's images checked, rectified and normalised; the frame counts from here."""
+        left, right = self._validated(frame)
+        self._index += 1
+        self._count += 1
+        with stage(timings, "rectify"):
+            left, right = self.rectification.rectify(left, right)
+            return self._normalised(left), self._normalised(right)
+
+    def _track(self, current: CurrentFrame) -> Estimate:
+        """The frame's estimate against its references (none on the first frame)."""
+        if self._references.reference is None:
+            return Estimate(None, None, "")
+        return self._tracking.track(current)
 
     def _validated(self, frame: StereoFrame) -> tuple[np.ndarray, np.ndarray]:
         timestamp = int(frame.timestamp_ns)
@@ -290,43 +281,24 @@ class Odometry:
         self,
         frame: StereoFrame,
         imu: ImuBatch | None,
-        frontend_pose: np.ndarray,
-        relative_pose: np.ndarray,
+        poses: tuple[np.ndarray, np.ndarray],
         estimate: Estimate,
         status: FrameStatus,
         message: str,
     ) -> tuple[np.ndarray, FrameStatus, str]:
         """Back-end pose and status (the front-end ones when the back end is off)."""
-        if self._backend is None:
-            return frontend_pose, status, message
-        first = self._references.reference is None
-        if first:
-            measurement = Measurement(relative_pose=relative_pose)
-        elif estimate.reference_from_current is None:
-            measurement = Measurement()
-        else:
-            landmarks = self.config.backend.landmarks
-            noise = self._estimation.noise if landmarks else None
-            measurement = self._frames.measurement(estimate, noise)
-        fused = self._backend.add_frame(
-            int(frame.timestamp_ns),
-            relative_pose=measurement.relative_pose,
-            inlier_residuals=measurement.inlier_residuals,
-            inlier_count=measurement.inlier_count,
-            imu=imu,
-            reference_ns=measurement.reference_ns,
-            inlier_points=measurement.inlier_points,
-            covariance=measurement.covariance,
-            stereo=measurement.stereo,
+        if self._fusion is None:
+            return poses[0], status, message
+        first, anchored = self._references.reference is None, self._initial_pose is not None
+        pose, status, fused_message = self._fusion.add(
+            int(frame.timestamp_ns), imu, estimate, poses, first, anchored
         )
-        self._fused = fused
-        if first:
-            self._world_from_backend = frontend_pose @ invert_pose(fused.pose)
-            if self._initial_pose is None:
-                self._world_from_backend = np.eye(4)
-        self._final_poses = self._in_world(fused.final_poses)
-        text = "; ".join(part for part in (message, fused.message) if part)
-        return self._world_from_backend @ fused.pose, fused.status, text
+        return pose, status, "; ".join(part for part in (message, fused_message) if part)
+
+    def _vision_rejected(self) -> bool:
+        """Whether the back end's gate rejected this frame's vision."""
+        fused = self._fusion.fused if self._fusion is not None else None
+        return fused is not None and fused.vision_rejected
 
     def _report(
         self,
@@ -338,7 +310,9 @@ class Odometry:
         """The frame's report: the answer (pose, front-end pose, relative pose, status,
         message) with the estimate's matches, covariance and the back end's marginals."""
         pose, frontend_pose, relative_pose, status, message = answer
-        result, pairs, fused = estimate.result, estimate.pairs, self._fused
+        result, pairs = estimate.result, estimate.pairs
+        fused = self._fusion.fused if self._fusion is not None else None
+        final_poses = self._fusion.final_poses if self._fusion is not None else ()
         measured = estimate.reference_from_current is not None and estimate.reference is not None
         covariance = (
             self._frames.report_covariance(estimate, self.config.backend) if measured else None
@@ -355,7 +329,7 @@ class Odometry:
             support=int(result.support) if result is not None else 0,
             timings_s=timings,
             message=message,
-            final_poses=self._final_poses,
+            final_poses=final_poses,
             measurement_covariance=covariance,
             reference_timestamp_ns=estimate.reference.timestamp_ns if measured else None,
             body_covariance=fused.body_covariance if fused is not None else None,
