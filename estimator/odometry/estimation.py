@@ -65,7 +65,7 @@ class PoseEstimation:
     def observe(self, kind: MeasurementKind, estimate: Estimate, current: CurrentFrame) -> None:
         """Show the observer (if any) ``estimate`` as a measurement of ``kind``."""
         if self.observer is not None:
-            self.observer(observed(kind, estimate, current, self.rectification))
+            self.observer(observed(kind, estimate, current, self.noise))
 
     def against(
         self,

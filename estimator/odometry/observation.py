@@ -15,8 +15,8 @@ from enum import StrEnum
 
 import numpy as np
 
-from estimator.formats.calibration import Rectification
 from estimator.frontend.stereo import StereoPoints
+from estimator.frontend.stereo_noise import StereoNoiseModel
 from estimator.frontend.temporal import Correspondences
 from estimator.odometry.frames import CurrentFrame, Estimate, Reference, inlier_flow
 from estimator.odometry.measurements import CameraFrames
@@ -54,6 +54,9 @@ class ObservedMeasurement:
     inliers: np.ndarray | None  # (len(pairs),) bool; None: no registration result
     point_covariances: tuple[np.ndarray, np.ndarray] | None  # of pairs' current, reference
     inlier_flow_px: np.ndarray  # (N,) image motion of the inliers (empty: none)
+    # The stereo noise model's support gate (squared Mahalanobis) when it was made: the
+    # level it learns from the frame comes after all of the frame's measurements.
+    gate_chi2: float
 
 
 MeasurementObserver = Callable[[ObservedMeasurement], None]
@@ -63,10 +66,11 @@ def observed(
     kind: MeasurementKind,
     estimate: Estimate,
     current: CurrentFrame,
-    rectification: Rectification,
+    noise: StereoNoiseModel,
 ) -> ObservedMeasurement:
-    """The record of ``estimate`` (measured against ``estimate.reference``), copied where the
-    combination later replaces a part of it."""
+    """The record of ``estimate`` (measured against ``estimate.reference``) under the
+    session's ``noise``, copied where the combination later replaces a part of it."""
+    rectification = noise.rectification
     assert estimate.reference is not None
     pose = estimate.reference_from_current
     camera_pose = None
@@ -86,4 +90,5 @@ def observed(
         inliers=None if estimate.result is None else estimate.result.inliers,
         point_covariances=estimate.point_covariances,
         inlier_flow_px=inlier_flow(estimate, rectification),
+        gate_chi2=noise.gate_chi2,
     )
