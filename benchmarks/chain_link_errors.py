@@ -16,14 +16,10 @@ from the odometry's observer (``estimator/odometry/observation.py``).
 
 from __future__ import annotations
 
-import argparse
-import warnings
-from pathlib import Path
-
 import numpy as np
+from clip_args import clip_parser, open_clip
 
 from estimator.evaluation.metrics import camera_ground_truth
-from estimator.formats.datasets import open_sequence
 from estimator.odometry import MeasurementKind, MeasurementObserver, ObservedMeasurement
 from estimator.odometry.chains import pose_difference
 from estimator.pipeline import build_config, run_sequence
@@ -68,19 +64,11 @@ def _rows(kind: str, errors: np.ndarray, claimed: np.ndarray, motion: np.ndarray
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("dataset", type=Path)
+    parser = clip_parser(__doc__.splitlines()[0])
     parser.add_argument("--imu", action="store_true", help="fuse the IMU (the rendered bench)")
-    parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        try:
-            sequence = open_sequence(args.dataset)
-        except (OSError, ValueError) as error:
-            parser.error(f"cannot read {args.dataset}: {error}")
-    if sequence.ground_truth is None:
-        parser.error(f"{args.dataset} has no ground truth")
+    sequence = open_clip(parser, args.dataset)
+    assert sequence.ground_truth is not None
     config = build_config("pso-robust", args.seed, imu=args.imu, backend=True)
     config.frontend.fuse_previous_frame = True
     records: list[Record] = []

@@ -58,17 +58,7 @@ class FusionStep:
         world is placed on the front-end pose when ``anchored`` (an initial pose was given)."""
         frontend_pose, relative_pose = poses
         measurement = self._measurement(estimate, relative_pose, first)
-        fused = self.backend.add_frame(
-            timestamp_ns,
-            relative_pose=measurement.relative_pose,
-            inlier_residuals=measurement.inlier_residuals,
-            inlier_count=measurement.inlier_count,
-            imu=imu,
-            reference_ns=measurement.reference_ns,
-            inlier_points=measurement.inlier_points,
-            covariance=measurement.covariance,
-            stereo=measurement.stereo,
-        )
+        fused = self.backend.add_frame(timestamp_ns, imu=imu, **measurement.keywords())
         self.fused = fused
         if first:
             self.world_from_backend = frontend_pose @ invert_pose(fused.pose)

@@ -3,6 +3,8 @@ through other references, or when the keyframe is lost against the frames after 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from estimator.odometry.combination import ChainCombination
 from estimator.odometry.estimation import PoseEstimation
 from estimator.odometry.frames import CurrentFrame, Estimate, Reference
@@ -12,20 +14,15 @@ from estimator.odometry.references import References
 __all__ = ["Tracking"]
 
 
+@dataclass
 class Tracking:
     """Relative pose against the keyframe; if that fails, against the previous good frame,
     and then against the last failed frame that had points (its pose coasted). An estimate
     far from the constant-velocity prediction counts as failed."""
 
-    def __init__(
-        self,
-        estimation: PoseEstimation,
-        references: References,
-        combination: ChainCombination,
-    ) -> None:
-        self.estimation = estimation
-        self.references = references
-        self.combination = combination
+    estimation: PoseEstimation
+    references: References
+    combination: ChainCombination
 
     def track(self, current: CurrentFrame) -> Estimate:
         """The ``current`` frame's estimate against one of the references (a keyframe is set)."""
