@@ -34,6 +34,9 @@ from estimator.types import (
 
 __all__ = ["Odometry"]
 
+# A frame's answer: pose, front-end pose, relative pose (front end), status, message.
+Answer = tuple[np.ndarray, np.ndarray, np.ndarray, FrameStatus, str]
+
 
 class Odometry:
     """Stereo visual odometry with an optional GTSAM/IMU back end (``config.backend``)."""
@@ -166,23 +169,8 @@ class Odometry:
             points = self._stereo_points(left, right, timings)
             current = CurrentFrame(self._index, int(frame.timestamp_ns), points, left, timings)
             estimate = self._track(current)
-            previous_pose = self._pose
-            frontend_pose, status, message = self._chain(estimate)
-            relative_pose = invert_pose(previous_pose) @ frontend_pose
-            with stage(timings, "fuse"):
-                poses = (frontend_pose, relative_pose)
-                pose, status, message = self._fuse(frame, imu, poses, estimate, status, message)
-            if self._vision_rejected():
-                estimate = failed(estimate, "rejected by the back end's gate")
-                frontend_pose = self._chain(estimate)[0]
-                relative_pose = invert_pose(previous_pose) @ frontend_pose
-            self._estimation.measure_noise(estimate)
-            self._answered = pose
-            self._pose = frontend_pose
-            self._references.update(
-                self._index, points, left, frontend_pose, estimate, frame.timestamp_ns
-            )
-        answer = (pose, frontend_pose, relative_pose, status, message)
+            answer, estimate = self._answer(frame, imu, estimate, timings)
+            self._learn(frame, current, estimate, answer)
         return self._report(frame, answer, estimate, timings)
 
     def finish(self) -> tuple[tuple[int, np.ndarray], ...]:
@@ -194,6 +182,38 @@ class Odometry:
         return self._fusion.finish() if self._fusion is not None else ()
 
     # ------------------------------------------------------------------ stages
+
+    def _answer(
+        self,
+        frame: StereoFrame,
+        imu: ImuBatch | None,
+        estimate: Estimate,
+        timings: dict[str, float],
+    ) -> tuple[Answer, Estimate]:
+        """The frame's answer (pose, front-end pose, relative pose, status, message): the
+        estimate chained onto its reference and fused; the estimate as it counts afterwards
+        (failed when the back end's gate rejected it, and the front end coasts instead)."""
+        previous_pose = self._pose
+        frontend_pose, status, message = self._chain(estimate)
+        relative_pose = invert_pose(previous_pose) @ frontend_pose
+        with stage(timings, "fuse"):
+            poses = (frontend_pose, relative_pose)
+            pose, status, message = self._fuse(frame, imu, poses, estimate, status, message)
+        if self._vision_rejected():
+            estimate = failed(estimate, "rejected by the back end's gate")
+            frontend_pose = self._chain(estimate)[0]
+            relative_pose = invert_pose(previous_pose) @ frontend_pose
+        return (pose, frontend_pose, relative_pose, status, message), estimate
+
+    def _learn(
+        self, frame: StereoFrame, current: CurrentFrame, estimate: Estimate, answer: Answer
+    ) -> None:
+        """What the next frame starts from: the noise level, the poses and the references."""
+        self._estimation.measure_noise(estimate)
+        self._answered, self._pose = answer[0], answer[1]
+        self._references.update(
+            current.index, current.points, current.image, self._pose, estimate, frame.timestamp_ns
+        )
 
     def _rectified(
         self, frame: StereoFrame, timings: dict[str, float]
@@ -303,7 +323,7 @@ class Odometry:
     def _report(
         self,
         frame: StereoFrame,
-        answer: tuple[np.ndarray, np.ndarray, np.ndarray, FrameStatus, str],
+        answer: Answer,
         estimate: Estimate,
         timings: dict[str, float],
     ) -> FrameReport:
