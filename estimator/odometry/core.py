@@ -16,9 +16,9 @@ from estimator.frontend.tracks import Tracker
 from estimator.geometry import invert_pose, nearest_rigid
 from estimator.odometry.combination import ChainCombination, chains_through_previous
 from estimator.odometry.estimation import PoseEstimation
-from estimator.odometry.frames import CurrentFrame, Estimate, checked_pose, failed, stage, to_grey8
+from estimator.odometry.frames import CurrentFrame, Estimate, checked_pose, failed, grey_pair, stage
 from estimator.odometry.fusion_step import FusionStep
-from estimator.odometry.gyro_prediction import GyroPrediction
+from estimator.odometry.gyro_prediction import gyro_prediction_for
 from estimator.odometry.measurements import CameraFrames
 from estimator.odometry.observation import MeasurementObserver
 from estimator.odometry.references import References
@@ -64,7 +64,8 @@ class Odometry:
         self._count = 0
         self._last_timestamp_ns: int | None = None
         self._pose = self._initial_pose if self._initial_pose is not None else np.eye(4)
-        self._references = References(self.config.frontend, self._gyro_prediction())
+        gyro = gyro_prediction_for(rig, self.config.frontend)
+        self._references = References(self.config.frontend, gyro)
         self._frame_interval_ns = 0  # time since the previous frame
         self._restored = False  # continued from state(): the first frame is predicted
         self._answered = self._pose  # the pose answered for the last frame (fused or not)
@@ -88,20 +89,6 @@ class Odometry:
             frontend, rig, self._estimation, self._references, through_previous
         )
         self._tracking = Tracking(self._estimation, self._references, self._chains)
-
-    def _gyro_prediction(self) -> GyroPrediction | None:
-        """The gyro's rotation for the per-point search windows (``frontend.gyro_prediction``).
-
-        Only where the windows are per point (``min_search_radius_px`` set, the drives): with
-        one wide window for every point (EuRoC-like rigs) the constant-velocity centre is what
-        the window was sized for, and the gyro's centre moved the noisy rendered flight's fused
-        trajectory by a few per cent either way (docs/performance.md, "Driving rig").
-        """
-        frontend = self.config.frontend
-        if not frontend.gyro_prediction or frontend.min_search_radius_px is None:
-            return None
-        rect_from_body = self.rectification.R_left @ self.rig.left.T_BS[:3, :3].T
-        return GyroPrediction(rect_from_body, np.radians(frontend.prediction_gyro_error_deg_s))
 
     @property
     def frame_count(self) -> int:
@@ -235,15 +222,7 @@ class Odometry:
     def _validated(self, frame: StereoFrame) -> tuple[np.ndarray, np.ndarray]:
         timestamp = int(frame.timestamp_ns)
         check_timestamp_order(timestamp, self._last_timestamp_ns)
-        left = to_grey8(frame.left, "left image")
-        right = to_grey8(frame.right, "right image")
-        expected = (self.rig.left.height, self.rig.left.width)
-        for name, image in (("left", left), ("right", right)):
-            if image.shape != expected:
-                raise ValueError(
-                    f"{name} image is {image.shape[1]}x{image.shape[0]}, the calibration "
-                    f"expects {expected[1]}x{expected[0]}"
-                )
+        left, right = grey_pair(frame, (self.rig.left.height, self.rig.left.width))
         if self._last_timestamp_ns is not None:
             self._frame_interval_ns = timestamp - self._last_timestamp_ns
         self._last_timestamp_ns = timestamp

@@ -16,6 +16,7 @@ from estimator.frontend.stereo_noise import flow
 from estimator.frontend.temporal import Correspondences
 from estimator.odometry.chains import PointSensitivity
 from estimator.registration.registry import RegistrationResult
+from estimator.types import StereoFrame
 
 __all__ = [
     "CurrentFrame",
@@ -24,6 +25,7 @@ __all__ = [
     "checked_pose",
     "failed",
     "frame_seed",
+    "grey_pair",
     "inlier_flow",
     "stage",
     "to_grey8",
@@ -50,6 +52,20 @@ def to_grey8(image: np.ndarray, name: str = "image") -> np.ndarray:
     if image.dtype == np.uint16:
         image = (image.astype(np.uint32) * 255 + 32767) // 65535  # full range onto 0..255
     return np.ascontiguousarray(image, dtype=np.uint8)
+
+
+def grey_pair(frame: StereoFrame, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's left and right images as 8-bit grey; a clear error when one is not of the
+    calibration's ``shape`` (height, width)."""
+    left = to_grey8(frame.left, "left image")
+    right = to_grey8(frame.right, "right image")
+    for name, image in (("left", left), ("right", right)):
+        if image.shape != shape:
+            raise ValueError(
+                f"{name} image is {image.shape[1]}x{image.shape[0]}, the calibration "
+                f"expects {shape[1]}x{shape[0]}"
+            )
+    return left, right
 
 
 def checked_pose(pose: np.ndarray) -> np.ndarray:
