@@ -10,71 +10,41 @@ Where the ground truth has its own noise (EuRoC) the fit is an upper bound.
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/chain_link_errors.py DATASET [--imu]
 
-Prints a markdown table (nothing is written). It wraps two internal steps of ``Odometry`` to
-see the measurements before they are combined.
+Prints a markdown table (nothing is written). The measurements before they are combined come
+from the odometry's observer (``estimator/odometry/observation.py``).
 """
 
 from __future__ import annotations
 
-import argparse
-import warnings
-from collections.abc import Iterator
-from contextlib import contextmanager
-from pathlib import Path
-
 import numpy as np
+from clip_args import clip_parser, open_clip
 
 from estimator.evaluation.metrics import camera_ground_truth
-from estimator.formats.datasets import open_sequence
-from estimator.frontend.stereo_noise import flow
-from estimator.odometry import core
+from estimator.odometry import MeasurementKind, MeasurementObserver, ObservedMeasurement
 from estimator.odometry.chains import pose_difference
-from estimator.odometry.frames import Estimate
 from estimator.pipeline import build_config, run_sequence
 
 # (kind, frame index, reference timestamp, T_ref_cur of the left camera, 6x6 covariance, motion)
 Record = tuple[str, int, int, np.ndarray, np.ndarray, float]
 
 
-def _record(odometry: core.Odometry, kind: str, estimate: Estimate, out: list[Record]) -> None:
-    if estimate.reference_from_current is None or estimate.covariance is None:
-        return
-    assert estimate.pairs is not None and estimate.result is not None
-    assert estimate.reference is not None
-    inliers = estimate.result.inliers
-    moved = flow(
-        estimate.pairs.current_points[inliers],
-        estimate.pairs.reference_points[inliers],
-        odometry.rectification,
-    )
-    motion = float(np.median(moved)) / odometry.rectification.fx if len(moved) else np.nan
-    pose = odometry._frames.in_camera(estimate.reference_from_current)
-    reference_ns = int(estimate.reference.timestamp_ns)
-    out.append((kind, odometry._index, reference_ns, pose, estimate.covariance.copy(), motion))
+def _recorder(focal_px: float, records: list[Record]) -> MeasurementObserver:
+    """An observer that keeps every keyframe measurement and chain link, before combination."""
 
+    def record(measured: ObservedMeasurement) -> None:
+        if measured.kind is MeasurementKind.REGISTRATION:
+            return
+        pose, covariance = measured.camera_reference_from_current, measured.covariance
+        if pose is None or covariance is None:
+            return
+        moved = measured.inlier_flow_px
+        motion = float(np.median(moved)) / focal_px if len(moved) else np.nan
+        reference_ns = int(measured.reference.timestamp_ns)
+        records.append(
+            (measured.kind.value, measured.index, reference_ns, pose, covariance, motion)
+        )
 
-@contextmanager
-def _recording() -> Iterator[list[Record]]:
-    """Every keyframe measurement and chain link of the runs inside, before combination."""
-    records: list[Record] = []
-    link_bias, with_others = core.Odometry._link_bias, core.Odometry._with_other_references
-
-    def recorded_link(self, chained, rate=None):
-        if rate is None:  # a link's own bias; with a rate given, the keyframe's common term
-            _record(self, "link", chained, records)
-        return link_bias(self, chained, rate)
-
-    def recorded_keyframe(self, estimate, *args):
-        _record(self, "keyframe", estimate, records)
-        return with_others(self, estimate, *args)
-
-    core.Odometry._link_bias = recorded_link
-    core.Odometry._with_other_references = recorded_keyframe
-    try:
-        yield records
-    finally:
-        core.Odometry._link_bias = link_bias
-        core.Odometry._with_other_references = with_others
+    return record
 
 
 def _rows(kind: str, errors: np.ndarray, claimed: np.ndarray, motion: np.ndarray) -> list[str]:
@@ -94,23 +64,16 @@ def _rows(kind: str, errors: np.ndarray, claimed: np.ndarray, motion: np.ndarray
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("dataset", type=Path)
+    parser = clip_parser(__doc__.splitlines()[0])
     parser.add_argument("--imu", action="store_true", help="fuse the IMU (the rendered bench)")
-    parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        try:
-            sequence = open_sequence(args.dataset)
-        except (OSError, ValueError) as error:
-            parser.error(f"cannot read {args.dataset}: {error}")
-    if sequence.ground_truth is None:
-        parser.error(f"{args.dataset} has no ground truth")
+    sequence = open_clip(parser, args.dataset)
+    assert sequence.ground_truth is not None
     config = build_config("pso-robust", args.seed, imu=args.imu, backend=True)
     config.frontend.fuse_previous_frame = True
-    with _recording() as records:
-        run = run_sequence(sequence, config, use_imu=args.imu, progress=False)
+    records: list[Record] = []
+    observer = _recorder(sequence.rig.rectification.fx, records)
+    run = run_sequence(sequence, config, use_imu=args.imu, progress=False, observer=observer)
     truth = camera_ground_truth(sequence.ground_truth, run.timestamps_ns, sequence.rig.left.T_BS)
     position = {int(stamp): n for n, stamp in enumerate(run.timestamps_ns)}
     frame = {report.index: n for n, report in enumerate(run.reports)}

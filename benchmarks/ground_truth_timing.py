@@ -135,9 +135,10 @@ def run_check(sequence: Sequence, folder: Path) -> dict[str, Any]:
     scan = checks.ate_versus_shift(stamps, positions, truth, T_BS, shifts)
     result["ate_curve_mm"] = _mm(scan.values)
     result["shift_at_edge"] = scan.at_edge
+    run = checks.RunPositions(stamps, positions, truth, T_BS)
     for kind in CorrectionKind:
-        fit = checks.fit_correction(stamps, positions, truth, T_BS, kind, shifts)
-        held = checks.held_out_check(stamps, positions, truth, T_BS, kind, shifts)
+        fit = checks.fit_correction(run, kind, shifts)
+        held = checks.held_out_check(run, kind, shifts)
         result[kind.value] = {
             **_correction(fit),
             "held_out": {

@@ -13,15 +13,12 @@ Prints a markdown table (nothing is written).
 
 from __future__ import annotations
 
-import argparse
-import warnings
 from itertools import pairwise
-from pathlib import Path
 
 import numpy as np
+from clip_args import clip_parser, open_clip
 
 from estimator.evaluation.metrics import camera_ground_truth
-from estimator.formats.datasets import open_sequence
 from estimator.geometry import invert_pose, matrix_to_quat, quat_to_rotation_vector
 from estimator.pipeline import RunResult, build_config, run_sequence
 
@@ -61,16 +58,9 @@ def _rms(values: np.ndarray) -> float:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("dataset", type=Path)
-    parser.add_argument("--seed", type=int, default=0)
+    parser = clip_parser(__doc__.splitlines()[0])
     args = parser.parse_args()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        try:
-            sequence = open_sequence(args.dataset)
-        except (OSError, ValueError) as error:
-            parser.error(f"cannot read {args.dataset}: {error}")
+    sequence = open_clip(parser, args.dataset)
     print(
         "| fuse_previous_frame | frames: rot mdeg / trans mm RMS | keyframe steps | "
         "step rot RMS per axis mdeg | step rot mean per axis mdeg | step trans mean mm |"

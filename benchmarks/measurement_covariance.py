@@ -28,11 +28,11 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-import estimator.odometry.estimation as estimation
 from estimator.config import SwarmvoConfig
 from estimator.evaluation.consistency import measurement_nees
 from estimator.formats.datasets import open_sequence
 from estimator.geometry import invert_pose, make_pose
+from estimator.odometry import MeasurementKind, MeasurementObserver, ObservedMeasurement
 from estimator.pipeline import build_config, run_sequence
 from estimator.registration.refine import RefinementResult, refine_pose_mahalanobis
 
@@ -78,31 +78,30 @@ def run(path: Path, limit: int | None) -> None:
     assert sequence.ground_truth is not None
     rng = np.random.default_rng(0)
     split: dict[str, list] = {name: [] for name in MODELS}
-    original = estimation.PoseEstimation._refine
 
-    def recording(self, estimate, pairs):
-        """The refinement as configured, plus the split-half check of both covariances."""
-        estimate = original(self, estimate, pairs)
-        if estimate.covariance is None or estimate.result is None:
-            return estimate
-        pose, inliers = estimate.reference_from_current, estimate.result.inliers
-        halves = _split_half(pairs, inliers, estimate.point_covariances, pose, self.config, rng)
-        if inliers.sum() >= 40 and halves is not None:
-            difference = _difference(halves)
-            for name, key in MODELS.items():
-                total = getattr(halves[0], key) + getattr(halves[1], key)
-                split[name].append(_nees(difference, total))
-        return estimate
+    def recording(config: SwarmvoConfig) -> MeasurementObserver:
+        """The split-half check of both covariances on each refined registration."""
+
+        def check(measured: ObservedMeasurement) -> None:
+            if measured.kind is not MeasurementKind.REGISTRATION or measured.covariance is None:
+                return
+            pose, inliers, pairs = measured.reference_from_current, measured.inliers, measured.pairs
+            assert pose is not None and inliers is not None
+            halves = _split_half(pairs, inliers, measured.point_covariances, pose, config, rng)
+            if inliers.sum() >= 40 and halves is not None:
+                difference = _difference(halves)
+                for name, key in MODELS.items():
+                    total = getattr(halves[0], key) + getattr(halves[1], key)
+                    split[name].append(_nees(difference, total))
+
+        return check
 
     summaries = {}
     for name, setting in (("median-scaled", "median"), ("sandwich", "sandwich-reported")):
         base = SwarmvoConfig.model_validate({"registration": {"refine_covariance": setting}})
         config = build_config(backend=False, imu=False, base=base)
-        estimation.PoseEstimation._refine = recording if name == "sandwich" else original
-        try:
-            result = run_sequence(sequence, config, use_imu=False, limit=limit)
-        finally:
-            estimation.PoseEstimation._refine = original
+        observer = recording(config) if name == "sandwich" else None
+        result = run_sequence(sequence, config, use_imu=False, limit=limit, observer=observer)
         check = measurement_nees(result.reports, sequence.ground_truth, sequence.rig.left.T_BS)
         summaries[name] = check.summary()
     # The split-half check of both covariances is recorded on one run (the same halves).

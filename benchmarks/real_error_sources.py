@@ -34,10 +34,10 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from estimator import odometry as odometry_module
 from estimator.config import SwarmvoConfig
 from estimator.evaluation.metrics import camera_ground_truth
 from estimator.formats.datasets import open_sequence
+from estimator.odometry import MeasurementKind, ObservedMeasurement
 from estimator.pipeline import build_config, load_config, run_sequence
 from estimator.registration.refine import refine_pose_mahalanobis
 
@@ -67,25 +67,21 @@ def record(path: Path, config: SwarmvoConfig | None) -> tuple[list[tuple], objec
         warnings.simplefilter("ignore")
         sequence = open_sequence(path)
     raw: list[tuple] = []
-    original = odometry_module.Odometry._estimate_against
 
-    def recording(self, reference, prediction, points, image, timings, uncertainty=None):
-        estimate = original(self, reference, prediction, points, image, timings, uncertainty)
-        if estimate.reference_from_current is not None and estimate.pairs is not None:
-            mask = np.asarray(estimate.result.inliers)
-            cov_q, cov_p = estimate.point_covariances
-            raw.append(
-                (reference.timestamp_ns, self._last_timestamp_ns,
-                 estimate.pairs.current_points[mask], estimate.pairs.reference_points[mask],
-                 cov_q[mask], cov_p[mask], estimate.reference_from_current.copy())
-            )  # fmt: skip
-        return estimate
+    def recording(measured: ObservedMeasurement) -> None:
+        pose, pairs = measured.reference_from_current, measured.pairs
+        if measured.kind is not MeasurementKind.REGISTRATION or pose is None or pairs is None:
+            return
+        assert measured.inliers is not None and measured.point_covariances is not None
+        mask = np.asarray(measured.inliers)
+        cov_q, cov_p = measured.point_covariances
+        raw.append(
+            (measured.reference.timestamp_ns, measured.timestamp_ns,
+             pairs.current_points[mask], pairs.reference_points[mask],
+             cov_q[mask], cov_p[mask], pose)
+        )  # fmt: skip
 
-    odometry_module.Odometry._estimate_against = recording
-    try:
-        run_sequence(sequence, build_config(imu=False, base=config), use_imu=False)
-    finally:
-        odometry_module.Odometry._estimate_against = original
+    run_sequence(sequence, build_config(imu=False, base=config), use_imu=False, observer=recording)
     return raw, sequence
 
 

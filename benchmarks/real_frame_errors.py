@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator import odometry as odometry_module
 from estimator.evaluation.metrics import camera_ground_truth
 from estimator.formats.datasets import open_sequence
 from estimator.geometry import rotation_angle_deg
+from estimator.odometry import MeasurementKind, ObservedMeasurement
 from estimator.pipeline import build_config, run_sequence
 from estimator.registration.refine import refine_pose_mahalanobis
 from estimator.registration.registry import register
@@ -42,29 +42,26 @@ def record(path: Path) -> tuple[list[tuple], object]:
         warnings.simplefilter("ignore")
         sequence = open_sequence(path)
     problems: list[tuple] = []
-    original = odometry_module.Odometry._estimate_against
+    config = build_config(imu=False)
+    needed = config.frontend.min_matches
 
-    def recording(self, reference, prediction, points, image, timings, uncertainty=None):
-        estimate = original(self, reference, prediction, points, image, timings, uncertainty)
-        pairs = estimate.pairs
-        if pairs is not None and len(pairs) >= self.config.frontend.min_matches:
-            depth_sigma = np.hypot(
-                reference.points.depth_sigma[pairs.reference_index],
-                points.depth_sigma[pairs.current_index],
-            )
-            # The gate the estimate used (the noise model is updated after it).
-            problems.append(
-                (reference.timestamp_ns, self._last_timestamp_ns, pairs.current_points,
-                 pairs.reference_points, depth_sigma, estimate.point_covariances,
-                 self.noise.gate_chi2)
-            )  # fmt: skip
-        return estimate
+    def recording(measured: ObservedMeasurement) -> None:
+        pairs = measured.pairs
+        if measured.kind is not MeasurementKind.REGISTRATION or pairs is None:
+            return
+        if len(pairs) < needed:
+            return
+        depth_sigma = np.hypot(
+            measured.reference.points.depth_sigma[pairs.reference_index],
+            measured.points.depth_sigma[pairs.current_index],
+        )
+        problems.append(
+            (measured.reference.timestamp_ns, measured.timestamp_ns, pairs.current_points,
+             pairs.reference_points, depth_sigma, measured.point_covariances,
+             measured.gate_chi2)
+        )  # fmt: skip
 
-    odometry_module.Odometry._estimate_against = recording
-    try:
-        run_sequence(sequence, build_config(imu=False), use_imu=False)
-    finally:
-        odometry_module.Odometry._estimate_against = original
+    run_sequence(sequence, config, use_imu=False, observer=recording)
     return problems, sequence
 
 

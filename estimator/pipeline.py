@@ -37,6 +37,7 @@ from estimator.types import FrameReport, FrameStatus
 
 if TYPE_CHECKING:
     from estimator.formats.odometry_msg import OdometryMessage
+    from estimator.odometry.observation import MeasurementObserver
 
 # The --estimator choices: every registered estimator, the default first.
 ESTIMATORS: tuple[str, ...] = tuple(name.value for name in Estimator)
@@ -126,6 +127,7 @@ def run_sequence(
     progress: bool = False,
     strict: bool = False,
     rig_settings: bool = True,
+    observer: MeasurementObserver | None = None,
 ) -> RunResult:
     """Feed every frame (and the IMU samples since the previous frame) through ``Odometry``.
 
@@ -133,7 +135,8 @@ def run_sequence(
     back end can level its world with gravity. A frame whose image cannot be read is skipped
     with a warning (its IMU samples go to the next frame) unless ``strict``. With
     ``rig_settings`` the settings that follow from the rig and the frame rate are
-    derived first (explicitly set values win).
+    derived first (explicitly set values win). ``observer`` sees every measurement the
+    frames make (``estimator/odometry/observation.py``).
     """
     from estimator.odometry import Odometry  # the pipeline loads only when a run starts
 
@@ -146,7 +149,10 @@ def run_sequence(
     skipped_ns = _missing_pairs(sequence, count, strict)
     imu_available = use_imu and sequence.imu is not None
     odometry = Odometry(
-        sequence.rig, config, imu_noise=sequence.imu_noise if imu_available else None
+        sequence.rig,
+        config,
+        imu_noise=sequence.imu_noise if imu_available else None,
+        observer=observer,
     )
     reports: list[FrameReport] = []
     previous_ns: int | None = None
@@ -190,8 +196,7 @@ def _missing_pairs(sequence: Sequence, count: int, strict: bool) -> list[int]:
         missing = [stamp for stamp in missing if stamp < last_ns]
     if missing and strict:
         raise UnreadableImageError(
-            f"{len(missing)} stereo pair(s) listed without an image file "
-            f"(first at {missing[0]} ns)"
+            f"{len(missing)} stereo pair(s) listed without an image file (first at {missing[0]} ns)"
         )
     return missing
 
@@ -301,7 +306,10 @@ def odometry_messages(result: RunResult, calibrated: bool = True) -> list[Odomet
     )
     gyro = backend.enabled and backend.use_imu and result.sequence.imu is not None
     builder = OdometryBuilder(
-        result.sequence.rig.left.T_BS, backend, first_imu.accel, calibrated=calibrated,
+        result.sequence.rig.left.T_BS,
+        backend,
+        first_imu.accel,
+        calibrated=calibrated,
         gyro_calibrated=gyro and backend.covariance_scale != "off",
     )
     return [builder.build(report) for report in result.reports]
@@ -359,5 +367,3 @@ def write_outputs(result: RunResult, out: Path) -> dict[str, Any]:
         title=f"{result.sequence.name} - {result.config.registration.method}",
     )
     return summary
-
-

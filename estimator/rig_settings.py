@@ -24,8 +24,8 @@ interval, with constants chosen so that the real EuRoC rig (436 px after rectifi
   uncertainty and its depth, no narrower than ``NARROW_SEARCH_RADIUS_PX``
   (estimator/frontend/temporal.py). Rigs with EuRoC-like windows keep one window for all.
 - ``frontend.chain_common_rotation_bias``: the error a combined measurement cannot average out
-  (estimator/odometry/core.py, ``_combined``), per unit of image motion: 0.005 for a real rig
-  (MH_01's keyframe measurements), 0 for an exact one.
+  (estimator/odometry/combination.py, ``ChainCombination``), per unit of image motion: 0.005
+  for a real rig (MH_01's keyframe measurements), 0 for an exact one.
 - ``backend.calibration_rotation_gain`` / ``calibration_translation_gain``: the calibration
   error in the covariances reported without a gyro (``estimator.backend.systematic_noise``):
   1 % and 2 % of the motion for a real rig, 0 for one whose calibration declares itself exact

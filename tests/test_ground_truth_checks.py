@@ -188,9 +188,10 @@ def test_shift_and_lever_arm_together_are_both_recovered_and_carry_over() -> Non
     assert fit.shift_s == pytest.approx(7e-3, abs=0.3e-3)
     np.testing.assert_allclose(fit.lever_arm_m, LEVER_ARM, atol=1e-3)
     assert fit.ate_m < 0.7e-3
-    held = checks.held_out_check(stamps, positions, truth, T_BS, CorrectionKind.BOTH, shifts)
+    run = checks.RunPositions(stamps, positions, truth, T_BS)
+    held = checks.held_out_check(run, CorrectionKind.BOTH, shifts)
     assert all(c < 0.7e-3 < p for c, p in zip(held.ate_corrected_m, held.ate_plain_m, strict=True))
-    only_shift = checks.fit_correction(stamps, positions, truth, T_BS, CorrectionKind.SHIFT, shifts)
+    only_shift = checks.fit_correction(run, CorrectionKind.SHIFT, shifts)
     assert not np.any(only_shift.lever_arm_m) and only_shift.ate_m > fit.ate_m
 
 

@@ -26,7 +26,9 @@ from estimator.geometry import (
     scale_motion,
 )
 from estimator.odometry import Odometry, frame_seed, to_grey8
+from estimator.odometry.combination import ChainCombination, measurement_bias
 from estimator.odometry.frames import Estimate
+from estimator.odometry.observation import MeasurementKind, ObservedMeasurement
 from estimator.registration.result import RegistrationResult
 from estimator.rendered.camera import CAMERA, T_BS_CAM0
 from estimator.rendered.trajectory import loop_for_length
@@ -452,7 +454,7 @@ def test_the_chain_links_bias_is_its_rate_times_the_inliers_image_motion() -> No
     result = RegistrationResult(np.eye(3), np.zeros(3), np.array([1.0, 0, 0, 0]), inliers, 3,
                                 0.0, 1, 0.0, True)  # fmt: skip
     estimate = Estimate(np.eye(4), result, "", pairs)
-    covariance = odometry._link_bias(estimate)
+    covariance = odometry._chains.bias(estimate)  # at the configured rate
     sigma = 0.01 * (focal * 0.02 / depth) / focal  # median inlier flow 0.02 m at 4 m, in px
     np.testing.assert_allclose(np.diag(covariance)[:3], sigma**2, rtol=1e-9)
     assert not np.diag(covariance)[3:].any()
@@ -460,7 +462,7 @@ def test_the_chain_links_bias_is_its_rate_times_the_inliers_image_motion() -> No
 
 @pytest.mark.parametrize(("min_flow_px", "chained"), [(1.0, False), (0.0, True)])
 def test_at_rest_the_chain_through_the_previous_frame_is_left_out(
-    monkeypatch: pytest.MonkeyPatch, min_flow_px: float, chained: bool
+    min_flow_px: float, chained: bool
 ) -> None:
     """A camera at rest: the keyframe measurement alone is as good as the combination, which
     would nearly double the frame's matching and estimation (``frontend.chain_min_flow_px``);
@@ -470,18 +472,12 @@ def test_at_rest_the_chain_through_the_previous_frame_is_left_out(
         StereoFrame(1_000 + k * FRAME_NS, frames[0].left, frames[0].right) for k in range(6)
     ]
     config = _config(backend={"enabled": False}, frontend={"chain_min_flow_px": min_flow_px})
-    odometry = Odometry(_rendered_rig(), config)
-    calls = []
-    original = Odometry._combined
-
-    def counting(self, *args, **kwargs):
-        calls.append(1)
-        return original(self, *args, **kwargs)
-
-    monkeypatch.setattr(Odometry, "_combined", counting)
+    seen: list[ObservedMeasurement] = []
+    odometry = Odometry(_rendered_rig(), config, observer=seen.append)
     reports = _run(odometry, still)
     assert all(report.status == FrameStatus.OK for report in reports)
-    assert (len(calls) >= 3) is chained and (len(calls) == 0) is not chained
+    links = [m for m in seen if m.kind is MeasurementKind.LINK]
+    assert (len(links) >= 3) is chained and (len(links) == 0) is not chained
 
 
 @pytest.mark.parametrize(("exact", "configured", "expected"), [
@@ -496,7 +492,7 @@ def test_the_common_error_rate_follows_the_rigs_calibration(
     rig = dataclasses.replace(_rendered_rig(), calibration_exact=exact)
     frontend = {} if configured is None else {"chain_common_rotation_bias": configured}
     config = _config(backend={"enabled": False}, frontend=frontend)
-    assert Odometry(rig, config)._common_rate == expected
+    assert Odometry(rig, config)._chains.common_rate == expected
     derived, settings = apply_rig_settings(config, rig, 0.05)
     assert derived.frontend.chain_common_rotation_bias == expected
     (setting,) = [s for s in settings if s.name == "chain_common_rotation_bias"]
@@ -516,18 +512,18 @@ def test_the_combined_measurement_counts_the_common_error_once_and_the_link_not_
         _config(backend={"enabled": False}, frontend={"chain_common_rotation_bias": 0.005}),
     )
     assert odometry.fuses_previous_frame
-    original = Odometry._combined
+    original = ChainCombination._through
     combined: list[tuple[np.ndarray, object]] = []
 
     def recording(self, estimate, *args, **kwargs):
         # from the keyframe measurement's own inliers, at the rig's common rate
-        common = self._link_bias(estimate, self._common_rate)
+        common = measurement_bias(estimate, self.common_rate, self.rectification)
         result = original(self, estimate, *args, **kwargs)
         if estimate.chain_covariance is not None:
             combined.append((common, estimate))
         return result
 
-    monkeypatch.setattr(Odometry, "_combined", recording)
+    monkeypatch.setattr(ChainCombination, "_through", recording)
     links_checked = 0
     for frame in frames:
         odometry.process(frame)
@@ -605,13 +601,13 @@ def test_the_back_end_gets_the_keyframe_measurement_with_its_reference_and_point
     config = _config(backend={"enabled": True, "use_imu": False}, registration={"method": "msac"})
     odometry = Odometry(_rendered_rig(), config)
     calls: list[dict] = []
-    add_frame = odometry._backend.add_frame
+    add_frame = odometry._fusion.backend.add_frame
 
     def spy(timestamp_ns, **kwargs):
         calls.append({"timestamp_ns": timestamp_ns, **kwargs})
         return add_frame(timestamp_ns, **kwargs)
 
-    odometry._backend.add_frame = spy
+    odometry._fusion.backend.add_frame = spy
     black = StereoFrame(frames[6].timestamp_ns, *(np.zeros_like(frames[6].left),) * 2)
     reports = [odometry.process(frame) for frame in [*frames[:6], black, *frames[7:10]]]
     stamps = [frame.timestamp_ns for frame in frames]

@@ -18,16 +18,17 @@ WRONG_FRAME = 8
 def _corrupting(odometry: Odometry, wrong: np.ndarray) -> None:
     """Every estimate of frame ``WRONG_FRAME`` comes out composed with ``wrong``: the pose a
     fit with a flipped rotation or a bad match set would produce."""
-    original = odometry._estimate_against
+    estimation = odometry._estimation
+    original = estimation.against
 
-    def corrupted(*args, **kwargs):
-        estimate = original(*args, **kwargs)
-        if odometry._index == WRONG_FRAME and estimate.reference_from_current is not None:
+    def corrupted(reference, prediction, current, *args, **kwargs):
+        estimate = original(reference, prediction, current, *args, **kwargs)
+        if current.index == WRONG_FRAME and estimate.reference_from_current is not None:
             estimate.reference_from_current = estimate.reference_from_current @ wrong
             estimate.covariance = None  # the back end weighs the fit of the inliers instead
         return estimate
 
-    odometry._estimate_against = corrupted
+    estimation.against = corrupted
 
 
 def _run_watching_noise(odometry: Odometry, frames) -> tuple[list, list]:

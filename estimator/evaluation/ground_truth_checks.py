@@ -46,6 +46,7 @@ __all__ = [
     "Correction",
     "CorrectionKind",
     "HeldOutCheck",
+    "RunPositions",
     "ShiftScan",
     "accelerometer_ground_truth_offset",
     "aligned_ate",
@@ -435,26 +436,52 @@ def fit_shift_and_lever_arm(
     )
 
 
-def fit_correction(
-    timestamps_ns: np.ndarray,
-    estimate_positions: np.ndarray,
-    ground_truth: GroundTruth,
-    T_BS: np.ndarray,
-    kind: CorrectionKind,
-    shifts_s: np.ndarray,
-) -> Correction:
+@dataclass(frozen=True)
+class RunPositions:
+    """A run's camera positions at its frames' timestamps, with the ground truth and the
+    body -> camera transform they are checked against."""
+
+    timestamps_ns: np.ndarray  # (N,)
+    positions: np.ndarray  # (N, 3) estimated camera positions
+    ground_truth: GroundTruth
+    T_BS: np.ndarray  # body -> left camera
+
+    def covered_at(self, shifts_s: np.ndarray) -> RunPositions:
+        """The frames inside the ground truth at every shift of ``shifts_s``."""
+        covered = _covered_at_all_shifts(self.timestamps_ns, self.ground_truth, shifts_s)
+        stamps = np.asarray(self.timestamps_ns, dtype=np.int64)[covered]
+        positions = np.asarray(self.positions, dtype=float)[covered]
+        return RunPositions(stamps, positions, self.ground_truth, self.T_BS)
+
+    def halves(self) -> tuple[RunPositions, RunPositions]:
+        """The first and the second half of the frames."""
+        middle = len(self.timestamps_ns) // 2
+        return (
+            RunPositions(
+                self.timestamps_ns[:middle], self.positions[:middle], self.ground_truth, self.T_BS
+            ),
+            RunPositions(
+                self.timestamps_ns[middle:], self.positions[middle:], self.ground_truth, self.T_BS
+            ),
+        )
+
+    def corrected_ate(self, shift_s: float = 0.0, lever_arm_m: np.ndarray | None = None) -> float:
+        """:func:`corrected_ate` of this run (no correction: the plainly aligned ATE)."""
+        lever = np.zeros(3) if lever_arm_m is None else lever_arm_m
+        return corrected_ate(
+            self.timestamps_ns, self.positions, self.ground_truth, self.T_BS, shift_s, lever
+        )
+
+
+def fit_correction(run: RunPositions, kind: CorrectionKind, shifts_s: np.ndarray) -> Correction:
     """The best correction of one kind for a run; a shift is scanned over ``shifts_s``."""
+    stamps, positions, truth, T_BS = run.timestamps_ns, run.positions, run.ground_truth, run.T_BS
     if kind is CorrectionKind.LEVER_ARM:
-        return fit_lever_arm(timestamps_ns, estimate_positions, ground_truth, T_BS)
+        return fit_lever_arm(stamps, positions, truth, T_BS)
     if kind is CorrectionKind.BOTH:
-        return fit_shift_and_lever_arm(
-            timestamps_ns, estimate_positions, ground_truth, T_BS, shifts_s
-        )[1]
-    scan = ate_versus_shift(timestamps_ns, estimate_positions, ground_truth, T_BS, shifts_s)
-    ate = corrected_ate(
-        timestamps_ns, estimate_positions, ground_truth, T_BS, scan.best_shift_s, np.zeros(3)
-    )
-    return Correction(kind, scan.best_shift_s, np.zeros(3), ate)
+        return fit_shift_and_lever_arm(stamps, positions, truth, T_BS, shifts_s)[1]
+    scan = ate_versus_shift(stamps, positions, truth, T_BS, shifts_s)
+    return Correction(kind, scan.best_shift_s, np.zeros(3), run.corrected_ate(scan.best_shift_s))
 
 
 @dataclass(frozen=True)
@@ -486,25 +513,14 @@ def corrected_ate(
     return aligned_ate(np.asarray(estimate_positions, dtype=float), reference)
 
 
-def held_out_check(
-    timestamps_ns: np.ndarray,
-    estimate_positions: np.ndarray,
-    ground_truth: GroundTruth,
-    T_BS: np.ndarray,
-    kind: CorrectionKind,
-    shifts_s: np.ndarray,
-) -> HeldOutCheck:
+def held_out_check(run: RunPositions, kind: CorrectionKind, shifts_s: np.ndarray) -> HeldOutCheck:
     """``fit_correction`` on each half of the frames, scored on the other half."""
     shifts = np.asarray(shifts_s, dtype=float)
-    covered = _covered_at_all_shifts(timestamps_ns, ground_truth, shifts)
-    stamps = np.asarray(timestamps_ns, dtype=np.int64)[covered]
-    positions = np.asarray(estimate_positions, dtype=float)[covered]
-    middle = len(stamps) // 2
-    halves = ((stamps[:middle], positions[:middle]), (stamps[middle:], positions[middle:]))
-    first, second = (fit_correction(*half, ground_truth, T_BS, kind, shifts) for half in halves)
-    plain = [corrected_ate(*half, ground_truth, T_BS, 0.0, np.zeros(3)) for half in halves]
+    halves = run.covered_at(shifts).halves()
+    first, second = (fit_correction(half, kind, shifts) for half in halves)
+    plain = [half.corrected_ate() for half in halves]
     corrected = [
-        corrected_ate(*half, ground_truth, T_BS, fit.shift_s, fit.lever_arm_m)
+        half.corrected_ate(fit.shift_s, fit.lever_arm_m)
         for half, fit in zip(halves, (second, first), strict=True)
     ]
     return HeldOutCheck(kind, (plain[0], plain[1]), (corrected[0], corrected[1]), (first, second))

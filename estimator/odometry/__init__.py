@@ -24,13 +24,33 @@ end's (it bridges such frames with the IMU).
 Modules, one job each:
 
 - ``core``: :class:`Odometry`, whose ``process`` reads as the steps above.
-- ``frames``: input images and seeds, and the per-frame records (reference, estimate).
+- ``frames``: input images and seeds, and the per-frame records (current frame, reference,
+  estimate).
+- ``tracking``: the track step: against the keyframe, or the retries when it is lost.
 - ``estimation``: the estimate + refine step, its plausibility check and the noise update.
+- ``combination``: the keyframe measurement combined with the chains through the previous
+  frame and the keyframe before (``chains``: the combination's math).
 - ``references``: the reference (keyframe) policy and the measured motion that predicts.
 - ``measurements``: a rectified estimate as the back end and the reports take it.
+- ``fusion_step``: the fuse step: the frame handed to the back end, its answer in the world.
+- ``gyro_prediction``: the gyro's rotation that centres the search windows.
+- ``observation``: the measurements of a frame as an optional observer sees them
+  (evaluations, benchmarks).
 """
 
 from estimator.odometry.core import Odometry
 from estimator.odometry.frames import frame_seed, to_grey8
+from estimator.odometry.observation import (
+    MeasurementKind,
+    MeasurementObserver,
+    ObservedMeasurement,
+)
 
-__all__ = ["Odometry", "frame_seed", "to_grey8"]
+__all__ = [
+    "MeasurementKind",
+    "MeasurementObserver",
+    "ObservedMeasurement",
+    "Odometry",
+    "frame_seed",
+    "to_grey8",
+]

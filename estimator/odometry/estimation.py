@@ -9,13 +9,20 @@ import numpy as np
 
 from estimator.config import SwarmvoConfig
 from estimator.formats.calibration import Rectification
-from estimator.frontend.stereo import StereoPoints
 from estimator.frontend.stereo_noise import StereoNoiseModel
 from estimator.frontend.temporal import Correspondences, PredictionUncertainty, match_temporal
 from estimator.frontend.tracks import match_tracks
 from estimator.geometry import invert_pose, make_pose, rotation_angle_deg
 from estimator.odometry.chains import PointSensitivity
-from estimator.odometry.frames import Estimate, Reference, failed, frame_seed, stage
+from estimator.odometry.frames import (
+    CurrentFrame,
+    Estimate,
+    Reference,
+    failed,
+    frame_seed,
+    stage,
+)
+from estimator.odometry.observation import MeasurementKind, MeasurementObserver, observed
 from estimator.registration.refine import RefinementResult, refine_pose_mahalanobis
 from estimator.registration.registry import estimator_spec, register
 from estimator.registration.sensitivity import point_sensitivities
@@ -32,25 +39,44 @@ class PoseEstimation:
         rectification: Rectification,
         noise: StereoNoiseModel,
         sensitivities: bool = False,
+        observer: MeasurementObserver | None = None,
     ) -> None:
         self.config = config
         self.rectification = rectification
         self.noise = noise
         # The points' sensitivities, which only the chain combinations use (chains.py).
         self.sensitivities = sensitivities
+        self.observer = observer
+
+    def measured(
+        self,
+        reference: Reference,
+        prediction: np.ndarray,
+        current: CurrentFrame,
+        span_ns: int,
+        uncertainty: PredictionUncertainty | None = None,
+    ) -> Estimate:
+        """T_ref_cur of the ``current`` frame against ``reference``, failed when implausible
+        against ``prediction`` (extrapolated over ``span_ns``); the observer sees it first."""
+        estimate = self.against(reference, prediction, current, uncertainty)
+        self.observe(MeasurementKind.REGISTRATION, estimate, current)
+        return self.plausible(estimate, prediction, span_ns)
+
+    def observe(self, kind: MeasurementKind, estimate: Estimate, current: CurrentFrame) -> None:
+        """Show the observer (if any) ``estimate`` as a measurement of ``kind``."""
+        if self.observer is not None:
+            self.observer(observed(kind, estimate, current, self.noise))
 
     def against(
         self,
         reference: Reference,
         predicted_reference_from_current: np.ndarray,
-        points: StereoPoints,
-        image: np.ndarray,
-        timings: dict[str, float],
-        index: int,
+        current: CurrentFrame,
         uncertainty: PredictionUncertainty | None = None,
     ) -> Estimate:
-        """T_ref_cur of frame ``index`` (its ``points`` and rectified left ``image``);
-        ``uncertainty`` of the prediction sizes the search windows (None: a wide search)."""
+        """T_ref_cur of the ``current`` frame; ``uncertainty`` of the prediction sizes the
+        search windows (None: a wide search)."""
+        points, image, timings = current.points, current.image, current.timings
         with stage(timings, "temporal"):
             if self.config.frontend.mode == "track":
                 pairs = match_tracks(
@@ -72,7 +98,7 @@ class PoseEstimation:
                 self.noise.covariances(pairs.current_points),
                 self.noise.covariances(pairs.reference_points),
             )
-            estimate = self._estimate(pairs, covariances, index)
+            estimate = self._estimate(pairs, covariances, current.index)
             estimate.point_covariances = covariances
             if self.config.registration.mahalanobis_refine:
                 estimate = self._refine(estimate, pairs)

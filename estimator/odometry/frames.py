@@ -10,17 +10,23 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from estimator.formats.calibration import Rectification
 from estimator.frontend.stereo import StereoPoints
+from estimator.frontend.stereo_noise import flow
 from estimator.frontend.temporal import Correspondences
 from estimator.odometry.chains import PointSensitivity
 from estimator.registration.registry import RegistrationResult
+from estimator.types import StereoFrame
 
 __all__ = [
+    "CurrentFrame",
     "Estimate",
     "Reference",
     "checked_pose",
     "failed",
     "frame_seed",
+    "grey_pair",
+    "inlier_flow",
     "stage",
     "to_grey8",
 ]
@@ -46,6 +52,20 @@ def to_grey8(image: np.ndarray, name: str = "image") -> np.ndarray:
     if image.dtype == np.uint16:
         image = (image.astype(np.uint32) * 255 + 32767) // 65535  # full range onto 0..255
     return np.ascontiguousarray(image, dtype=np.uint8)
+
+
+def grey_pair(frame: StereoFrame, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's left and right images as 8-bit grey; a clear error when one is not of the
+    calibration's ``shape`` (height, width)."""
+    left = to_grey8(frame.left, "left image")
+    right = to_grey8(frame.right, "right image")
+    for name, image in (("left", left), ("right", right)):
+        if image.shape != shape:
+            raise ValueError(
+                f"{name} image is {image.shape[1]}x{image.shape[0]}, the calibration "
+                f"expects {shape[1]}x{shape[0]}"
+            )
+    return left, right
 
 
 def checked_pose(pose: np.ndarray) -> np.ndarray:
@@ -74,6 +94,17 @@ class Reference:
 
 
 @dataclass
+class CurrentFrame:
+    """The frame being measured: what every measurement of it against a reference takes."""
+
+    index: int
+    timestamp_ns: int
+    points: StereoPoints
+    image: np.ndarray  # rectified left image
+    timings: dict[str, float]  # the frame report's stage timings, added to as it goes
+
+
+@dataclass
 class Estimate:
     """A relative pose of the current frame w.r.t. the reference, or why there is none."""
 
@@ -89,7 +120,7 @@ class Estimate:
     reported_covariance: np.ndarray | None = None
     # The covariance the next frame's chain link takes when it is not ``covariance``: the
     # combination's own, without this frame's common error, which ``covariance`` counts once
-    # (odometry/core.py, ``_combined``); None: ``covariance``.
+    # (odometry/combination.py, ``ChainCombination``); None: ``covariance``.
     chain_covariance: np.ndarray | None = None
     # (N, 3, 3) covariances of the current and reference points of ``pairs``.
     point_covariances: tuple[np.ndarray, np.ndarray] | None = None
@@ -110,6 +141,15 @@ def sensitivities_of(
     if pending is not None:
         pending()
     return estimate.sensitivity, estimate.reference_sensitivity
+
+
+def inlier_flow(estimate: Estimate, rectification: Rectification) -> np.ndarray:
+    """(N,) image motion (px) of the estimate's inliers; empty when it has none."""
+    if estimate.pairs is None or estimate.result is None:
+        return np.zeros(0)
+    inliers = estimate.result.inliers
+    pairs = estimate.pairs
+    return flow(pairs.current_points[inliers], pairs.reference_points[inliers], rectification)
 
 
 def failed(estimate: Estimate, reason: str) -> Estimate:

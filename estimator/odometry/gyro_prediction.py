@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from estimator.config import FrontendConfig
+from estimator.formats.calibration import StereoRig
 from estimator.geometry import (
     matrix_to_quat,
     quat_multiply,
@@ -24,7 +26,7 @@ from estimator.geometry import (
 from estimator.imu_sampling import sample_segments, samples_cover
 from estimator.types import ImuBatch
 
-__all__ = ["GyroPrediction", "integrate_gyro"]
+__all__ = ["GyroPrediction", "gyro_prediction_for", "integrate_gyro"]
 
 # Learning rate of the bias from each frame's difference between the gyro and vision: vision's
 # rotation noise on one frame (a few 1e-5 rad) over 0.05-0.1 s is ~1e-3 rad/s, averaged over
@@ -115,3 +117,17 @@ class GyroPrediction:
         self.bias = self.bias + _BIAS_GAIN * rate_error
         angle = np.radians(rotation_angle_deg(measured.T @ gyro))
         self.error_rad_s = max(float(angle) / span_s, _LEVEL_DECAY * self.error_rad_s)
+
+
+def gyro_prediction_for(rig: StereoRig, frontend: FrontendConfig) -> GyroPrediction | None:
+    """The gyro's rotation for the per-point search windows (``frontend.gyro_prediction``).
+
+    Only where the windows are per point (``min_search_radius_px`` set, the drives): with
+    one wide window for every point (EuRoC-like rigs) the constant-velocity centre is what
+    the window was sized for, and the gyro's centre moved the noisy rendered flight's fused
+    trajectory by a few per cent either way (docs/performance.md, "Driving rig").
+    """
+    if not frontend.gyro_prediction or frontend.min_search_radius_px is None:
+        return None
+    rect_from_body = rig.rectification.R_left @ rig.left.T_BS[:3, :3].T
+    return GyroPrediction(rect_from_body, np.radians(frontend.prediction_gyro_error_deg_s))

@@ -3,8 +3,8 @@ camera frame, with its inlier points, residuals and covariance."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -31,6 +31,10 @@ class Measurement:
     inlier_points: np.ndarray | None = None
     covariance: np.ndarray | None = None
     stereo: StereoObservations | None = None  # the inliers' pixels, for stereo landmarks
+
+    def keywords(self) -> dict[str, Any]:
+        """The fields by name: ``FusionBackend.add_frame`` takes them as keywords."""
+        return {field.name: getattr(self, field.name) for field in fields(self)}
 
 
 class CameraFrames:
