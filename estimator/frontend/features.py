@@ -244,11 +244,12 @@ class FeatureDetector:
             return self._empty()
         points = np.column_stack((xs, ys)).astype(float)
         keep = self._select(points, response, image.shape)
-        if len(keep) < len(xs):
-            xs, ys, points, response = xs[keep], ys[keep], points[keep], response[keep]
+        # Kept in raster order: a stable sort by strength leaves equal ones by row, column.
+        keep = keep[np.argsort(-response[keep], kind="stable")]
+        xs, ys, points, response = xs[keep], ys[keep], points[keep], response[keep]
         angle = orientation(image, xs, ys)
         descriptors = describe(smoothed(image), xs, ys, angle, pattern)
-        return _strongest_first(Features(points, descriptors, response, True))
+        return Features(points, descriptors, response, True)
 
     def _orb_corners(self, image: np.ndarray, same_scene: bool = False) -> list:
         """ORB's corners, found at the adaptive FAST threshold when there is one.

@@ -17,6 +17,7 @@ __all__ = [
     "linearise_pairs",
     "scaled_condition",
     "score_outer_products",
+    "sensitivity_terms",
     "squared_distances",
 ]
 
@@ -244,3 +245,64 @@ def scaled_condition(hessian):
                 return np.inf
             scaled[i, j] = hessian[i, j] * scale[i] * scale[j]
     return np.linalg.cond(scaled)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _robust_weight(value, robust_code, scale):
+    """The IRLS weight of a pair with squared distance ``value`` (as ``linearise_pairs``)."""
+    if robust_code == 1:
+        return 1.0 / (1.0 + value / (scale * scale))
+    if robust_code == 2:
+        distance = np.sqrt(value)
+        return scale / max(distance, 1e-300) if distance > scale else 1.0
+    return 1.0
+
+
+@numba.njit(cache=True, nogil=True)
+def sensitivity_terms(
+    source, target, source_cov, target_cov, rotation, translation, robust_code, scale
+):
+    """The per-pair terms of the refined pose's point sensitivities (``sensitivity.py``):
+    (J_j^T W_j - [[W_j r_j']x; 0] (N, 6, 3), -J_j^T W_j R^T (N, 6, 3), H = sum J^T W J (6, 6),
+    regular), with W_j the robust-weighted information and J_j = [[s_j]x, -I]."""
+    count = source.shape[0]
+    own = np.zeros((count, 6, 3))
+    other = np.zeros((count, 6, 3))
+    hessian = np.zeros((6, 6))
+    residual = np.empty(3)
+    info = np.empty((3, 3))
+    for n in range(count):
+        if not _pair(source, target, source_cov, target_cov, rotation, translation, n,
+                     residual, info):  # fmt: skip
+            return own, other, hessian, False
+        weight = _robust_weight(_quadratic_form(info, residual), robust_code, scale)
+        s0, s1, s2 = source[n, 0], source[n, 1], source[n, 2]
+        for b in range(3):  # J^T W: rows [s]x^T W, then -W
+            w0, w1, w2 = info[0, b] * weight, info[1, b] * weight, info[2, b] * weight
+            own[n, 0, b] = s2 * w1 - s1 * w2
+            own[n, 1, b] = s0 * w2 - s2 * w0
+            own[n, 2, b] = s1 * w0 - s0 * w1
+            own[n, 3, b], own[n, 4, b], own[n, 5, b] = -w0, -w1, -w2
+        for a in range(6):
+            t0, t1, t2 = own[n, a, 0], own[n, a, 1], own[n, a, 2]
+            hessian[a, 0] += t1 * s2 - t2 * s1
+            hessian[a, 1] += t2 * s0 - t0 * s2
+            hessian[a, 2] += t0 * s1 - t1 * s0
+            hessian[a, 3] -= t0
+            hessian[a, 4] -= t1
+            hessian[a, 5] -= t2
+            for c in range(3):
+                other[n, a, c] = -(t0 * rotation[c, 0] + t1 * rotation[c, 1] + t2 * rotation[c, 2])
+        # J_j moves with source_j too: take [W_j r_j']x off the rotation rows.
+        r0, r1, r2 = residual[0], residual[1], residual[2]
+        p0 = weight * (info[0, 0] * r0 + info[0, 1] * r1 + info[0, 2] * r2)
+        p1 = weight * (info[1, 0] * r0 + info[1, 1] * r1 + info[1, 2] * r2)
+        p2 = weight * (info[2, 0] * r0 + info[2, 1] * r1 + info[2, 2] * r2)
+        own[n, 0, 1] += p2
+        own[n, 0, 2] -= p1
+        own[n, 1, 0] -= p2
+        own[n, 1, 2] += p0
+        own[n, 2, 0] += p1
+        own[n, 2, 1] -= p0
+    return own, other, hessian, True
+

@@ -16,20 +16,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimator.geometry import skew
 from estimator.registration.refine import Robust
+from estimator.registration.refine_kernels import ROBUST_CODES, sensitivity_terms
 
 __all__ = ["point_sensitivities"]
-
-
-def _robust_weights(squared: np.ndarray, robust: Robust, scale: float) -> np.ndarray:
-    """The IRLS weights the refinement used (``refine_kernels.linearise_pairs``)."""
-    if robust == "cauchy":
-        return 1.0 / (1.0 + squared / (scale * scale))
-    if robust == "huber":
-        distance = np.sqrt(squared)
-        return np.where(distance > scale, scale / np.maximum(distance, 1e-300), 1.0)
-    return np.ones_like(squared)
 
 
 def point_sensitivities(
@@ -48,34 +38,21 @@ def point_sensitivities(
     -H^-1 J_j^T W_j R^T.
 
     Sum_j K_j S_j K_j^T is the unscaled refinement covariance H^-1 without robust weights;
-    the source points' share of it is sum_j K_j C_src_j K_j^T.
+    the source points' share of it is sum_j K_j C_src_j K_j^T. The per-pair terms come from
+    one compiled pass (``refine_kernels.sensitivity_terms``).
     """
-    source = np.asarray(source, dtype=float)
-    residual = (np.asarray(target, dtype=float) - translation) @ rotation - source
-    combined = source_cov + np.einsum("ki,nkl,lj->nij", rotation, target_cov, rotation)
-    try:
-        information = np.linalg.inv(combined)
-    except np.linalg.LinAlgError:
+    arrays = (source, target, source_cov, target_cov, rotation)
+    data = [np.ascontiguousarray(array, dtype=float) for array in arrays]
+    own, other, hessian, regular = sensitivity_terms(
+        *data, np.ascontiguousarray(translation, dtype=float).reshape(3),
+        ROBUST_CODES[robust], float(robust_scale),
+    )  # fmt: skip
+    if not regular:
         return None
-    squared = np.einsum("ni,nij,nj->n", residual, information, residual)
-    weighted = information * _robust_weights(squared, robust, robust_scale)[:, None, None]
-    jacobian = np.zeros((len(source), 3, 6))
-    jacobian[:, :, :3] = skew(source)
-    jacobian[:, :, 3:] = -np.eye(3)
-    transposed = np.einsum("nki,nkj->nij", jacobian, weighted)  # (N, 6, 3) J^T W
-    hessian = np.einsum("nik,nkj->ij", transposed, jacobian)
-    target_side = -transposed @ rotation.T
-    # J_j depends on source_j too: d(J_j^T W_j r_j')/d source_j = -J_j^T W_j + [[W_j r_j']x; 0]
-    # (first order: a single pair's residual is not small, only their weighted sum vanishes).
-    pulled = np.einsum("nij,nj->ni", weighted, residual)
-    transposed[:, :3, :] -= skew(pulled)
     try:
         inverse = np.linalg.inv(hessian)
     except np.linalg.LinAlgError:
         return None
     if not np.isfinite(inverse).all():
         return None
-    return (
-        np.einsum("ij,njk->nik", inverse, transposed),
-        np.einsum("ij,njk->nik", inverse, target_side),
-    )
+    return inverse @ own, inverse @ other
