@@ -140,9 +140,9 @@ def shared_covariance(first: PointSensitivity, second: PointSensitivity) -> np.n
     _, mine, theirs = np.intersect1d(
         first.current_index, second.current_index, assume_unique=False, return_indices=True
     )
-    return np.einsum(
-        "nij,njk,nlk->il", first.gains[mine], first.covariances[mine], second.gains[theirs]
-    )
+    # sum_n K_n C_n K'_n^T: the per-point products stacked, then one contraction over n and k.
+    spread = first.gains[mine] @ first.covariances[mine]
+    return np.tensordot(spread, second.gains[theirs], axes=([0, 2], [0, 2]))
 
 
 def fuse_correlated(
@@ -176,7 +176,7 @@ def fuse_correlated(
 
 def transported(sensitivity: PointSensitivity, adjoint: np.ndarray) -> PointSensitivity:
     """The sensitivity of the perturbation ``adjoint`` @ xi (a pose moved on to another)."""
-    gains = np.einsum("ij,njk->nik", adjoint, sensitivity.gains)
+    gains = adjoint @ sensitivity.gains
     return PointSensitivity(sensitivity.current_index, gains, sensitivity.covariances)
 
 
@@ -189,7 +189,7 @@ def fused_sensitivity(
     covariances = np.zeros((len(index), 3, 3))
     for part, weight in ((first, np.eye(6) - gain), (second, gain)):
         position = np.searchsorted(index, part.current_index)
-        np.add.at(gains, position, np.einsum("ij,njk->nik", weight, part.gains))
+        np.add.at(gains, position, weight @ part.gains)
         covariances[position] = part.covariances
     return PointSensitivity(index, gains, covariances)
 
