@@ -311,3 +311,25 @@ def test_compiled_detector_without_the_adaptive_threshold_keeps_the_configured_o
         _assert_same_features(fixed.detect(image), adaptive.detect(image))
     assert fixed._raised_threshold == 12 and adaptive._raised_threshold > 12
 
+
+
+def test_an_opencv_whose_orb_cannot_be_reproduced_runs_opencvs_orb(monkeypatch, caplog) -> None:
+    """Should the measured tests or the check against OpenCV fail (another OpenCV build), the
+    detector says so once and runs OpenCV's ORB itself, with the same answers' shape."""
+
+    def refuse() -> np.ndarray:
+        raise steered_brief.OrbPatternError("probe failed")
+
+    monkeypatch.setattr(steered_brief, "measure_orb_pattern", refuse)
+    orb_pattern.cache_clear()
+    try:
+        with caplog.at_level("WARNING"):
+            detector = FeatureDetector(FrontendConfig())
+        assert not detector.compiled
+        assert "compiled ORB unavailable" in caplog.text
+        features = detector.detect(_texture((480, 752), 6, blur=1.2))
+        assert len(features) == FrontendConfig().max_features
+    finally:
+        monkeypatch.undo()
+        orb_pattern.cache_clear()
+    assert FeatureDetector(FrontendConfig()).compiled
