@@ -370,7 +370,7 @@ def detector_kernels() -> None:
     import cv2
 
     from estimator.config import FrontendConfig
-    from estimator.frontend.features import FeatureDetector
+    from estimator.frontend.detection import FeatureDetector
 
     noise = (np.random.default_rng(0).random((120, 160)) * 255).astype(np.uint8)
     image = cv2.GaussianBlur(noise, (0, 0), 1.2)

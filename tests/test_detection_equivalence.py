@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from estimator.config import FrontendConfig
+from estimator.frontend.detection import FeatureDetector
 from estimator.frontend.features import (
-    FeatureDetector,
     descriptor_distances,
     grid_select,
     match_candidates,

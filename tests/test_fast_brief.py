@@ -12,8 +12,8 @@ import pytest
 
 from estimator.config import FrontendConfig
 from estimator.frontend import steered_brief
+from estimator.frontend.detection import FeatureDetector
 from estimator.frontend.fast_kernels import CIRCLE, HARRIS_K, fast_corners, harris_response
-from estimator.frontend.features import FeatureDetector
 from estimator.frontend.orb_pattern import measure_orb_pattern
 from estimator.frontend.steered_brief import (
     PATCH_RADIUS,
@@ -296,7 +296,7 @@ def test_raised_threshold_keeps_the_same_corners() -> None:
     raised = 0
     for index, image in enumerate(root_images):
         features = running.detect(image, same_scene=index % 2 == 1)
-        raised += running._raised_threshold > config.fast_threshold
+        raised += running.compiled_orb.threshold > config.fast_threshold
         fresh = FeatureDetector(config).detect(image)
         np.testing.assert_array_equal(features.points, fresh.points)
         np.testing.assert_array_equal(features.descriptors, fresh.descriptors)
@@ -309,7 +309,7 @@ def test_compiled_detector_without_the_adaptive_threshold_keeps_the_configured_o
     adaptive = FeatureDetector(FrontendConfig(max_features=600))
     for _ in range(2):
         _assert_same_features(fixed.detect(image), adaptive.detect(image))
-    assert fixed._raised_threshold == 12 and adaptive._raised_threshold > 12
+    assert fixed.compiled_orb.threshold == 12 and adaptive.compiled_orb.threshold > 12
 
 
 

@@ -10,8 +10,8 @@ import pytest
 from estimator.config import FrontendConfig
 from estimator.formats.datasets import open_sequence
 from estimator.frontend import fast_threshold
+from estimator.frontend.detection import FeatureDetector
 from estimator.frontend.fast_threshold import COUNT_MARGIN, AdaptiveFastThreshold
-from estimator.frontend.features import FeatureDetector
 from estimator.rendered.synthetic import SynthOptions, synthesize
 
 

@@ -15,8 +15,8 @@ from hypothesis import strategies as st
 
 from estimator.config import FrontendConfig
 from estimator.formats.calibration import StereoRig
+from estimator.frontend.detection import FeatureDetector
 from estimator.frontend.features import (
-    FeatureDetector,
     Features,
     descriptor_distances,
     grid_select,

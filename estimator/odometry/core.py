@@ -8,7 +8,7 @@ import numpy as np
 
 from estimator.config import SwarmvoConfig
 from estimator.formats.calibration import StereoRig
-from estimator.frontend.features import FeatureDetector
+from estimator.frontend.detection import FeatureDetector
 from estimator.frontend.photometric import normalise_contrast
 from estimator.frontend.stereo import StereoMatcher, StereoPoints
 from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel
