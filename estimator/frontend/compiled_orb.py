@@ -16,7 +16,7 @@ import numpy as np
 
 from estimator.config import FrontendConfig
 from estimator.frontend.fast_kernels import fast_corners, harris_response
-from estimator.frontend.features import Features, empty_features
+from estimator.frontend.features import Features, empty_features, strongest_first
 from estimator.frontend.steered_brief import DESCRIPTOR_BORDER, describe, orientation, smoothed
 
 __all__ = ["CORNER_BORDER", "CompiledOrb", "best_indices"]
@@ -59,8 +59,7 @@ class CompiledOrb:
             return empty_features(True)
         points = np.column_stack((xs, ys)).astype(float)
         keep = self._select(points, response, image.shape)
-        # Kept in raster order: a stable sort by strength leaves equal ones by row, column.
-        keep = keep[np.argsort(-response[keep], kind="stable")]
+        keep = keep[strongest_first(points[keep], response[keep])]
         xs, ys, points, response = xs[keep], ys[keep], points[keep], response[keep]
         angle = orientation(image, xs, ys)
         descriptors = describe(smoothed(image), xs, ys, angle, self.pattern)

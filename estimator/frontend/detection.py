@@ -11,7 +11,7 @@ import numpy as np
 from estimator.config import FrontendConfig
 from estimator.frontend.compiled_orb import CompiledOrb
 from estimator.frontend.fast_threshold import AdaptiveFastThreshold
-from estimator.frontend.features import Features, empty_features, grid_select
+from estimator.frontend.features import Features, empty_features, grid_select, strongest_first
 from estimator.frontend.steered_brief import PATTERN, orb_pattern
 
 __all__ = ["FeatureDetector"]
@@ -85,7 +85,7 @@ class FeatureDetector:
             return self.compiled_orb.detect(image, same_scene)
         keypoints = self._orb_corners(image, same_scene)
         if not keypoints:
-            return self._empty()
+            return empty_features(self.binary)
         points = cv2.KeyPoint_convert(keypoints).astype(float)
         response = np.fromiter(map(_RESPONSE, keypoints), float, len(keypoints))
         raster = np.lexsort((points[:, 0], points[:, 1]))
@@ -119,7 +119,7 @@ class FeatureDetector:
         """ORB descriptors of the chosen keypoints (``points`` and ``response`` match them)."""
         described, descriptors = self._detector.compute(image, keypoints)
         if descriptors is None or len(described) == 0:
-            return self._empty()
+            return empty_features(self.binary)
         if len(described) != len(keypoints):  # dropped near the border: match by position
             kept = _described_index(points, cv2.KeyPoint_convert(described))
             points, response = points[kept], response[kept]
@@ -128,7 +128,7 @@ class FeatureDetector:
     def _detect_and_compute(self, image: np.ndarray) -> Features:
         keypoints, descriptors = self._detector.detectAndCompute(image, None)
         if not keypoints or descriptors is None:
-            return self._empty()
+            return empty_features(self.binary)
         points = cv2.KeyPoint_convert(keypoints).astype(float)
         response = np.fromiter(map(_RESPONSE, keypoints), float, len(keypoints))
         keep = self._select(points, response, image.shape)
@@ -144,18 +144,14 @@ class FeatureDetector:
             self.config.max_features,
         )
 
-    def _empty(self) -> Features:
-        return empty_features(self.binary)
-
 
 def _strongest_first(features: Features) -> Features:
-    """The features by decreasing corner response, equal responses by row, then column: an
-    order that does not depend on the implementation and puts no part of the image first."""
-    points = features.points
-    order = np.lexsort((points[:, 0], points[:, 1], -features.response))
+    """The features in ``strongest_first`` order (OpenCV's ORB leaves them in its own)."""
+    order = strongest_first(features.points, features.response)
     return Features(
-        points[order], features.descriptors[order], features.response[order], features.binary
-    )
+        features.points[order], features.descriptors[order], features.response[order],
+        features.binary,
+    )  # fmt: skip
 
 
 def _described_index(points: np.ndarray, described: np.ndarray) -> np.ndarray:

@@ -26,6 +26,7 @@ __all__ = [
     "empty_features",
     "grid_select",
     "match_candidates",
+    "strongest_first",
 ]
 
 
@@ -59,6 +60,13 @@ def empty_features(binary: bool) -> Features:
     width = 32 if binary else 128
     dtype = np.uint8 if binary else np.float32
     return Features(np.zeros((0, 2)), np.zeros((0, width), dtype), np.zeros(0), binary)
+
+
+def strongest_first(points: np.ndarray, response: np.ndarray) -> np.ndarray:
+    """Order of the points by decreasing response, equal responses by row, then column: an
+    order that does not depend on the detector's implementation and favours no part of the
+    image in the matching's tie rules."""
+    return np.lexsort((points[:, 0], points[:, 1], -response))
 
 
 def grid_select(

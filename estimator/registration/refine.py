@@ -35,6 +35,8 @@ from estimator.geometry import quat_to_matrix, rotation_vector_to_quat
 from estimator.order_statistics import median
 from estimator.registration.refine_kernels import (
     ROBUST_CODES,
+    kernel_pairs,
+    kernel_pose,
     linearise_pairs,
     scaled_condition,
     score_outer_products,
@@ -104,22 +106,11 @@ def squared_mahalanobis(
     and the noise model's check use the same distance as the refinement. Raises
     ``LinAlgError`` on a singular point covariance."""
     squared, regular = squared_distances(
-        *_pair_arrays(source, target, source_cov, target_cov), *_pose_arrays(rotation, translation)
+        *kernel_pairs(source, target, source_cov, target_cov), *kernel_pose(rotation, translation)
     )
     if not regular:
         raise np.linalg.LinAlgError("singular point covariance")
     return squared
-
-
-def _pair_arrays(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
-    return tuple(np.ascontiguousarray(array, dtype=float) for array in arrays)
-
-
-def _pose_arrays(rotation: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return (
-        np.ascontiguousarray(rotation, dtype=float),
-        np.ascontiguousarray(translation, dtype=float).reshape(3),
-    )
 
 
 def _linearise(
@@ -139,7 +130,7 @@ def _linearise(
     pass over the pairs (``refine_kernels.linearise_pairs``).
     """
     cost, hessian, gradient, squared, regular = linearise_pairs(
-        source, target, source_cov, target_cov, *_pose_arrays(rotation, translation),
+        source, target, source_cov, target_cov, *kernel_pose(rotation, translation),
         ROBUST_CODES[robust], float(scale),
     )  # fmt: skip
     if not regular:
@@ -256,7 +247,7 @@ def _sandwich_covariance(
     if count <= 2 * 6:
         return None  # too few pairs to measure a 6x6 spread
     meat, curvature, regular = score_outer_products(
-        *data, *_pose_arrays(rotation, translation), ROBUST_CODES[robust], float(robust_scale)
+        *data, *kernel_pose(rotation, translation), ROBUST_CODES[robust], float(robust_scale)
     )
     if not regular or not np.isfinite(meat).all():
         return None
@@ -316,7 +307,7 @@ def refine_pose_mahalanobis(
     arrays = (source, target, source_cov, target_cov, rotation, translation)
     if not all(np.isfinite(a).all() for a in arrays):
         return unchanged("non-finite input")
-    data = _pair_arrays(source, target, source_cov, target_cov)
+    data = kernel_pairs(source, target, source_cov, target_cov)
     try:
         current = _linearise(*data, rotation, translation, robust, robust_scale)
     except np.linalg.LinAlgError:

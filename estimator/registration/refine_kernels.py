@@ -14,6 +14,8 @@ import numpy as np
 
 __all__ = [
     "ROBUST_CODES",
+    "kernel_pairs",
+    "kernel_pose",
     "linearise_pairs",
     "scaled_condition",
     "score_outer_products",
@@ -22,6 +24,19 @@ __all__ = [
 ]
 
 ROBUST_CODES = {"none": 0, "cauchy": 1, "huber": 2}
+
+
+def kernel_pairs(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The pairs' points and covariances as the kernels take them: contiguous float64."""
+    return tuple(np.ascontiguousarray(array, dtype=float) for array in arrays)
+
+
+def kernel_pose(rotation: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A pose as the kernels take it: contiguous (3, 3) and (3,) float64."""
+    return (
+        np.ascontiguousarray(rotation, dtype=float),
+        np.ascontiguousarray(translation, dtype=float).reshape(3),
+    )
 
 # Where J = [[s]x, -I] is not a structural zero (row k, column j). The sums skip the zeros:
 # a running sum that starts at 0.0 is unchanged by adding +-0.0, so for finite data the result

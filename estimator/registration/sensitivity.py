@@ -17,7 +17,12 @@ from __future__ import annotations
 import numpy as np
 
 from estimator.registration.refine import Robust
-from estimator.registration.refine_kernels import ROBUST_CODES, sensitivity_terms
+from estimator.registration.refine_kernels import (
+    ROBUST_CODES,
+    kernel_pairs,
+    kernel_pose,
+    sensitivity_terms,
+)
 
 __all__ = ["point_sensitivities"]
 
@@ -41,11 +46,9 @@ def point_sensitivities(
     the source points' share of it is sum_j K_j C_src_j K_j^T. The per-pair terms come from
     one compiled pass (``refine_kernels.sensitivity_terms``).
     """
-    arrays = (source, target, source_cov, target_cov, rotation)
-    data = [np.ascontiguousarray(array, dtype=float) for array in arrays]
     own, other, hessian, regular = sensitivity_terms(
-        *data, np.ascontiguousarray(translation, dtype=float).reshape(3),
-        ROBUST_CODES[robust], float(robust_scale),
+        *kernel_pairs(source, target, source_cov, target_cov),
+        *kernel_pose(rotation, translation), ROBUST_CODES[robust], float(robust_scale),
     )  # fmt: skip
     if not regular:
         return None
