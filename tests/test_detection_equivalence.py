@@ -12,6 +12,7 @@ from estimator.frontend.features import (
     descriptor_distances,
     grid_select,
     match_candidates,
+    strongest_first,
 )
 from estimator.frontend.match_kernels import (
     as_words,
@@ -48,6 +49,22 @@ def test_grid_select_matches_the_lexsort_order_with_ties() -> None:
         expected = _lexsort_grid_select(points, response, (752, 480), (6, 8), 40)
         chosen = grid_select(points, response, (752, 480), (6, 8), 40)
         np.testing.assert_array_equal(chosen, expected)
+
+
+def test_strongest_first_orders_by_response_then_row_then_column() -> None:
+    rng = np.random.default_rng(5)
+    for raster in (True, False):
+        for _ in range(20):
+            count = int(rng.integers(2, 600))
+            cells = rng.choice(752 * 480, count, replace=False)
+            points = np.column_stack((cells % 752, cells // 752)).astype(float)
+            if raster:
+                points = points[np.lexsort((points[:, 0], points[:, 1]))]
+            response = np.round(rng.exponential(1.0, count), 1).astype(np.float32)  # ties
+            expected = sorted(
+                range(count), key=lambda i: (-response[i], points[i, 1], points[i, 0])
+            )
+            np.testing.assert_array_equal(strongest_first(points, response), expected)
 
 
 def _textured(seed: int) -> np.ndarray:

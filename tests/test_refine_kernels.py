@@ -9,7 +9,13 @@ import pytest
 
 from estimator.geometry import quat_to_matrix, rotation_vector_to_quat, skew
 from estimator.registration.refine import squared_mahalanobis
-from estimator.registration.refine_kernels import ROBUST_CODES, linearise_pairs, scaled_condition
+from estimator.registration.refine_kernels import (
+    ROBUST_CODES,
+    levenberg_marquardt,
+    linearise_pairs,
+    scaled_condition,
+    solve_pivoted,
+)
 
 
 def _reference(source, target, source_cov, target_cov, rotation, translation, kind, scale):
@@ -186,3 +192,63 @@ def test_the_scaled_condition_number_is_numpys() -> None:
     hessian = np.eye(6)
     hessian[1, 4] = np.nan
     assert scaled_condition(hessian) == np.inf
+
+
+def test_the_step_solver_equals_numpys_and_reports_a_singular_system() -> None:
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        root = rng.normal(size=(6, 6))
+        matrix = root @ root.T + 1e-3 * np.eye(6)
+        rhs = rng.normal(size=6)
+        solution, regular = solve_pivoted(matrix, rhs)
+        assert regular
+        np.testing.assert_allclose(solution, np.linalg.solve(matrix, rhs), rtol=1e-9, atol=1e-12)
+    singular = np.ones((6, 6))
+    assert not solve_pivoted(singular, np.ones(6))[1]
+    assert not solve_pivoted(np.full((6, 6), np.nan), np.ones(6))[1]
+
+
+def _numpy_levenberg_marquardt(data, rotation, translation, iterations, kind, scale):
+    """The damped loop written with NumPy calls: keep a step that does not raise the cost."""
+    code = ROBUST_CODES[kind]
+    cost, hessian, gradient, _, _ = linearise_pairs(*data, rotation, translation, code, scale)
+    damping, steps, rejected = 1e-4, 0, 0
+    while steps < iterations and rejected < 6:
+        step = np.linalg.solve(hessian + damping * np.diag(np.diag(hessian)), -gradient)
+        if np.linalg.norm(step) < 1e-6:
+            break
+        moved_r = rotation @ quat_to_matrix(rotation_vector_to_quat(step[:3]))
+        moved_t = translation + rotation @ step[3:]
+        moved = linearise_pairs(*data, moved_r, moved_t, code, scale)
+        if moved[0] <= cost:
+            rotation, translation, (cost, hessian, gradient) = moved_r, moved_t, moved[:3]
+            damping, steps = max(damping * 0.1, 1e-9), steps + 1
+        elif np.linalg.norm(step) < 1e-5:
+            break
+        else:
+            damping, rejected = damping * 10.0, rejected + 1
+    return rotation, translation, cost, steps
+
+
+@pytest.mark.parametrize("kind", ["cauchy", "huber", "none"])
+def test_the_compiled_loop_follows_the_numpy_loop(kind: str) -> None:
+    for count, seed in ((12, 4), (97, 5), (400, 6)):
+        source, target, source_cov, target_cov, rotation, translation = _pairs(count, seed)
+        data = (source, target, source_cov, target_cov)
+        start_r = rotation @ quat_to_matrix(rotation_vector_to_quat(np.array([0.02, -0.01, 0.03])))
+        start_t = translation + 0.05
+        code = ROBUST_CODES[kind]
+        first = linearise_pairs(*data, start_r, start_t, code, 2.0)
+        result = levenberg_marquardt(
+            *data, start_r, start_t, *first[:4], 8, code, 2.0, 6, 1e-6, 1e-5
+        )  # fmt: skip
+        expected = _numpy_levenberg_marquardt(data, start_r, start_t, 8, kind, 2.0)
+        assert result[6] == expected[3] > 0
+        assert result[2] == pytest.approx(expected[2], rel=1e-10)
+        assert result[2] < first[0]
+        np.testing.assert_allclose(result[0], expected[0], atol=1e-12)
+        np.testing.assert_allclose(result[1], expected[1], atol=1e-12)
+        # The returned linearisation is the one at the returned pose.
+        again = linearise_pairs(*data, result[0], result[1], code, 2.0)
+        assert again[0] == result[2]
+        np.testing.assert_array_equal(again[1], result[3])

@@ -65,8 +65,15 @@ def empty_features(binary: bool) -> Features:
 def strongest_first(points: np.ndarray, response: np.ndarray) -> np.ndarray:
     """Order of the points by decreasing response, equal responses by row, then column: an
     order that does not depend on the detector's implementation and favours no part of the
-    image in the matching's tie rules."""
-    return np.lexsort((points[:, 0], points[:, 1], -response))
+    image in the matching's tie rules.
+
+    Points already in raster order (the compiled detector's) need only a stable sort by
+    response, a quarter of the three-key sort's time."""
+    column, row = points[:, 0], points[:, 1]
+    row_step = np.diff(row)
+    if ((row_step > 0) | ((row_step == 0) & (np.diff(column) > 0))).all():
+        return np.argsort(-response, kind="stable")
+    return np.lexsort((column, row, -response))
 
 
 def grid_select(

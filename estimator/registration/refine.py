@@ -31,12 +31,12 @@ from typing import Literal
 
 import numpy as np
 
-from estimator.geometry import quat_to_matrix, rotation_vector_to_quat
 from estimator.order_statistics import median
 from estimator.registration.refine_kernels import (
     ROBUST_CODES,
     kernel_pairs,
     kernel_pose,
+    levenberg_marquardt,
     linearise_pairs,
     scaled_condition,
     score_outer_products,
@@ -150,38 +150,6 @@ def _checked(array: np.ndarray, shape: tuple[int, ...], name: str) -> np.ndarray
     return array
 
 
-def _solve_damped(linearisation: _Linearisation, damping: float) -> np.ndarray:
-    """The Levenberg-Marquardt step; all NaN when the damped system is singular, so the
-    caller treats it as a rejected step rather than an error."""
-    damped = linearisation.hessian.copy()
-    damped.flat[::7] += damping * damped.flat[::7]  # H + damping diag(H)
-    try:
-        return np.linalg.solve(damped, -linearisation.gradient)
-    except np.linalg.LinAlgError:
-        return np.full(6, np.nan)
-
-
-def _try_step(
-    data: tuple[np.ndarray, ...],
-    rotation: np.ndarray,
-    translation: np.ndarray,
-    step: np.ndarray,
-    robust: Robust,
-    robust_scale: float,
-) -> tuple[_Linearisation | None, np.ndarray, np.ndarray]:
-    """Apply ``step`` on the right and linearise there; None when the step or the moved
-    covariances are not usable."""
-    if not np.isfinite(step).all():
-        return None, rotation, translation
-    candidate_r = rotation @ quat_to_matrix(rotation_vector_to_quat(step[:3]))
-    candidate_t = translation + rotation @ step[3:]
-    try:
-        candidate = _linearise(*data, candidate_r, candidate_t, robust, robust_scale)
-    except np.linalg.LinAlgError:
-        return None, candidate_r, candidate_t
-    return candidate, candidate_r, candidate_t
-
-
 def _levenberg_marquardt(
     data: tuple[np.ndarray, ...],
     rotation: np.ndarray,
@@ -193,28 +161,16 @@ def _levenberg_marquardt(
 ) -> tuple[np.ndarray, np.ndarray, _Linearisation, int]:
     """Accept only steps that do not raise the cost; damp harder after each rejection.
 
-    Returns the estimate, its linearisation and the number of accepted steps.
+    One compiled loop (``refine_kernels.levenberg_marquardt``): a frame runs it a few times
+    over about a hundred pairs, where a step's dozen small array calls cost more than its
+    arithmetic. Returns the estimate, its linearisation and the number of accepted steps.
     """
-    estimate_r, estimate_t = rotation, translation
-    damping, steps, rejected = 1e-4, 0, 0
-    while steps < iterations and rejected < _MAX_DAMPING_TRIES:
-        step = _solve_damped(current, damping)
-        size = np.linalg.norm(step)
-        if size < _STEP_TOLERANCE:
-            break  # converged; evaluating a smaller step would only compare rounding errors
-        candidate, candidate_r, candidate_t = _try_step(
-            data, estimate_r, estimate_t, step, robust, robust_scale
-        )
-        if candidate is not None and candidate.cost <= current.cost:  # False for NaN
-            estimate_r, estimate_t, current = candidate_r, candidate_t, candidate
-            damping = max(damping * 0.1, 1e-9)
-            steps += 1
-        elif candidate is not None and size < _SETTLED_STEP:
-            break
-        else:
-            damping *= 10.0
-            rejected += 1
-    return estimate_r, estimate_t, current, steps
+    estimate_r, estimate_t, cost, hessian, gradient, squared, steps = levenberg_marquardt(
+        *data, *kernel_pose(rotation, translation), current.cost, current.hessian,
+        current.gradient, current.squared, int(iterations), ROBUST_CODES[robust],
+        float(robust_scale), _MAX_DAMPING_TRIES, _STEP_TOLERANCE, _SETTLED_STEP,
+    )  # fmt: skip
+    return estimate_r, estimate_t, _Linearisation(float(cost), hessian, gradient, squared), steps
 
 
 def _scaled_covariance(linearisation: _Linearisation) -> tuple[np.ndarray, float]:

@@ -16,10 +16,12 @@ __all__ = [
     "ROBUST_CODES",
     "kernel_pairs",
     "kernel_pose",
+    "levenberg_marquardt",
     "linearise_pairs",
     "scaled_condition",
     "score_outer_products",
     "sensitivity_terms",
+    "solve_pivoted",
     "squared_distances",
 ]
 
@@ -37,6 +39,7 @@ def kernel_pose(rotation: np.ndarray, translation: np.ndarray) -> tuple[np.ndarr
         np.ascontiguousarray(rotation, dtype=float),
         np.ascontiguousarray(translation, dtype=float).reshape(3),
     )
+
 
 # Where J = [[s]x, -I] is not a structural zero (row k, column j). The sums skip the zeros:
 # a running sum that starts at 0.0 is unchanged by adding +-0.0, so for finite data the result
@@ -321,3 +324,107 @@ def sensitivity_terms(
         own[n, 2, 1] -= p0
     return own, other, hessian, True
 
+
+@numba.njit(cache=True, nogil=True)
+def solve_pivoted(matrix, rhs):
+    """x with matrix x = rhs by Gaussian elimination with partial pivoting (what LAPACK's
+    gesv does), and whether every pivot was non-zero; the inputs are left as they were."""
+    a = matrix.copy()
+    x = rhs.copy()
+    size = x.shape[0]
+    for column in range(size):
+        pivot, largest = column, abs(a[column, column])
+        for row in range(column + 1, size):
+            if abs(a[row, column]) > largest:
+                pivot, largest = row, abs(a[row, column])
+        if not largest > 0.0:  # zero or NaN: no unique solution
+            return x, False
+        if pivot != column:
+            for k in range(size):
+                a[column, k], a[pivot, k] = a[pivot, k], a[column, k]
+            x[column], x[pivot] = x[pivot], x[column]
+        for row in range(column + 1, size):
+            factor = a[row, column] / a[column, column]
+            for k in range(column, size):
+                a[row, k] -= factor * a[column, k]
+            x[row] -= factor * x[column]
+    for row in range(size - 1, -1, -1):
+        total = x[row]
+        for k in range(row + 1, size):
+            total -= a[row, k] * x[k]
+        x[row] = total / a[row, row]
+    return x, True
+
+
+@numba.njit(cache=True, nogil=True)
+def _step_pose(rotation, translation, step):
+    """T Exp(step) with step = (omega, v), the right perturbation: R Exp(omega), t + R v
+    (the exponential map and the quaternion's matrix as ``geometry`` forms them)."""
+    x, y, z = step[0], step[1], step[2]
+    angle = np.sqrt(x * x + y * y + z * z)
+    half_sine = 0.5 - angle**2 / 48.0 if angle < 1e-8 else np.sin(0.5 * angle) / angle
+    w, x, y, z = np.cos(0.5 * angle), x * half_sine, y * half_sine, z * half_sine
+    norm = np.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w / norm, x / norm, y / norm, z / norm
+    turn = np.empty((3, 3))
+    turn[0, 0], turn[0, 1] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z)
+    turn[0, 2], turn[1, 0] = 2 * (x * z + w * y), 2 * (x * y + w * z)
+    turn[1, 1], turn[1, 2] = 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    turn[2, 0], turn[2, 1] = 2 * (x * z - w * y), 2 * (y * z + w * x)
+    turn[2, 2] = 1 - 2 * (x * x + y * y)
+    moved_r = np.empty((3, 3))
+    moved_t = np.empty(3)
+    for i in range(3):
+        for j in range(3):
+            total = 0.0
+            for k in range(3):
+                total += rotation[i, k] * turn[k, j]
+            moved_r[i, j] = total
+        total = 0.0
+        for k in range(3):
+            total += rotation[i, k] * step[3 + k]
+        moved_t[i] = translation[i] + total
+    return moved_r, moved_t
+
+
+@numba.njit(cache=True, nogil=True)
+def levenberg_marquardt(
+    source, target, source_cov, target_cov, rotation, translation, cost, hessian, gradient,
+    squared, iterations, robust_code, scale, max_rejections, step_tolerance, settled_step,
+):  # fmt: skip
+    """The refinement's damped Gauss-Newton loop (``refine._levenberg_marquardt``) from the
+    linearisation (cost, hessian, gradient, squared) at (rotation, translation).
+
+    A step is kept only when it does not raise the cost, and the damping grows tenfold after
+    each rejected one (at most ``max_rejections``); it stops when a step is shorter than
+    ``step_tolerance``, or rejected while shorter than ``settled_step``. Returns the pose, its
+    linearisation and the number of accepted steps.
+    """
+    estimate_r, estimate_t = rotation.copy(), translation.copy()
+    damping, steps, rejected = 1e-4, 0, 0
+    while steps < iterations and rejected < max_rejections:
+        damped = hessian.copy()
+        for i in range(6):
+            damped[i, i] += damping * damped[i, i]
+        step, regular = solve_pivoted(damped, -gradient)
+        size = np.sqrt(np.sum(step * step)) if regular else np.nan
+        if size < step_tolerance:
+            break  # converged; a smaller step would only compare rounding errors
+        usable = regular and np.isfinite(step).all()
+        if usable:
+            moved_r, moved_t = _step_pose(estimate_r, estimate_t, step)
+            moved = linearise_pairs(
+                source, target, source_cov, target_cov, moved_r, moved_t, robust_code, scale
+            )
+            usable = moved[4]
+            if usable and moved[0] <= cost:  # False for NaN
+                estimate_r, estimate_t = moved_r, moved_t
+                cost, hessian, gradient, squared = moved[0], moved[1], moved[2], moved[3]
+                damping = max(damping * 0.1, 1e-9)
+                steps += 1
+                continue
+        if usable and size < settled_step:
+            break
+        damping *= 10.0
+        rejected += 1
+    return estimate_r, estimate_t, cost, hessian, gradient, squared, steps
