@@ -26,6 +26,7 @@ from estimator.frontend.match_kernels import as_words, window_matches
 from estimator.frontend.patch_warp import local_affine, warped_templates
 from estimator.frontend.stereo import StereoPoints, triangulate
 from estimator.geometry import transform_points
+from estimator.order_statistics import median
 
 __all__ = [
     "Correspondences",
@@ -171,7 +172,7 @@ def _windows_missed(
     if len(matches) < config.keyframe_min_inliers:
         return True
     offsets = np.linalg.norm(current.pixels[matches.b] - expected[matches.a], axis=1)
-    return bool(np.median(offsets / radii[matches.a]) > WINDOW_MISS_FRACTION)
+    return median(offsets / radii[matches.a]) > WINDOW_MISS_FRACTION
 
 
 def _descriptor_matches(

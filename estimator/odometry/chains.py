@@ -33,6 +33,7 @@ from estimator.geometry import (
     se3_adjoint,
     transport_covariance,
 )
+from estimator.order_statistics import median
 
 __all__ = [
     "Measured",
@@ -97,7 +98,7 @@ def link_bias_covariance(rate: float, flow_px: np.ndarray, focal_px: float) -> n
     covariance = np.zeros((6, 6))
     if rate == 0.0 or len(flow_px) == 0:
         return covariance
-    sigma = rate * float(np.median(flow_px)) / focal_px
+    sigma = rate * median(flow_px) / focal_px
     covariance[:3, :3] = np.eye(3) * sigma**2
     return covariance
 

@@ -26,6 +26,7 @@ from estimator.odometry.frames import (
 )
 from estimator.odometry.observation import MeasurementKind
 from estimator.odometry.references import References
+from estimator.order_statistics import median
 from estimator.rig_settings import common_rotation_bias
 
 __all__ = ["ChainCombination", "chains_through_previous", "measurement_bias"]
@@ -148,7 +149,7 @@ class ChainCombination:
         if threshold == 0.0:
             return True
         moved = inlier_flow(estimate, self.rectification)
-        return len(moved) > 0 and float(np.median(moved)) >= threshold
+        return len(moved) > 0 and median(moved) >= threshold
 
     def bias(self, estimate: Estimate, rate: float | None = None) -> np.ndarray:
         """:func:`measurement_bias` at ``rate`` (None: a link's own,
