@@ -1,7 +1,8 @@
 """Back-end variants on one recorded front end: what the fused error is made of.
 
 The odometry is run once on a clip (fused with its IMU, default configuration) and every
-input the back end received is recorded. The back end alone is then replayed on those inputs
+input the back end received is recorded (its observer, ``estimator/backend/recording.py``).
+The back end alone is then replayed on those inputs
 with each configuration variant given (``backend`` fields as JSON), a few seconds per run
 instead of a minute; the front end does not see the variant (the gate's rejections do not feed
 back into its keyframes), so a variant's final numbers come from ``swarmvo bench odometry``.
@@ -38,7 +39,8 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from estimator.backend import fusion
+from estimator.backend import FusionBackend
+from estimator.backend.recording import BackendFrame, BackendInput, BackendSetup
 from estimator.config import BackendConfig
 from estimator.evaluation.metrics import camera_ground_truth, evaluate_trajectory
 from estimator.formats.datasets import Sequence, open_sequence
@@ -65,7 +67,16 @@ class Recording:
     config: dict[str, Any]
     body_from_camera: np.ndarray
     imu_noise: Any
-    calls: list[tuple[tuple[Any, ...], dict[str, Any]]]
+    calls: list[BackendFrame]
+
+    def observe(self, given: BackendInput) -> None:
+        """Keep a copy of what the back end is given (its observer)."""
+        if isinstance(given, BackendSetup):
+            self.config = given.config.model_dump()
+            self.body_from_camera = np.array(given.body_from_camera, dtype=float)
+            self.imu_noise = given.imu_noise
+        else:
+            self.calls.append(copy.deepcopy(given))
 
 
 @dataclass
@@ -88,35 +99,19 @@ def open_clip(path: Path) -> Sequence:
 def record(sequence: Sequence) -> Recording:
     """Run the default fused odometry once, keeping what its back end was given."""
     recording = Recording({}, np.eye(4), None, [])
-    backend_class = fusion.FusionBackend
-    original_init, original_add = backend_class.__init__, backend_class.add_frame
-
-    def init(self, config, body_from_camera, imu_noise):  # type: ignore[no-untyped-def]
-        recording.config = config.model_dump()
-        recording.body_from_camera = np.array(body_from_camera, dtype=float)
-        recording.imu_noise = imu_noise
-        original_init(self, config, body_from_camera, imu_noise)
-
-    def add_frame(self, *args, **kwargs):  # type: ignore[no-untyped-def]
-        recording.calls.append(copy.deepcopy((args, kwargs)))
-        return original_add(self, *args, **kwargs)
-
-    backend_class.__init__, backend_class.add_frame = init, add_frame  # type: ignore[method-assign]
-    try:
-        run_sequence(sequence, build_config("pso-robust", 0, imu=True, backend=True))
-    finally:
-        backend_class.__init__, backend_class.add_frame = original_init, original_add  # type: ignore[method-assign]
+    config = build_config("pso-robust", 0, imu=True, backend=True)
+    run_sequence(sequence, config, backend_observer=recording.observe)
     return recording
 
 
 def replay(recording: Recording, overrides: dict[str, Any]) -> Replay:
     """The back end alone on the recorded inputs, with ``overrides`` on its configuration."""
     config = BackendConfig.model_validate({**recording.config, **overrides})
-    backend = fusion.FusionBackend(config, recording.body_from_camera, recording.imu_noise)
+    backend = FusionBackend(config, recording.body_from_camera, recording.imu_noise)
     stamps, online, body, motions, smoothed = [], [], [], [], {}
-    for args, kwargs in recording.calls:
-        fused = backend.add_frame(*args, **kwargs)
-        stamps.append(int(args[0]))
+    for call in recording.calls:
+        fused = backend.add_frame(call.timestamp_ns, **call.arguments)
+        stamps.append(int(call.timestamp_ns))
         online.append(fused.pose)
         body.append(fused.body_pose)
         motions.append(fused.body_motion)

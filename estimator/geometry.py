@@ -181,7 +181,10 @@ def _single_quat(matrix: np.ndarray) -> np.ndarray:
 
 
 def _unit_xyzw(rotation: object) -> np.ndarray:
-    """Unit (x, y, z, w) of rotation matrices, any sign; one matrix in plain floats."""
+    """Unit (x, y, z, w) of rotation matrices, any sign; one matrix in plain floats.
+
+    Its rounding is what ``matrix_to_quat`` promises to keep, so it is unit-tested directly.
+    """
     matrix = np.asarray(rotation, dtype=float)
     if matrix.shape == (3, 3) and _is_rotation(matrix):
         xyzw = _shepperd(matrix)

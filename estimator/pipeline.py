@@ -36,6 +36,7 @@ from estimator.rig_settings import (
 from estimator.types import FrameReport, FrameStatus
 
 if TYPE_CHECKING:
+    from estimator.backend.recording import BackendObserver
     from estimator.formats.odometry_msg import OdometryMessage
     from estimator.odometry.observation import MeasurementObserver
 
@@ -128,6 +129,7 @@ def run_sequence(
     strict: bool = False,
     rig_settings: bool = True,
     observer: MeasurementObserver | None = None,
+    backend_observer: BackendObserver | None = None,
 ) -> RunResult:
     """Feed every frame (and the IMU samples since the previous frame) through ``Odometry``.
 
@@ -136,7 +138,8 @@ def run_sequence(
     with a warning (its IMU samples go to the next frame) unless ``strict``. With
     ``rig_settings`` the settings that follow from the rig and the frame rate are
     derived first (explicitly set values win). ``observer`` sees every measurement the
-    frames make (``estimator/odometry/observation.py``).
+    frames make (``estimator/odometry/observation.py``), ``backend_observer`` everything the
+    back end is given (``estimator/backend/recording.py``).
     """
     from estimator.odometry import Odometry  # the pipeline loads only when a run starts
 
@@ -153,6 +156,7 @@ def run_sequence(
         config,
         imu_noise=sequence.imu_noise if imu_available else None,
         observer=observer,
+        backend_observer=backend_observer,
     )
     reports: list[FrameReport] = []
     previous_ns: int | None = None

@@ -350,7 +350,7 @@ def test_a_numerical_failure_inside_gtsam_restarts_the_graph_instead_of_crashing
     out = []
     for k, m in enumerate(measurements):
         if k == 10:
-            backend._smoother.graph = Failing(backend._smoother.graph)
+            backend.smoother.graph = Failing(backend.smoother.graph)
         out.append(
             backend.add_frame(
                 int(stamps[k]),
@@ -704,7 +704,7 @@ def test_a_front_end_covariance_must_be_a_finite_6x6():
 
 def _prior_keys(backend: FusionBackend) -> set[int]:
     """Frame indices with a pose prior in the smoother's graph."""
-    graph = backend._smoother.graph.getFactors()
+    graph = backend.smoother.graph.getFactors()
     return {
         gtsam.Symbol(graph.at(i).keys()[0]).index()
         for i in range(graph.size())
@@ -735,12 +735,12 @@ def test_after_a_gap_an_old_reference_does_not_go_through_the_coasted_frame(
             reference_ns=int(stamps[reference]),
         )  # fmt: skip
     assert out.status is FrameStatus.OK
-    pairs = {(a, b) for _, a, _, b in between_factor_ends(backend._smoother.graph)}
+    pairs = {(a, b) for _, a, _, b in between_factor_ends(backend.smoother.graph)}
     assert (20, 21) not in pairs
     if old_reference == "chain":
         assert (19, 21) in pairs and 21 not in _prior_keys(backend)
     else:
         assert not any(second == 21 for _, second in pairs) and 21 in _prior_keys(backend)
-    estimated = invert_pose(backend._smoother.pose(19)) @ backend._smoother.pose(21)
+    estimated = invert_pose(backend.smoother.pose(19)) @ backend.smoother.pose(21)
     true = invert_pose(scenario.body_poses[19]) @ scenario.body_poses[21]
     assert np.linalg.norm(estimated[:3, 3] - true[:3, 3]) < 1e-6

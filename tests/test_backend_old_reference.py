@@ -55,10 +55,10 @@ def test_views_tie_frames_to_an_old_keyframe_through_its_view(between_factor_end
     frame 8: its view stays in the smoother and each frame gets its own factor from it."""
     scenario, backend, answers = _keyframe_run(24, keyframe_every=100, imu=False)
     assert all(answer.status is FrameStatus.OK for answer in answers)
-    assert not backend._smoother.has_pose(0)
-    assert backend._smoother.isam().valueExists(view_key(0))
-    assert {("r", 0, "x", 22), ("r", 0, "x", 23)} <= between_factor_ends(backend._smoother.graph)
-    estimated = invert_pose(backend._smoother.pose(20)) @ backend._smoother.pose(23)
+    assert not backend.smoother.has_pose(0)
+    assert backend.smoother.isam().valueExists(view_key(0))
+    assert {("r", 0, "x", 22), ("r", 0, "x", 23)} <= between_factor_ends(backend.smoother.graph)
+    estimated = invert_pose(backend.smoother.pose(20)) @ backend.smoother.pose(23)
     true = invert_pose(scenario.body_poses[20]) @ scenario.body_poses[23]
     assert np.allclose(estimated, true, atol=1e-6)
 
@@ -69,9 +69,9 @@ def test_views_go_once_no_measurement_refers_to_them():
     scenario, backend, answers = _keyframe_run(120, keyframe_every=15, imu=True)
     assert all(answer.status is FrameStatus.OK for answer in answers)
     assert not any("restarted" in answer.message for answer in answers)
-    exists = backend._smoother.isam().valueExists
+    exists = backend.smoother.isam().valueExists
     assert exists(view_key(105)) and not exists(view_key(90)) and not exists(pose_key(90))
-    estimated = invert_pose(backend._smoother.pose(112)) @ backend._smoother.pose(119)
+    estimated = invert_pose(backend.smoother.pose(112)) @ backend.smoother.pose(119)
     true = invert_pose(scenario.body_poses[112]) @ scenario.body_poses[119]
     assert np.linalg.norm(estimated[:3, 3] - true[:3, 3]) < 1e-3
 
@@ -109,7 +109,7 @@ def test_prior_reports_the_uncertainty_its_placement_drops():
     keyframe's and grows along the frames placed from one keyframe, so it keeps growing."""
     _, backend, answers = _keyframe_run(34, keyframe_every=10, imu=False, mode="prior")
     before = np.trace(answers[5].body_covariance)  # no frame placed yet
-    marginal = np.asarray(backend._smoother.isam().marginalCovariance(pose_key(33)))
+    marginal = np.asarray(backend.smoother.isam().marginalCovariance(pose_key(33)))
     assert np.trace(marginal) < 2.2 * before  # what the graph alone reports
     covariances = [answers[k].body_covariance for k in (10, 20, 30)]
     assert np.trace(covariances[2]) > 5.0 * before

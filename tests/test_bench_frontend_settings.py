@@ -30,7 +30,7 @@ def _args(*argv: str) -> argparse.Namespace:
 @pytest.mark.parametrize("argv", [(), ("--method", "msac")])
 def test_bench_frontend_derives_the_settings_run_derives(drive, argv) -> None:
     args = _args(*argv)
-    config, derived = bench_frontend.bench_config(bench_frontend._config(args), drive)
+    config, derived = bench_frontend.bench_config(bench_frontend.command_config(args), drive)
     method = argv[1] if argv else None
     expected, expected_derived = apply_rig_settings(
         build_config(estimator=method, backend=False), drive.rig, frame_interval_s(drive)
@@ -46,7 +46,7 @@ def test_bench_frontend_derives_the_settings_run_derives(drive, argv) -> None:
 def test_no_rig_settings_keeps_the_defaults(drive) -> None:
     args = _args("--no-rig-settings")
     config, derived = bench_frontend.bench_config(
-        bench_frontend._config(args), drive, args.rig_settings
+        bench_frontend.command_config(args), drive, args.rig_settings
     )
     assert derived == []
     assert config.frontend.min_search_radius_px is None

@@ -246,7 +246,7 @@ def test_the_local_factor_from_per_sample_spectra_is_that_of_its_samples() -> No
     factors = [1.0] * 60 + [9.0] * 20
     local = ChainDisagreement(bias_sigma=2e-4)
     _keyframe_flight(CovarianceScale(bias_sigma=2e-4), local, factors)
-    errors, vision, gyro = (np.array(part) for part in zip(*local._samples, strict=True))
+    errors, vision, gyro = (np.array(part) for part in zip(*local.samples, strict=True))
     expected = solve_factor(np.mean, 3.0, errors, vision, gyro, local.bounds)
     assert local.value == pytest.approx(expected, rel=1e-9)
     assert local.value > 1.5  # the last stretches disagree: the test would see a stale factor

@@ -154,10 +154,10 @@ def test_odometry_uses_the_gyro_only_with_per_point_windows() -> None:
 
     rig = StereoRig(left=camera(0.0), right=camera(0.54))  # baseline along the camera x
     one_window = Odometry(rig, SwarmvoConfig())
-    assert one_window._references.gyro is None
+    assert one_window.gyro_prediction is None
     per_point = Odometry(rig, SwarmvoConfig(frontend=WINDOWS))
-    gyro = per_point._references.gyro
+    gyro = per_point.gyro_prediction
     assert gyro is not None
     np.testing.assert_allclose(gyro.rect_from_body, RECT_FROM_BODY, atol=1e-9)
     off = WINDOWS.model_copy(update={"gyro_prediction": False})
-    assert Odometry(rig, SwarmvoConfig(frontend=off))._references.gyro is None
+    assert Odometry(rig, SwarmvoConfig(frontend=off)).gyro_prediction is None

@@ -111,7 +111,7 @@ def test_a_landmark_seen_again_from_a_new_keyframe_is_the_same_variable() -> Non
             k * STEP_NS, relative @ CAMERA_MOUNT, None, 60, None, reference_ns=reference * STEP_NS,
             covariance=covariance, stereo=stereo,
         )  # fmt: skip
-    assert len(backend._vision._landmarks) == 60  # type: ignore[arg-type]
+    assert backend.landmark_count == 60
 
 
 def test_spread_order_covers_the_image_before_repeating_a_cell() -> None:

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from estimator.backend.recording import BackendFrame, BackendInput
 from estimator.config import SwarmvoConfig
 from estimator.evaluation.metrics import camera_ground_truth, eq20_errors, relative_to_first
 from estimator.formats.calibration import StereoRig
@@ -454,7 +455,8 @@ def test_the_chain_links_bias_is_its_rate_times_the_inliers_image_motion() -> No
     result = RegistrationResult(np.eye(3), np.zeros(3), np.array([1.0, 0, 0, 0]), inliers, 3,
                                 0.0, 1, 0.0, True)  # fmt: skip
     estimate = Estimate(np.eye(4), result, "", pairs)
-    covariance = odometry._chains.bias(estimate)  # at the configured rate
+    rate = config.frontend.chain_link_rotation_bias  # a link's own (the configured) rate
+    covariance = measurement_bias(estimate, rate, odometry.rectification)
     sigma = 0.01 * (focal * 0.02 / depth) / focal  # median inlier flow 0.02 m at 4 m, in px
     np.testing.assert_allclose(np.diag(covariance)[:3], sigma**2, rtol=1e-9)
     assert not np.diag(covariance)[3:].any()
@@ -492,7 +494,7 @@ def test_the_common_error_rate_follows_the_rigs_calibration(
     rig = dataclasses.replace(_rendered_rig(), calibration_exact=exact)
     frontend = {} if configured is None else {"chain_common_rotation_bias": configured}
     config = _config(backend={"enabled": False}, frontend=frontend)
-    assert Odometry(rig, config)._chains.common_rate == expected
+    assert Odometry(rig, config).common_rotation_bias == expected
     derived, settings = apply_rig_settings(config, rig, 0.05)
     assert derived.frontend.chain_common_rotation_bias == expected
     (setting,) = [s for s in settings if s.name == "chain_common_rotation_bias"]
@@ -512,22 +514,26 @@ def test_the_combined_measurement_counts_the_common_error_once_and_the_link_not_
         _config(backend={"enabled": False}, frontend={"chain_common_rotation_bias": 0.005}),
     )
     assert odometry.fuses_previous_frame
-    original = ChainCombination._through
+    original = ChainCombination.combined
     combined: list[tuple[np.ndarray, object]] = []
+    seen_references = []
 
     def recording(self, estimate, *args, **kwargs):
         # from the keyframe measurement's own inliers, at the rig's common rate
         common = measurement_bias(estimate, self.common_rate, self.rectification)
         result = original(self, estimate, *args, **kwargs)
-        if estimate.chain_covariance is not None:
-            combined.append((common, estimate))
+        seen_references.append(self.references)
+        if result.chain_covariance is not None:
+            combined.append((common, result))
         return result
 
-    monkeypatch.setattr(ChainCombination, "_through", recording)
+    monkeypatch.setattr(ChainCombination, "combined", recording)
     links_checked = 0
     for frame in frames:
         odometry.process(frame)
-        references = odometry._references
+        if not seen_references:
+            continue
+        references = seen_references[-1]  # the odometry's, updated by this frame
         if combined and combined[-1][1].chain_covariance is not None:
             last = combined[-1][1]
             if references.reference is last.reference:  # the keyframe was kept
@@ -599,15 +605,13 @@ def test_the_back_end_gets_the_keyframe_measurement_with_its_reference_and_point
     """After a black frame the back end gets T_ref_cur against the pre-gap reference itself."""
     frames, truth = _rendered_flight()
     config = _config(backend={"enabled": True, "use_imu": False}, registration={"method": "msac"})
-    odometry = Odometry(_rendered_rig(), config)
     calls: list[dict] = []
-    add_frame = odometry._fusion.backend.add_frame
 
-    def spy(timestamp_ns, **kwargs):
-        calls.append({"timestamp_ns": timestamp_ns, **kwargs})
-        return add_frame(timestamp_ns, **kwargs)
+    def spy(given: BackendInput) -> None:
+        if isinstance(given, BackendFrame):
+            calls.append({"timestamp_ns": given.timestamp_ns, **given.arguments})
 
-    odometry._fusion.backend.add_frame = spy
+    odometry = Odometry(_rendered_rig(), config, backend_observer=spy)
     black = StereoFrame(frames[6].timestamp_ns, *(np.zeros_like(frames[6].left),) * 2)
     reports = [odometry.process(frame) for frame in [*frames[:6], black, *frames[7:10]]]
     stamps = [frame.timestamp_ns for frame in frames]

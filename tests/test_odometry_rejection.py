@@ -10,25 +10,25 @@ from test_odometry import _config, _rendered_flight, _rendered_rig, _run
 from estimator.geometry import invert_pose, make_pose, quat_to_matrix, rotation_angle_deg
 from estimator.geometry import rotation_vector_to_quat as rotvec_quat
 from estimator.odometry import Odometry
+from estimator.odometry.estimation import PoseEstimation
 from estimator.types import FrameStatus
 
 WRONG_FRAME = 8
 
 
-def _corrupting(odometry: Odometry, wrong: np.ndarray) -> None:
-    """Every estimate of frame ``WRONG_FRAME`` comes out composed with ``wrong``: the pose a
-    fit with a flipped rotation or a bad match set would produce."""
-    estimation = odometry._estimation
-    original = estimation.against
+def _corrupting(monkeypatch: pytest.MonkeyPatch, wrong: np.ndarray) -> None:
+    """From now on every estimate of frame ``WRONG_FRAME`` comes out composed with ``wrong``:
+    the pose a fit with a flipped rotation or a bad match set would produce."""
+    original = PoseEstimation.against
 
-    def corrupted(reference, prediction, current, *args, **kwargs):
-        estimate = original(reference, prediction, current, *args, **kwargs)
+    def corrupted(self, reference, prediction, current, *args, **kwargs):
+        estimate = original(self, reference, prediction, current, *args, **kwargs)
         if current.index == WRONG_FRAME and estimate.reference_from_current is not None:
             estimate.reference_from_current = estimate.reference_from_current @ wrong
             estimate.covariance = None  # the back end weighs the fit of the inliers instead
         return estimate
 
-    estimation.against = corrupted
+    monkeypatch.setattr(PoseEstimation, "against", corrupted)
 
 
 def _run_watching_noise(odometry: Odometry, frames) -> tuple[list, list]:
@@ -45,7 +45,9 @@ def _relative_rotation_error(report, truth: np.ndarray, k: int) -> float:
 
 
 @pytest.mark.slow
-def test_a_huge_wrong_rotation_is_not_accepted_as_reference() -> None:
+def test_a_huge_wrong_rotation_is_not_accepted_as_reference(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """Vision alone (no back end): a 94 degree wrong rotation is rejected against the
     constant-velocity prediction; the frame coasts and the frames after it are tracked as in a
     clean run."""
@@ -53,7 +55,8 @@ def test_a_huge_wrong_rotation_is_not_accepted_as_reference() -> None:
     config = _config(backend={"enabled": False}, registration={"method": "msac"})
     clean = _run(Odometry(_rendered_rig(), config), frames)
     odometry = Odometry(_rendered_rig(), config)
-    _corrupting(odometry, make_pose(quat_to_matrix(rotvec_quat(np.radians([0, 94, 0]))), [0] * 3))
+    flipped = make_pose(quat_to_matrix(rotvec_quat(np.radians([0, 94, 0]))), [0] * 3)
+    _corrupting(monkeypatch, flipped)
     reports, noise = _run_watching_noise(odometry, frames)
     wrong = reports[WRONG_FRAME]
     assert wrong.status == FrameStatus.DEGRADED
@@ -67,7 +70,9 @@ def test_a_huge_wrong_rotation_is_not_accepted_as_reference() -> None:
 
 
 @pytest.mark.slow
-def test_a_frame_rejected_by_the_back_end_does_not_change_the_noise_model() -> None:
+def test_a_frame_rejected_by_the_back_end_does_not_change_the_noise_model(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """A 0.5 m wrong jump with a plausible rotation passes the front end's check but not the
     back end's gate: the frame is then no reference and the noise level does not learn from
     its residuals."""
@@ -75,7 +80,7 @@ def test_a_frame_rejected_by_the_back_end_does_not_change_the_noise_model() -> N
     config = _config(backend={"enabled": True, "use_imu": False}, registration={"method": "msac"})
     odometry = Odometry(_rendered_rig(), config)
     wrong_motion = make_pose(quat_to_matrix(rotvec_quat(np.radians([0, 2, 0]))), [0.5, 0, 0])
-    _corrupting(odometry, wrong_motion)
+    _corrupting(monkeypatch, wrong_motion)
     references = []
     reports, noise = [], []
     for frame in frames:

@@ -328,6 +328,12 @@ class ChainDisagreement:
     def value(self) -> float:
         return self._value
 
+    @property
+    def samples(self) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]:
+        """The recent stretches (error, vision covariance, gyro covariance) the factor is
+        solved from, oldest first: what a check of the factor needs."""
+        return tuple(self._samples)
+
     def add(
         self,
         timestamp_ns: int,

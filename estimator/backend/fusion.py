@@ -34,6 +34,7 @@ from estimator.backend.imu_terms import ImuTerms
 from estimator.backend.motion_prior import add_motion_prior, constant_velocity
 from estimator.backend.noise import relative_pose_covariance
 from estimator.backend.observations import StereoObservations
+from estimator.backend.recording import BackendFrame, BackendObserver, BackendSetup
 from estimator.backend.smoother import (
     ACCEL_BIAS_KEY,
     GRAVITY_KEY,
@@ -61,7 +62,12 @@ class FusionBackend:
         config: BackendConfig,
         body_from_camera: np.ndarray,
         imu_noise: ImuNoise | None,
+        observer: BackendObserver | None = None,
     ) -> None:
+        """``observer``, when given, sees the construction and every frame (recording.py)."""
+        self._observer = observer
+        if observer is not None:
+            observer(BackendSetup(config, body_from_camera, imu_noise))
         self.config = config
         if config.body_from_camera is not None:
             body_from_camera = np.asarray(config.body_from_camera, dtype=float).reshape(4, 4)
@@ -105,6 +111,16 @@ class FusionBackend:
         """(duration s, mean gyro) of the start-up rest once it has ended."""
         return self._rest.summary
 
+    @property
+    def smoother(self) -> Smoother:
+        """The smoother (graph, keys, estimates): what the window holds, for inspection."""
+        return self._smoother
+
+    @property
+    def landmark_count(self) -> int:
+        """Stereo landmarks in the window (0 without ``config.landmarks``)."""
+        return self._vision.landmark_count
+
     def add_frame(
         self,
         timestamp_ns: int,
@@ -130,6 +146,13 @@ class FusionBackend:
         refinement), takes precedence over both. ``stereo``, the inliers' pixels in both
         frames, adds them as landmarks when ``config.landmarks`` is on (``landmarks.py``).
         """
+        if self._observer is not None:
+            arguments = {
+                "relative_pose": relative_pose, "inlier_residuals": inlier_residuals,
+                "inlier_count": inlier_count, "imu": imu, "reference_ns": reference_ns,
+                "inlier_points": inlier_points, "covariance": covariance, "stereo": stereo,
+            }  # fmt: skip
+            self._observer(BackendFrame(timestamp_ns, arguments))
         timestamp_ns = int(timestamp_ns)
         check_timestamp_order(timestamp_ns, self._last_ns if self._index >= 0 else None)
         if inlier_count < 0:

@@ -69,6 +69,11 @@ class VisionFactors:
         self.last_fix_index = 0
         self.last_fix_ns = 0
 
+    @property
+    def landmark_count(self) -> int:
+        """Stereo landmarks in the window (0 without ``config.landmarks``)."""
+        return len(self._landmarks) if self._landmarks is not None else 0
+
     def reset(self) -> None:
         """Forget the landmarks and keyframe views of a smoother that starts afresh; the
         placement covariance carries on from the newest report."""

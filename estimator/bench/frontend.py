@@ -29,7 +29,7 @@ from estimator.odometry import Odometry
 from estimator.pipeline import frame_interval_s
 from estimator.rig_settings import DerivedSetting, apply_rig_settings, format_settings
 
-__all__ = ["add_arguments", "bench_config", "run", "summarise"]
+__all__ = ["add_arguments", "bench_config", "command_config", "run", "summarise"]
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "euroc_v101_micro"
 STAGES = ("rectify", "detect", "stereo", "temporal", "estimate", "fuse", "total")
@@ -67,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
 
 
-def _config(args: argparse.Namespace) -> SwarmvoConfig:
+def command_config(args: argparse.Namespace) -> SwarmvoConfig:
     """The defaults with the command line's overrides, only those marked as set by the user:
     the rig-derived settings (``bench_config``) then fill the rest, as in ``swarmvo run``."""
     frontend = {
@@ -275,7 +275,7 @@ def run(args: argparse.Namespace) -> int:
     _check_args(args)
     cv2.setNumThreads(1)
     sequence, frames, imu, load_s = _load_clip(args)
-    config, derived = bench_config(_config(args), sequence, args.rig_settings)
+    config, derived = bench_config(command_config(args), sequence, args.rig_settings)
     if derived:
         print(format_settings(sequence.rig, frame_interval_s(sequence), derived))
     count = len(frames)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -18,7 +18,7 @@ from estimator.odometry.combination import ChainCombination, chains_through_prev
 from estimator.odometry.estimation import PoseEstimation
 from estimator.odometry.frames import CurrentFrame, Estimate, checked_pose, failed, grey_pair, stage
 from estimator.odometry.fusion_step import FusionStep
-from estimator.odometry.gyro_prediction import gyro_prediction_for
+from estimator.odometry.gyro_prediction import GyroPrediction, gyro_prediction_for
 from estimator.odometry.measurements import CameraFrames
 from estimator.odometry.observation import MeasurementObserver
 from estimator.odometry.references import References
@@ -31,6 +31,9 @@ from estimator.types import (
     StereoFrame,
     check_timestamp_order,
 )
+
+if TYPE_CHECKING:
+    from estimator.backend.recording import BackendObserver
 
 __all__ = ["Odometry"]
 
@@ -49,8 +52,10 @@ class Odometry:
         initial_pose: np.ndarray | None = None,
         first_index: int = 0,
         observer: MeasurementObserver | None = None,
+        backend_observer: BackendObserver | None = None,
     ) -> None:
-        """``observer``, when given, sees every measurement the frames make (observation.py)."""
+        """``observer``, when given, sees every measurement the frames make (observation.py);
+        ``backend_observer`` everything the back end is given (backend/recording.py)."""
         self.rig = rig
         self.config = config if config is not None else SwarmvoConfig()
         self.rectification = rig.rectification
@@ -78,7 +83,9 @@ class Odometry:
         )
         self._fusion: FusionStep | None = None
         if self.config.backend.enabled:
-            self._fusion = FusionStep(self.config.backend, rig, imu_noise, self._frames, self.noise)
+            self._fusion = FusionStep(
+                self.config.backend, rig, imu_noise, self._frames, self.noise, backend_observer
+            )
         imu_fused = self._fusion is not None and self._fusion.backend.use_imu
         through_previous = chains_through_previous(frontend, imu_fused)
         chains = through_previous or frontend.fuse_previous_keyframe
@@ -109,6 +116,17 @@ class Odometry:
         """
         reference = self._references.reference
         return reference.index if reference is not None else None
+
+    @property
+    def common_rotation_bias(self) -> float:
+        """The rate of the keyframe measurement's error that combining chains cannot average
+        out, in force (``frontend.chain_common_rotation_bias``; unset: the rig's)."""
+        return self._chains.common_rate
+
+    @property
+    def gyro_prediction(self) -> GyroPrediction | None:
+        """The gyro's rotation that centres the search windows (None: not used)."""
+        return self._references.gyro
 
     # ------------------------------------------------------------------ continuing elsewhere
 

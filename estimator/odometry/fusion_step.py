@@ -16,6 +16,7 @@ from estimator.types import FrameStatus, ImuBatch, ImuNoise
 
 if TYPE_CHECKING:
     from estimator.backend import FusedEstimate
+    from estimator.backend.recording import BackendObserver
     from estimator.frontend.stereo_noise import StereoNoiseModel
 
 __all__ = ["FusionStep"]
@@ -33,11 +34,14 @@ class FusionStep:
         imu_noise: ImuNoise | None,
         frames: CameraFrames,
         noise: StereoNoiseModel,
+        observer: BackendObserver | None = None,
     ) -> None:
         from estimator.backend import FusionBackend  # GTSAM loads only when the back end runs
 
         self.config = config
-        self.backend = FusionBackend(config, body_from_camera=rig.left.T_BS, imu_noise=imu_noise)
+        self.backend = FusionBackend(
+            config, body_from_camera=rig.left.T_BS, imu_noise=imu_noise, observer=observer
+        )
         self.frames = frames
         self.noise = noise  # the session's stereo noise, for landmarks
         self.world_from_backend = np.eye(4)  # anchors the back end's world on initial_pose

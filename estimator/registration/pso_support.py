@@ -366,7 +366,8 @@ class PsoSupportEstimator:
         Returns the supporters, the threshold and their pose, or None when the set did not
         settle (or is too small) within ``refits`` rounds. With a ``floor`` the fits weigh
         each pair by 1 / max(u, floor)^2 of its normalised residual u at the previous pose
-        (``residual`` to start): the ladder's stand-in for unknown per-pair noise.
+        (``residual`` to start): the ladder's stand-in for unknown per-pair noise. The
+        compiled loop is unit-tested directly against a plain reimplementation.
         The whole loop is one compiled call (``refit_loop``).
         """
         weighted = floor is not None and residual is not None
