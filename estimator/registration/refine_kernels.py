@@ -12,6 +12,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from estimator.registration.swarm_kernels import exp_quaternion, quaternion_rotation
+
 __all__ = [
     "ROBUST_CODES",
     "kernel_pairs",
@@ -359,19 +361,10 @@ def solve_pivoted(matrix, rhs):
 @numba.njit(cache=True, nogil=True)
 def _step_pose(rotation, translation, step):
     """T Exp(step) with step = (omega, v), the right perturbation: R Exp(omega), t + R v
-    (the exponential map and the quaternion's matrix as ``geometry`` forms them)."""
-    x, y, z = step[0], step[1], step[2]
-    angle = np.sqrt(x * x + y * y + z * z)
-    half_sine = 0.5 - angle**2 / 48.0 if angle < 1e-8 else np.sin(0.5 * angle) / angle
-    w, x, y, z = np.cos(0.5 * angle), x * half_sine, y * half_sine, z * half_sine
+    (the exponential map and the normalised quaternion's matrix, as ``geometry`` forms them)."""
+    w, x, y, z = exp_quaternion(step)
     norm = np.sqrt(w * w + x * x + y * y + z * z)
-    w, x, y, z = w / norm, x / norm, y / norm, z / norm
-    turn = np.empty((3, 3))
-    turn[0, 0], turn[0, 1] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z)
-    turn[0, 2], turn[1, 0] = 2 * (x * z + w * y), 2 * (x * y + w * z)
-    turn[1, 1], turn[1, 2] = 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
-    turn[2, 0], turn[2, 1] = 2 * (x * z - w * y), 2 * (y * z + w * x)
-    turn[2, 2] = 1 - 2 * (x * x + y * y)
+    turn = quaternion_rotation(np.array([w / norm, x / norm, y / norm, z / norm]))
     moved_r = np.empty((3, 3))
     moved_t = np.empty(3)
     for i in range(3):

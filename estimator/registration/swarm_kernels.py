@@ -16,9 +16,11 @@ __all__ = [
     "MIN_SUPPORT",
     "degenerate_points",
     "degenerate_rows",
+    "exp_quaternion",
     "fit_pose",
     "horn_fit",
     "pair_forms",
+    "quaternion_rotation",
     "refit_loop",
     "swarm_residuals",
     "swarm_scores",
@@ -183,14 +185,22 @@ def pair_forms(
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _quat_products(rotation_vector: np.ndarray, products: np.ndarray) -> None:
-    # The exponential map (as geometry.rotation_vector_to_quat), then the 10 products of
-    # the quaternion's components in the order of ``pair_forms``, into ``products``.
+def exp_quaternion(rotation_vector: np.ndarray) -> tuple[float, float, float, float]:
+    """(w, x, y, z) of the exponential map of a rotation vector, as
+    ``geometry.rotation_vector_to_quat`` forms it, for compiled callers."""
     angle = math.sqrt(rotation_vector[0] ** 2 + rotation_vector[1] ** 2 + rotation_vector[2] ** 2)
     half = 0.5 * angle
     scale = 0.5 - angle * angle / 48.0 if angle < 1e-8 else math.sin(half) / angle
     w = math.cos(half)
     x, y, z = rotation_vector[0] * scale, rotation_vector[1] * scale, rotation_vector[2] * scale
+    return w, x, y, z
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _quat_products(rotation_vector: np.ndarray, products: np.ndarray) -> None:
+    # The exponential map, then the 10 products of the quaternion's components in the order
+    # of ``pair_forms``, into ``products``.
+    w, x, y, z = exp_quaternion(rotation_vector)
     products[0], products[1], products[2], products[3] = w * w, x * x, y * y, z * z
     products[4], products[5], products[6] = w * x, w * y, w * z
     products[7], products[8], products[9] = x * y, x * z, y * z
@@ -249,7 +259,7 @@ def horn_fit(
         source, target, weights, mask, total, source_mean, target_mean
     )
     quaternion = _top_quaternion(_horn_matrix(correlation))
-    rotation = _quaternion_rotation(quaternion)
+    rotation = quaternion_rotation(quaternion)
     return quaternion, rotation, _translation(rotation, source_mean, target_mean)
 
 
@@ -328,8 +338,9 @@ def _top_quaternion(horn_matrix: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _quaternion_rotation(quaternion: np.ndarray) -> np.ndarray:
-    # The rotation matrix of a unit quaternion (w, x, y, z).
+def quaternion_rotation(quaternion: np.ndarray) -> np.ndarray:
+    """The rotation matrix of a unit quaternion (w, x, y, z), as ``geometry.quat_to_matrix``
+    forms it, for compiled callers."""
     w, x, y, z = quaternion[0], quaternion[1], quaternion[2], quaternion[3]
     rotation = np.empty((3, 3))
     rotation[0, 0], rotation[0, 1], rotation[0, 2] = (
