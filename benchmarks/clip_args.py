@@ -18,15 +18,21 @@ def clip_parser(description: str) -> argparse.ArgumentParser:
     return parser
 
 
+def quiet_sequence(path: Path) -> Sequence:
+    """``open_sequence(path)`` without its warnings: unpaired camera rows are expected in
+    EuRoC, and the diagnostics report on the clip, not on its files."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return open_sequence(path)
+
+
 def open_clip(parser: argparse.ArgumentParser, path: Path) -> Sequence:
     """The sequence at ``path``; a folder that cannot be read or has no ground truth ends the
     program through ``parser.error`` (one line, no traceback)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # unpaired camera rows are expected in EuRoC
-        try:
-            sequence = open_sequence(path)
-        except (OSError, ValueError) as error:
-            parser.error(f"cannot read {path}: {error}")
+    try:
+        sequence = quiet_sequence(path)
+    except (OSError, ValueError) as error:
+        parser.error(f"cannot read {path}: {error}")
     if sequence.ground_truth is None:
         parser.error(f"{path} has no ground truth")
     return sequence

@@ -26,16 +26,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from clip_args import quiet_sequence
 
 from estimator.evaluation import ground_truth_checks as checks
 from estimator.evaluation.ground_truth_checks import CorrectionKind
 from estimator.evaluation.metrics import camera_ground_truth, similarity_scale
-from estimator.formats.datasets import Sequence, open_sequence
+from estimator.formats.datasets import Sequence
 from estimator.formats.trajectory_io import read_tum
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,9 +64,7 @@ def _mm(values: Any) -> Any:
 
 
 def open_clip(path: Path) -> Sequence:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # unpaired camera rows are expected in EuRoC
-        sequence = open_sequence(path)
+    sequence = quiet_sequence(path)
     if sequence.imu is None or sequence.ground_truth is None:
         raise ValueError(f"{path} needs both an IMU and a ground truth")
     return sequence

@@ -22,15 +22,14 @@ refinement hands on").
 from __future__ import annotations
 
 import argparse
-import warnings
 from pathlib import Path
 
 import gtsam
 import numpy as np
+from clip_args import quiet_sequence
 
 from estimator.config import SwarmvoConfig
 from estimator.evaluation.consistency import measurement_nees
-from estimator.formats.datasets import open_sequence
 from estimator.geometry import invert_pose, make_pose
 from estimator.odometry import MeasurementKind, MeasurementObserver, ObservedMeasurement
 from estimator.pipeline import build_config, run_sequence
@@ -72,9 +71,7 @@ def _difference(halves: list[RefinementResult]) -> np.ndarray:
 
 
 def run(path: Path, limit: int | None) -> None:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # unpaired camera rows are expected in EuRoC
-        sequence = open_sequence(path)
+    sequence = quiet_sequence(path)
     assert sequence.ground_truth is not None
     rng = np.random.default_rng(0)
     split: dict[str, list] = {name: [] for name in MODELS}

@@ -26,17 +26,16 @@ Prints markdown tables (nothing is written).
 from __future__ import annotations
 
 import argparse
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from clip_args import quiet_sequence
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from estimator.config import SwarmvoConfig
 from estimator.evaluation.metrics import camera_ground_truth
-from estimator.formats.datasets import open_sequence
 from estimator.odometry import MeasurementKind, ObservedMeasurement
 from estimator.pipeline import build_config, load_config, run_sequence
 from estimator.registration.refine import refine_pose_mahalanobis
@@ -63,9 +62,7 @@ class Problem:
 
 def record(path: Path, config: SwarmvoConfig | None) -> tuple[list[tuple], object]:
     """Every accepted estimate of a vision-alone run: (ref ns, cur ns, q, p, covs, T)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        sequence = open_sequence(path)
+    sequence = quiet_sequence(path)
     raw: list[tuple] = []
 
     def recording(measured: ObservedMeasurement) -> None:

@@ -17,14 +17,13 @@ from __future__ import annotations
 
 import json
 import sys
-import warnings
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from clip_args import quiet_sequence
 
 from estimator.evaluation.metrics import camera_ground_truth
-from estimator.formats.datasets import open_sequence
 from estimator.geometry import rotation_angle_deg
 from estimator.odometry import MeasurementKind, ObservedMeasurement
 from estimator.pipeline import build_config, run_sequence
@@ -38,9 +37,7 @@ OUT = ROOT / "benchmarks/results/odometry"
 
 def record(path: Path) -> tuple[list[tuple], object]:
     """Every estimator problem of a default vision-alone run, with both frames' timestamps."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        sequence = open_sequence(path)
+    sequence = quiet_sequence(path)
     problems: list[tuple] = []
     config = build_config(imu=False)
     needed = config.frontend.min_matches

@@ -448,22 +448,18 @@ class RunPositions:
 
     def covered_at(self, shifts_s: np.ndarray) -> RunPositions:
         """The frames inside the ground truth at every shift of ``shifts_s``."""
-        covered = _covered_at_all_shifts(self.timestamps_ns, self.ground_truth, shifts_s)
-        stamps = np.asarray(self.timestamps_ns, dtype=np.int64)[covered]
-        positions = np.asarray(self.positions, dtype=float)[covered]
-        return RunPositions(stamps, positions, self.ground_truth, self.T_BS)
+        return self._part(_covered_at_all_shifts(self.timestamps_ns, self.ground_truth, shifts_s))
 
     def halves(self) -> tuple[RunPositions, RunPositions]:
         """The first and the second half of the frames."""
         middle = len(self.timestamps_ns) // 2
-        return (
-            RunPositions(
-                self.timestamps_ns[:middle], self.positions[:middle], self.ground_truth, self.T_BS
-            ),
-            RunPositions(
-                self.timestamps_ns[middle:], self.positions[middle:], self.ground_truth, self.T_BS
-            ),
-        )
+        return self._part(slice(None, middle)), self._part(slice(middle, None))
+
+    def _part(self, frames: np.ndarray | slice) -> RunPositions:
+        """The run restricted to ``frames`` (a mask or a slice)."""
+        stamps = np.asarray(self.timestamps_ns, dtype=np.int64)[frames]
+        positions = np.asarray(self.positions, dtype=float)[frames]
+        return RunPositions(stamps, positions, self.ground_truth, self.T_BS)
 
     def corrected_ate(self, shift_s: float = 0.0, lever_arm_m: np.ndarray | None = None) -> float:
         """:func:`corrected_ate` of this run (no correction: the plainly aligned ATE)."""

@@ -107,10 +107,10 @@ class FeatureDetector:
         threshold = adaptive.reuse() if same_scene else adaptive.choose(image)
         self._detector.setFastThreshold(threshold)
         keypoints = self._detector.detect(image, None)
-        if threshold > self.fast_threshold.base and len(keypoints) < self._candidates:
-            self._detector.setFastThreshold(self.fast_threshold.base)
+        if threshold > adaptive.base and len(keypoints) < self._candidates:
+            self._detector.setFastThreshold(adaptive.base)
             keypoints = self._detector.detect(image, None)
-            self.fast_threshold.last = self.fast_threshold.base
+            adaptive.last = adaptive.base
         return keypoints
 
     def _describe(

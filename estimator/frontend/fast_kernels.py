@@ -1,6 +1,6 @@
 """FAST-9 corners and their Harris score as compiled kernels with array output.
 
-The compiled detector (features.py: ORB on one pyramid level, and ``fast-brief``) finds the
+The compiled detector (compiled_orb.py: ORB on one pyramid level, and ``fast-brief``) finds the
 corners OpenCV's ORB finds, but returns arrays instead of one Python object per corner: on a
 752 x 480 EuRoC image the objects of ~2 000 candidates cost about as much as finding them
 (docs/performance.md).
@@ -20,7 +20,14 @@ import threading
 import numba
 import numpy as np
 
-__all__ = ["CIRCLE", "HARRIS_BLOCK", "HARRIS_K", "fast_corners", "harris_response"]
+__all__ = [
+    "CIRCLE",
+    "HARRIS_BLOCK",
+    "HARRIS_K",
+    "check_inside",
+    "fast_corners",
+    "harris_response",
+]
 
 # The radius-3 circle, in order around it: (dx, dy) of its 16 pixels.
 CIRCLE = np.array(
@@ -221,14 +228,24 @@ def _grown(values: np.ndarray, capacity: int) -> np.ndarray:
 def harris_response(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
     """Harris response of each (x, y): Sobel gradients over the 7 x 7 block centred on it.
     Points must keep 4 px to the image's edge (FAST's border does)."""
-    margin = HARRIS_BLOCK // 2 + 1
-    if len(xs) and (
-        min(xs.min(), ys.min()) < margin
-        or xs.max() >= image.shape[1] - margin
-        or ys.max() >= image.shape[0] - margin
-    ):
-        raise ValueError(f"Harris needs points {margin} px inside the image")
+    check_inside(xs, ys, image.shape, HARRIS_BLOCK // 2 + 1)
     return _harris_response(image, xs, ys)
+
+
+def check_inside(xs: np.ndarray, ys: np.ndarray, shape: tuple, margin: int) -> None:
+    """The compiled kernels read around each point without bounds checks: refuse points
+    closer than ``margin`` to the image's edge."""
+    if len(xs) == 0:
+        return
+    height, width = shape[:2]
+    if (
+        min(xs.min(), ys.min()) < margin
+        or xs.max() >= width - margin
+        or ys.max() >= height - margin
+    ):
+        raise ValueError(
+            f"points must keep {margin} px inside the edge of a {width} x {height} image"
+        )
 
 
 @numba.njit(cache=True, nogil=True)

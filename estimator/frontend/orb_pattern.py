@@ -1,6 +1,6 @@
 """ORB's 256 binary tests, measured on OpenCV's ORB rather than copied from it.
 
-The compiled detector (features.py) reproduces OpenCV's one-level ORB to the bit, and ORB's
+The compiled detector (compiled_orb.py) reproduces OpenCV's one-level ORB to the bit, and ORB's
 descriptor is defined by the point pairs its authors learned, which are data inside OpenCV.
 They are read back here by experiment: ORB describes tiles that each hold one straight step
 edge (dark to bright) at a known offset from a corner of angle 0. A test compares the smoothed

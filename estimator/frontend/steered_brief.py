@@ -1,6 +1,6 @@
 """Intensity-centroid orientation and steered binary descriptors, compiled, for kept corners.
 
-The compiled detectors (features.py) describe only the corners their grid keeps, the way
+The compiled detectors (compiled_orb.py) describe only the corners their grid keeps, the way
 OpenCV's ORB does on one pyramid level and to the bit: each corner gets the angle of its
 intensity centroid over ORB's disc of radius ``PATCH_RADIUS`` (the angle of (m10, m01), the
 first moments about the corner, by OpenCV's polynomial arctangent in degrees), and 256 binary
@@ -25,13 +25,13 @@ import cv2
 import numba
 import numpy as np
 
+from estimator.frontend.fast_kernels import check_inside
 from estimator.frontend.orb_pattern import OrbPatternError, measure_orb_pattern
 
 __all__ = [
     "DESCRIPTOR_BORDER",
     "PATCH_RADIUS",
     "PATTERN",
-    "check_inside",
     "describe",
     "orb_pattern",
     "orientation",
@@ -115,20 +115,6 @@ def orientation(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray
     (unsmoothed) image."""
     check_inside(xs, ys, image.shape, PATCH_RADIUS)
     return _orientation(image, xs, ys, _HALF_WIDTHS)
-
-
-def check_inside(xs: np.ndarray, ys: np.ndarray, shape: tuple, margin: int) -> None:
-    """The compiled kernels read around each point without bounds checks: refuse points
-    closer than ``margin`` to the image's edge."""
-    if len(xs) == 0:
-        return
-    height, width = shape[:2]
-    if (
-        min(xs.min(), ys.min()) < margin
-        or xs.max() >= width - margin
-        or ys.max() >= height - margin
-    ):
-        raise ValueError(f"points must keep {margin} px to the edge of a {width} x {height} image")
 
 
 def describe(

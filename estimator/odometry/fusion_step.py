@@ -64,10 +64,10 @@ class FusionStep:
         measurement = self._measurement(estimate, relative_pose, first)
         fused = self.backend.add_frame(timestamp_ns, imu=imu, **measurement.keywords())
         self.fused = fused
-        if first:
+        if first and anchored:
             self.world_from_backend = frontend_pose @ invert_pose(fused.pose)
-            if not anchored:
-                self.world_from_backend = np.eye(4)
+        elif first:
+            self.world_from_backend = np.eye(4)
         self.final_poses = self.in_world(fused.final_poses)
         return self.world_from_backend @ fused.pose, fused.status, fused.message
 
