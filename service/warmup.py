@@ -1,5 +1,8 @@
 """``python -m service.warmup``: compile the estimator's numba kernels into the JIT cache.
 
+With the kernels built ahead of time (``python -m estimator.compiled``, estimator/compiled)
+there is nothing to compile: the run only checks that the workers' first frames work.
+
 A worker process runs a few synthetic frames before it takes sessions (``worker_init``); with an
 empty or unreadable cache that run compiles every kernel, which takes minutes on a busy core, and
 a replica is not answering while it does. The image build runs this module once, as the user
@@ -23,6 +26,7 @@ class WarmUp:
     seconds: float
     compiled: int  # kernel signatures compiled in this process (cache misses)
     loaded: int  # kernel signatures loaded from the cache
+    ahead_of_time: bool = False  # the kernels came from the build: nothing compiled or cached
 
 
 def cached_kernels() -> dict[str, tuple[int, int]]:
@@ -43,6 +47,7 @@ def cached_kernels() -> dict[str, tuple[int, int]]:
 def warm_up() -> WarmUp:
     """The workers' own warm-up run (synthetic frames and the registration kernels they do
     not reach), failing loudly."""
+    from estimator.compiled import running_ahead_of_time
     from service.estimator_adapter import (
         EstimatorFactory,
         detector_kernels,
@@ -57,6 +62,8 @@ def warm_up() -> WarmUp:
     detector_kernels()
     warm_up_decoder()
     seconds = time.perf_counter() - start
+    if running_ahead_of_time():  # numba was never imported: do not load it to count nothing
+        return WarmUp(seconds, 0, 0, ahead_of_time=True)
     counts = cached_kernels().values()
     return WarmUp(seconds, sum(m for m, _h in counts), sum(h for _m, h in counts))
 
@@ -67,6 +74,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="exit 1 if any kernel was compiled instead of loaded from the cache")
     args = parser.parse_args(argv)
     result = warm_up()
+    if result.ahead_of_time:
+        print(f"warm-up: {result.seconds:.1f} s, kernels built ahead of time")
+        return 0
     where = os.environ.get("NUMBA_CACHE_DIR") or "beside the installed modules"
     print(f"warm-up: {result.seconds:.1f} s, {result.compiled} kernels compiled, "
           f"{result.loaded} loaded from the cache ({where})")

@@ -4,7 +4,8 @@ Layers, bottom to top:
 
 - core: ``estimator.geometry``, ``estimator.types``, ``estimator.config``,
   ``estimator.imu_sampling`` and the packages
-  ``registration``, ``frontend``, ``backend``, ``formats``, ``evaluation``, ``rendered``.
+  ``registration``, ``frontend``, ``backend``, ``formats``, ``evaluation``, ``rendered`` and
+  ``compiled`` (the kernels' declaration and their build ahead of time).
   ``config`` counts as core: it is the typed schema the front end and the back end read their
   own section from, and it imports nothing from the estimator itself.
 - pipeline: ``estimator.odometry``, ``estimator.rig_settings``, ``estimator.pipeline`` (the
@@ -38,6 +39,7 @@ CORE = (
     "estimator.formats",
     "estimator.evaluation",
     "estimator.rendered",
+    "estimator.compiled",
 )
 PIPELINE = ("estimator.odometry", "estimator.rig_settings", "estimator.pipeline")
 APPS = ("estimator.cli", "estimator.bench", "service")

@@ -13,15 +13,16 @@ from the compiled one's.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from estimator.compiled import kernel
 
 __all__ = ["spectra_statistic"]
 
 _BLOCK = 128  # NumPy's pairwise-summation block (PW_BLOCKSIZE)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel()
 def _block_sum(values: np.ndarray, start: int, count: int) -> float:
     """NumPy's pairwise sum of at most ``_BLOCK`` values: eight running sums, then the rest."""
     if count < 8:
@@ -46,13 +47,13 @@ def _block_sum(values: np.ndarray, start: int, count: int) -> float:
     return total
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel()
 def _split(count: int) -> int:
     half = count // 2
     return half - half % 8
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel()
 def _pairwise_sum(values: np.ndarray) -> float:
     """Sum in NumPy's pairwise order (``np.add.reduce``): blocks of ``_BLOCK`` halved
     recursively, here with an explicit stack (a cached recursive function crashes Numba)."""
@@ -81,7 +82,7 @@ def _pairwise_sum(values: np.ndarray) -> float:
             value = lefts[top] + value
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel()
 def _median(values: np.ndarray) -> float:
     """``np.median`` of a 1-D array, NaN when one value is NaN."""
     count = values.shape[0]
@@ -97,7 +98,7 @@ def _median(values: np.ndarray) -> float:
     return (np.max(ordered[:half]) + ordered[half]) / 2.0
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel("float64[:, ::1], float64[:, ::1], float64, bool")
 def spectra_statistic(
     eigenvalues: np.ndarray, weights: np.ndarray, scale: float, median: bool
 ) -> float:

@@ -12,6 +12,8 @@ import sys
 import warnings
 from importlib.metadata import PackageNotFoundError, version
 
+from estimator.compiled.built import BuiltKernelsError
+
 DESCRIPTION = (
     "Stereo visual odometry: stereo frame pairs (and IMU samples) in, the robot's pose out. "
     "Run it over a recorded sequence, render test sequences, benchmark it, or serve it."
@@ -71,7 +73,14 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 def main(argv: list[str] | None = None) -> int:
     words = sys.argv[1:] if argv is None else argv
     command = words[0] if words and words[0] in COMMANDS else None
-    args = build_parser(only=command).parse_args(argv)
+    try:
+        # The commands' modules load the compiled kernels: a bad SWARMVO_KERNELS, or a build
+        # that SWARMVO_KERNELS=aot insists on and that does not fit, is one line here.
+        parser = build_parser(only=command)
+    except (ValueError, BuiltKernelsError) as error:
+        print(f"swarmvo: error: {error}", file=sys.stderr)
+        return 2
+    args = parser.parse_args(argv)
     warnings.showwarning = _show_warning
     module = importlib.import_module(args._module)
     try:

@@ -15,8 +15,9 @@ import struct
 
 import cv2
 import deflate
-import numba
 import numpy as np
+
+from estimator.compiled import kernel
 
 __all__ = ["PNG_SIGNATURE", "decode_grey8_png", "decode_image"]
 
@@ -105,7 +106,7 @@ def _grey8_size(body: memoryview) -> tuple[int, int] | None:
     return width, height
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel("uint8[:, ::1], uint8[:, ::1]")
 def _unfilter(rows: np.ndarray, out: np.ndarray) -> bool:
     """Undo PNG's per-row filters (one byte per pixel): None, Sub, Up, Average, Paeth.
 
@@ -140,7 +141,7 @@ def _unfilter(rows: np.ndarray, out: np.ndarray) -> bool:
     return True
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def _paeth_row(line: np.ndarray, above: np.ndarray, row: np.ndarray) -> None:
     """The Paeth predictor: of left, up and upper-left, the one nearest left + up - upper-left."""
     left = np.int32(0)

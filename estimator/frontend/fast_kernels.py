@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import threading
 
-import numba
 import numpy as np
+
+from estimator.compiled import kernel
 
 __all__ = [
     "CIRCLE",
@@ -46,7 +47,7 @@ _HARRIS_SCALE32 = np.float32(1.0) / (np.float32(4 * HARRIS_BLOCK) * np.float32(2
 _HARRIS_SCALE4 = _HARRIS_SCALE32 * _HARRIS_SCALE32 * _HARRIS_SCALE32 * _HARRIS_SCALE32
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel()
 def _ring_masks(
     image: np.ndarray, y: int, low_x: int, threshold: np.uint8,
     above: np.ndarray, below: np.ndarray, high: np.ndarray, low: np.ndarray,
@@ -81,7 +82,7 @@ def _ring_masks(
         below[k] = _arcs(np.uint32(below[k]))
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def _arcs(bits: np.uint32) -> np.uint32:
     """Non-zero when a 16-bit ring mask has 9 contiguous set bits (wrapping around)."""
     ring = bits | (bits << np.uint32(16))
@@ -92,7 +93,7 @@ def _arcs(bits: np.uint32) -> np.uint32:
     return run & np.uint32(0xFFFF)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel()
 def _scores(image: np.ndarray, xs: np.ndarray, ys: np.ndarray, sign: np.ndarray) -> np.ndarray:
     """FAST scores of corners (``sign`` +1 for a bright arc, -1 for a dark one): the best
     9-arc's smallest difference, minus one.
@@ -130,7 +131,7 @@ def _scores(image: np.ndarray, xs: np.ndarray, ys: np.ndarray, sign: np.ndarray)
     return best - np.int16(1)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel()
 def _raw_corners(
     image: np.ndarray, threshold: int, border: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -193,7 +194,7 @@ def fast_corners(
 _SCRATCH = threading.local()
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel("uint8[:, ::1], int64, int64, int16[:, ::1]")
 def _fast_corners(
     image: np.ndarray, threshold: int, border: int, scratch: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -218,7 +219,7 @@ def _fast_corners(
     return xs[kept], ys[kept], scores[kept].astype(np.int64)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel()
 def _grown(values: np.ndarray, capacity: int) -> np.ndarray:
     grown = np.empty(capacity, dtype=values.dtype)
     grown[: len(values)] = values
@@ -248,7 +249,7 @@ def check_inside(xs: np.ndarray, ys: np.ndarray, shape: tuple, margin: int) -> N
         )
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel("uint8[:, ::1], int64[::1], int64[::1]")
 def _harris_response(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
     """The block and its gradients reach 4 pixels from the point: no bounds checks here."""
     radius = HARRIS_BLOCK // 2

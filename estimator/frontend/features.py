@@ -14,9 +14,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
+from estimator.compiled import kernel
 from estimator.frontend.match_kernels import as_words
 
 __all__ = [
@@ -99,7 +99,7 @@ def grid_select(
     return np.sort(order[:budget])
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel("int64[::1], int64[::1], int64")
 def _round_robin(cell: np.ndarray, strongest: np.ndarray, cells: int) -> np.ndarray:
     """Points ordered by their strength rank within their cell, then by strength.
 

@@ -10,8 +10,9 @@ results (:func:`band_matches` equals ``row_band_pairs`` + ``descriptor_distances
 
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from estimator.compiled import kernel
 
 __all__ = ["as_words", "band_matches", "hamming", "window_matches", "zero_mean_sad"]
 
@@ -25,7 +26,7 @@ def as_words(descriptors: np.ndarray) -> np.ndarray:
     return descriptors.view(np.uint64)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def _popcount(word: np.uint64) -> np.int64:
     """Set bits of a 64-bit word (SWAR; compiles to the popcount instruction)."""
     word = word - ((word >> np.uint64(1)) & np.uint64(0x5555555555555555))
@@ -36,7 +37,7 @@ def _popcount(word: np.uint64) -> np.int64:
     return np.int64((word * np.uint64(0x0101010101010101)) >> np.uint64(56))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel()
 def hamming(a: np.ndarray, b: np.ndarray) -> np.int64:
     """Hamming distance of two descriptors given as 64-bit words."""
     total = np.int64(0)
@@ -45,7 +46,10 @@ def hamming(a: np.ndarray, b: np.ndarray) -> np.int64:
     return total
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel(
+    "float64[::1], float64[::1], uint64[:, ::1], uint64[:, ::1], int64[::1], int64[::1], "
+    "int64[::1], UniTuple(float64, 2), float64, float64",
+)
 def band_matches(
     left_x: np.ndarray,
     right_x: np.ndarray,
@@ -78,7 +82,10 @@ def band_matches(
     return _mutual_matches(tables, ratio, max_distance)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel(
+    "float64[:, ::1], float64[:, ::1], uint64[:, ::1], uint64[:, ::1], int64[::1], int64[::1], "
+    "int64[::1], float64[::1], float64, float64",
+)
 def window_matches(
     expected: np.ndarray,
     observed: np.ndarray,
@@ -107,7 +114,7 @@ def window_matches(
     return _mutual_matches(tables, ratio, max_distance)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel()
 def _nearest_tables(
     count_a: int, count_b: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -122,7 +129,7 @@ def _nearest_tables(
     )
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def _add_pair(tables: tuple, i: int, j: int, distance: float) -> None:
     """Fold candidate pair (i, j) in; ties keep the pair seen first."""
     partner, best, second, owner_distance, owner = tables
@@ -137,7 +144,7 @@ def _add_pair(tables: tuple, i: int, j: int, distance: float) -> None:
         owner[j] = i
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel()
 def _mutual_matches(
     tables: tuple,
     ratio: float,
@@ -155,7 +162,7 @@ def _mutual_matches(
     return a, partner[a], best[a]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel("uint8[:, ::1], uint8[:, ::1], int64[::1], int64[::1], int64[::1], int64, int64[::1]")
 def zero_mean_sad(
     left_image: np.ndarray,
     right_image: np.ndarray,

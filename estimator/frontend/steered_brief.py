@@ -22,9 +22,9 @@ import logging
 import math
 
 import cv2
-import numba
 import numpy as np
 
+from estimator.compiled import kernel
 from estimator.frontend.fast_kernels import check_inside
 from estimator.frontend.orb_pattern import OrbPatternError, measure_orb_pattern
 
@@ -166,7 +166,7 @@ def orb_pattern() -> np.ndarray | None:
     return pattern
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel()
 def _fast_atan2(y: np.float32, x: np.float32) -> np.float32:
     """OpenCV's fastAtan2 (degrees), operation for operation in float32."""
     ax, ay = abs(x), abs(y)
@@ -185,7 +185,7 @@ def _fast_atan2(y: np.float32, x: np.float32) -> np.float32:
     return a
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel("uint8[:, ::1], int64[::1], int64[::1], int64[::1]")
 def _orientation(
     image: np.ndarray, xs: np.ndarray, ys: np.ndarray, half_widths: np.ndarray
 ) -> np.ndarray:
@@ -214,7 +214,7 @@ def _orientation(
     return angle
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel("uint8[::1], int64, int64[::1], int64[::1], float32[::1], float32[::1], float32[::1]")
 def _describe(
     flat: np.ndarray,
     width: int,

@@ -49,9 +49,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
+from estimator.compiled import kernel
 from estimator.formats.calibration import Rectification
 from estimator.frontend.stereo import point_covariances
 from estimator.order_statistics import column_medians, median, quantile
@@ -264,7 +264,7 @@ def flow(current: np.ndarray, reference: np.ndarray, rectification: Rectificatio
     return _flow(project(current, rectification), project(reference, rectification))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel("float64[:, ::1], float64, float64, float64, float64, float64")
 def _point_covariances(points, focal, focal_baseline, variance_u, variance_v, sigma_d):
     """``stereo.point_covariances`` in one compiled pass, the same operations in the same
     order (bit for bit, tested): the array version's temporaries cost more than its

@@ -19,8 +19,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numba
 import numpy as np
+
+from estimator.compiled import kernel
 
 __all__ = ["SwarmResult", "better", "optimise"]
 
@@ -186,7 +187,7 @@ def _leader(support: np.ndarray, fitness: np.ndarray) -> int:
     return int(_leader_index(support, fitness))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel("int64[::1], float64[::1]")
 def _leader_index(support: np.ndarray, fitness: np.ndarray) -> int:
     leader = 0
     for index in range(1, len(support)):
@@ -197,7 +198,10 @@ def _leader_index(support: np.ndarray, fitness: np.ndarray) -> int:
     return leader
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel(
+    "float64[:, ::1], float64[:, ::1], float64[:, ::1], int64, float64[:, :, ::1], float64, "
+    "float64, bool, float64[::1]",
+)
 def _move(
     positions: np.ndarray,
     velocity: np.ndarray,
@@ -224,7 +228,10 @@ def _move(
             positions[particle, axis] = here + step
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel(
+    "int64[::1], float64[::1], float64[:, ::1], float64[:, ::1], int64[::1], float64[::1], int64, "
+    "float64",
+)
 def _remember(
     support: np.ndarray,
     fitness: np.ndarray,

@@ -9,9 +9,9 @@ version), the robust weight, and the sums J^T W J and J^T W r' with J = [[s]x, -
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from estimator.compiled import kernel
 from estimator.registration.swarm_kernels import exp_quaternion, quaternion_rotation
 
 __all__ = [
@@ -51,7 +51,7 @@ _JACOBIAN_NONZERO = np.array(
 )
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def _column(x, y, z, rotation, j):
     """x R[0, j] + y R[1, j] + z R[2, j], summed from 0.0 in that order (the rounding the
     array version had, signed zeros included)."""
@@ -62,7 +62,7 @@ def _column(x, y, z, rotation, j):
     return value
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def _pair(source, target, source_cov, target_cov, rotation, translation, n, residual, info):
     """Fill ``residual`` (3,) and ``info`` (3, 3) of pair ``n``; False for a singular one.
 
@@ -105,7 +105,7 @@ def _pair(source, target, source_cov, target_cov, rotation, translation, n, resi
     return True
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel()
 def _quadratic_form(info, residual):
     """r^T W r for one pair's 3x3 information matrix."""
     value = 0.0
@@ -117,7 +117,10 @@ def _quadratic_form(info, residual):
     return value
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel(
+    "float64[:, ::1], float64[:, ::1], float64[:, :, ::1], float64[:, :, ::1], float64[:, ::1], "
+    "float64[::1]",
+)
 def squared_distances(source, target, source_cov, target_cov, rotation, translation):
     """(N,) squared Mahalanobis distances and whether every pair's covariance is regular."""
     count = source.shape[0]
@@ -133,7 +136,10 @@ def squared_distances(source, target, source_cov, target_cov, rotation, translat
     return squared, True
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel(
+    "float64[:, ::1], float64[:, ::1], float64[:, :, ::1], float64[:, :, ::1], float64[:, ::1], "
+    "float64[::1], int64, float64",
+)
 def linearise_pairs(
     source, target, source_cov, target_cov, rotation, translation, robust_code, scale
 ):
@@ -195,7 +201,10 @@ def linearise_pairs(
     return cost, hessian, gradient, squared, True
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel(
+    "float64[:, ::1], float64[:, ::1], float64[:, :, ::1], float64[:, :, ::1], float64[:, ::1], "
+    "float64[::1], int64, float64",
+)
 def score_outer_products(
     source, target, source_cov, target_cov, rotation, translation, robust_code, scale
 ):
@@ -247,7 +256,7 @@ def score_outer_products(
     return meat, curvature, True
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel("float64[:, ::1]")
 def scaled_condition(hessian):
     """2-norm condition number of the Jacobi-scaled ``hessian`` (radians and metres are not
     comparable units); inf when it is not finite or a diagonal entry is not positive.
@@ -267,7 +276,7 @@ def scaled_condition(hessian):
     return np.linalg.cond(scaled)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def _robust_weight(value, robust_code, scale):
     """The IRLS weight of a pair with squared distance ``value`` (as ``linearise_pairs``)."""
     if robust_code == 1:
@@ -278,7 +287,10 @@ def _robust_weight(value, robust_code, scale):
     return 1.0
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel(
+    "float64[:, ::1], float64[:, ::1], float64[:, :, ::1], float64[:, :, ::1], float64[:, ::1], "
+    "float64[::1], int64, float64",
+)
 def sensitivity_terms(
     source, target, source_cov, target_cov, rotation, translation, robust_code, scale
 ):
@@ -327,7 +339,7 @@ def sensitivity_terms(
     return own, other, hessian, True
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel("float64[:, ::1], float64[::1]")
 def solve_pivoted(matrix, rhs):
     """x with matrix x = rhs by Gaussian elimination with partial pivoting (what LAPACK's
     gesv does), and whether every pivot was non-zero; the inputs are left as they were."""
@@ -358,7 +370,7 @@ def solve_pivoted(matrix, rhs):
     return x, True
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel()
 def _step_pose(rotation, translation, step):
     """T Exp(step) with step = (omega, v), the right perturbation: R Exp(omega), t + R v
     (the exponential map and the normalised quaternion's matrix, as ``geometry`` forms them)."""
@@ -380,7 +392,11 @@ def _step_pose(rotation, translation, step):
     return moved_r, moved_t
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel(
+    "float64[:, ::1], float64[:, ::1], float64[:, :, ::1], float64[:, :, ::1], float64[:, ::1], "
+    "float64[::1], float64, float64[:, ::1], float64[::1], float64[::1], int64, int64, float64, "
+    "int64, float64, float64",
+)
 def levenberg_marquardt(
     source, target, source_cov, target_cov, rotation, translation, cost, hessian, gradient,
     squared, iterations, robust_code, scale, max_rejections, step_tolerance, settled_step,

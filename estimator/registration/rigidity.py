@@ -8,8 +8,9 @@ the correct pairs first, and a greedy pass takes a small mutually rigid core fro
 
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from estimator.compiled import kernel
 
 __all__ = [
     "graph_sample",
@@ -99,7 +100,7 @@ def rigidity_scores(weights: np.ndarray, power_steps: int = 2) -> np.ndarray:
     return _spectral_scores(np.ascontiguousarray(weights, dtype=np.float32), power_steps)
 
 
-@numba.njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+@kernel("float32[:, ::1], int64", fastmath=True, error_model="numpy")
 def _spectral_scores(weights: np.ndarray, power_steps: int) -> np.ndarray:
     # Row sums, then power steps scaled to a peak of 1, all in float32 (as the weights).
     count = weights.shape[0]
@@ -131,7 +132,7 @@ def _spectral_scores(weights: np.ndarray, power_steps: int) -> np.ndarray:
     return scores
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel("float32[::1], int64", "float64[::1], int64", error_model="numpy")
 def top_ranked(scores: np.ndarray, count: int) -> np.ndarray:
     # Indices of the ``count`` highest scores, highest first, ties by index: the head of a
     # stable descending argsort, by insertion into a short sorted list.
@@ -153,7 +154,7 @@ def top_ranked(scores: np.ndarray, count: int) -> np.ndarray:
     return top
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel("float32[:, ::1], int64[::1], int64", error_model="numpy")
 def _greedy_core(weights: np.ndarray, candidates: np.ndarray, size: int) -> np.ndarray:
     # Positions in ``candidates`` of the greedy core: each consistent (w > 0) with all before.
     taken = np.empty(max(min(size, len(candidates)), 0), dtype=np.int64)
@@ -176,7 +177,7 @@ def _greedy_core(weights: np.ndarray, candidates: np.ndarray, size: int) -> np.n
     return taken[:found]
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _centred_float32(points: np.ndarray) -> np.ndarray:
     # (3, N) float32 coordinates relative to the centroid: small numbers keep the float32
     # distances accurate, and rows of one coordinate make the kernels' inner loops SIMD.
@@ -194,7 +195,7 @@ def _centred_float32(points: np.ndarray) -> np.ndarray:
     return centred
 
 
-@numba.njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+@kernel("float64[:, ::1], float64[:, ::1], float64", fastmath=True, error_model="numpy")
 def _rigidity_kernel(source: np.ndarray, target: np.ndarray, tolerance: float) -> np.ndarray:
     # Full rows over structure-of-arrays inputs: branch-free, SIMD-friendly inner loop.
     source32, target32 = _centred_float32(source), _centred_float32(target)
@@ -215,7 +216,11 @@ def _rigidity_kernel(source: np.ndarray, target: np.ndarray, tolerance: float) -
     return weights
 
 
-@numba.njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+@kernel(
+    "float64[:, ::1], float64[:, ::1], float64, float32[::1]",
+    fastmath=True,
+    error_model="numpy",
+)
 def _scaled_rigidity_kernel(
     source: np.ndarray, target: np.ndarray, tolerance: float, half_squares: np.ndarray
 ) -> np.ndarray:

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
+
+from estimator.compiled import kernel
 
 __all__ = [
     "MIN_SUPPORT",
@@ -38,7 +39,7 @@ MIN_SUPPORT = 4
 # from vectorising (the scaled rigidity kernel ran 6x slower with it).
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel("float64[:, ::1]", error_model="numpy")
 def symmetric_eigen(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     # Cyclic Jacobi for a small symmetric matrix: eigenvalues ascending, unit eigenvectors
     # as columns. For 3x3 and 4x4 it is faster than a LAPACK call and compiles in a
@@ -101,7 +102,7 @@ def symmetric_eigen(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return values, vectors
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel("float64[:, ::1], int64[::1]", error_model="numpy")
 def degenerate_points(points: np.ndarray, rows: np.ndarray) -> bool:
     # ``geometry.is_degenerate`` of points[rows], without the copy: the same two criteria
     # on the singular values of the centred set (square roots of the scatter's eigenvalues).
@@ -126,12 +127,15 @@ def degenerate_points(points: np.ndarray, rows: np.ndarray) -> bool:
     return largest <= 1e-12 * max(peak, 1e-300) or middle <= 1e-6 * largest
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel("float64[:, ::1], float64[:, ::1], int64[::1]", error_model="numpy")
 def degenerate_rows(source: np.ndarray, target: np.ndarray, rows: np.ndarray) -> bool:
     return degenerate_points(source, rows) or degenerate_points(target, rows)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(
+    "float64[:, ::1], float64[:, ::1], int64[::1], float64[:, ::1], float64[::1]",
+    error_model="numpy",
+)
 def pair_forms(
     source: np.ndarray,
     target: np.ndarray,
@@ -184,7 +188,7 @@ def pair_forms(
     return forms, norms
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def exp_quaternion(rotation_vector: np.ndarray) -> tuple[float, float, float, float]:
     """(w, x, y, z) of the exponential map of a rotation vector, as
     ``geometry.rotation_vector_to_quat`` forms it, for compiled callers."""
@@ -196,7 +200,7 @@ def exp_quaternion(rotation_vector: np.ndarray) -> tuple[float, float, float, fl
     return w, x, y, z
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _quat_products(rotation_vector: np.ndarray, products: np.ndarray) -> None:
     # The exponential map, then the 10 products of the quaternion's components in the order
     # of ``pair_forms``, into ``products``.
@@ -206,7 +210,7 @@ def _quat_products(rotation_vector: np.ndarray, products: np.ndarray) -> None:
     products[7], products[8], products[9] = x * y, x * z, y * z
 
 
-@numba.njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+@kernel("float64[:, ::1], float64[:, ::1], float64[::1]", fastmath=True, error_model="numpy")
 def swarm_residuals(positions: np.ndarray, forms: np.ndarray, norms: np.ndarray) -> np.ndarray:
     # (P, M) squared residuals of every particle against every pair.
     squared = np.empty((positions.shape[0], len(norms)))
@@ -221,7 +225,11 @@ def swarm_residuals(positions: np.ndarray, forms: np.ndarray, norms: np.ndarray)
     return squared
 
 
-@numba.njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+@kernel(
+    "float64[:, ::1], float64[:, ::1], float64[::1], float64, bool",
+    fastmath=True,
+    error_model="numpy",
+)
 def swarm_scores(
     positions: np.ndarray, forms: np.ndarray, norms: np.ndarray, limit: float, truncate: bool
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -248,7 +256,7 @@ def swarm_scores(
     return support, cost
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel("float64[:, ::1], float64[:, ::1], float64[::1], bool[::1]", error_model="numpy")
 def horn_fit(
     source: np.ndarray, target: np.ndarray, weights: np.ndarray, mask: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -263,7 +271,7 @@ def horn_fit(
     return quaternion, rotation, _translation(rotation, source_mean, target_mean)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _weighted_centroids(
     source: np.ndarray, target: np.ndarray, weights: np.ndarray, mask: np.ndarray
 ) -> tuple[float, np.ndarray, np.ndarray]:
@@ -285,7 +293,7 @@ def _weighted_centroids(
     return total, source_mean, target_mean
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _weighted_correlation(
     source: np.ndarray,
     target: np.ndarray,
@@ -307,7 +315,7 @@ def _weighted_correlation(
     return c
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _horn_matrix(c: np.ndarray) -> np.ndarray:
     # Horn's symmetric 4x4 matrix of the correlation (``estimator.geometry.horn``).
     horn_matrix = np.empty((4, 4))
@@ -324,7 +332,7 @@ def _horn_matrix(c: np.ndarray) -> np.ndarray:
     return horn_matrix
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _top_quaternion(horn_matrix: np.ndarray) -> np.ndarray:
     # The eigenvector of the largest eigenvalue, normalised, with w >= 0.
     vectors = symmetric_eigen(horn_matrix)[1]
@@ -337,7 +345,7 @@ def _top_quaternion(horn_matrix: np.ndarray) -> np.ndarray:
     return quaternion
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def quaternion_rotation(quaternion: np.ndarray) -> np.ndarray:
     """The rotation matrix of a unit quaternion (w, x, y, z), as ``geometry.quat_to_matrix``
     forms it, for compiled callers."""
@@ -361,7 +369,7 @@ def quaternion_rotation(quaternion: np.ndarray) -> np.ndarray:
     return rotation
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _translation(
     rotation: np.ndarray, source_mean: np.ndarray, target_mean: np.ndarray
 ) -> np.ndarray:
@@ -376,7 +384,7 @@ def _translation(
     return translation
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _normalised_residuals(
     source: np.ndarray,
     target: np.ndarray,
@@ -401,7 +409,10 @@ def _normalised_residuals(
     return residual
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(
+    "float64[:, ::1], float64[:, ::1], bool[::1], float64[::1], float64[::1]",
+    error_model="numpy",
+)
 def fit_pose(
     source: np.ndarray,
     target: np.ndarray,
@@ -414,7 +425,11 @@ def fit_pose(
     return quaternion, rotation, translation, residual
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(
+    "float64[:, ::1], float64[:, ::1], bool[::1], float64, float64[::1], float64[::1], "
+    "float64[::1], float64, bool, bool, int64, float64, float64",
+    error_model="numpy",
+)
 def refit_loop(
     source: np.ndarray,
     target: np.ndarray,
