@@ -171,6 +171,9 @@ def build(force: bool = False, quiet: bool = False) -> Path:
         entries = {spec.name: _export(cc, spec) for spec in KERNELS if spec.argument_types}
         cc.compile()
         (built,) = Path(scratch).glob("_kernels*.so")
+        # The old manifest goes first: a process starting meanwhile finds no build (and
+        # compiles just in time) instead of the new module under the old manifest.
+        MANIFEST.unlink(missing_ok=True)
         for old in DIRECTORY.glob("_kernels*.so"):
             old.unlink()
         shutil.move(str(built), DIRECTORY / built.name)
