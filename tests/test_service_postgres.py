@@ -84,6 +84,43 @@ def database(cluster: Cluster, request: pytest.FixtureRequest) -> Iterator[str]:
     cluster.admin(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
 
 
+def test_a_writer_stalled_inside_a_transaction_does_not_lock_its_session_for_good(
+    cluster: Cluster, database: str
+) -> None:
+    """A replica paused between a pose's UPDATE and its COMMIT holds the session row's lock;
+    another replica's takeover must not wait for it to resume (the robot's frames would go
+    unanswered). PostgreSQL ends the idle transaction (service/storage/engine.py)."""
+    import time
+
+    from sqlalchemy import text
+    from sqlalchemy.exc import DBAPIError
+
+    from service.storage.engine import IDLE_IN_TRANSACTION_TIMEOUT_MS, make_engine
+
+    stalled, other = make_engine(cluster.url(database)), make_engine(cluster.url(database))
+    try:
+        with other.begin() as connection:
+            connection.execute(text("CREATE TABLE leases (id int PRIMARY KEY, holder text)"))
+            connection.execute(text("INSERT INTO leases VALUES (1, 'a')"))
+        paused = stalled.connect()
+        paused.begin()
+        paused.execute(text("UPDATE leases SET holder = 'a' WHERE id = 1"))  # then nothing
+        start = time.monotonic()
+        with other.begin() as connection:
+            connection.execute(text("SET LOCAL statement_timeout = '30s'"))  # fail, not hang
+            connection.execute(text("UPDATE leases SET holder = 'b' WHERE id = 1"))
+        waited = time.monotonic() - start
+        assert waited < IDLE_IN_TRANSACTION_TIMEOUT_MS / 1000 + 5.0, waited
+        with other.connect() as connection:
+            assert connection.execute(text("SELECT holder FROM leases")).scalar() == "b"
+        with pytest.raises(DBAPIError, match="idle-in-transaction timeout"):
+            paused.execute(text("SELECT 1"))
+            paused.commit()
+    finally:
+        stalled.dispose()
+        other.dispose()
+
+
 def _calibration() -> dict:
     camera = {"width": 64, "height": 48, "fx": 50.0, "fy": 50.0, "cx": 32.0, "cy": 24.0,
               "distortion_model": "none", "distortion": [], "T_BS": np.eye(4).tolist()}

@@ -13,6 +13,12 @@ from sqlalchemy.engine import Engine
 MIGRATIONS_DIR = Path(__file__).resolve().parents[1] / "migrations"
 # PostgreSQL advisory lock id held while migrating (any constant other applications do not use).
 MIGRATION_LOCK_KEY = 0x5357_564F_4D49_4752  # "SWVOMIGR"
+# A replica stalled inside a transaction (paused, swapping, stopped between a pose's UPDATE and
+# its COMMIT) keeps the session row locked, and another replica's lease takeover would wait on
+# that lock until the stalled one resumes: its robots' frames would go unanswered meanwhile.
+# PostgreSQL ends a transaction left idle this long, and its locks with it; the service's own
+# transactions never wait between statements for more than milliseconds.
+IDLE_IN_TRANSACTION_TIMEOUT_MS = 5000
 
 
 def _strict_json(value: Any) -> str:
@@ -56,7 +62,9 @@ def make_engine(url: str, sqlite_synchronous: str = "NORMAL") -> Engine:
             cursor.close()
 
         return engine
-    return create_engine(url, pool_pre_ping=True, json_serializer=_strict_json)
+    options = f"-c idle_in_transaction_session_timeout={IDLE_IN_TRANSACTION_TIMEOUT_MS}"
+    return create_engine(url, pool_pre_ping=True, json_serializer=_strict_json,
+                         connect_args={"options": options})
 
 
 def run_migrations(engine: Engine) -> None:
