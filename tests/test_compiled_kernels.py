@@ -111,6 +111,20 @@ def test_a_build_is_used_only_where_it_fits() -> None:
         assert callable(built.entry(name))
 
 
+def test_an_unreadable_manifest_is_a_stale_build_not_a_crash(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from estimator.compiled import built
+
+    for text in ("{not json", '{"format": 1}', "[]"):
+        corrupt = tmp_path / "_kernels.json"
+        corrupt.write_text(text)
+        monkeypatch.setattr(built, "MANIFEST", corrupt)
+        with pytest.raises(built.BuiltKernelsError, match="unreadable") as raised:
+            BuiltKernels.load()
+        assert raised.value.present  # auto mode warns and compiles just in time
+
+
 def test_an_unknown_kernel_mode_is_one_line_from_the_cli() -> None:
     environment = {**os.environ, "SWARMVO_KERNELS": "fast"}
     done = subprocess.run([sys.executable, "-m", "estimator.cli", "config"], cwd=PROJECT_ROOT,

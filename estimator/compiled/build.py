@@ -169,7 +169,11 @@ def build(force: bool = False, quiet: bool = False) -> Path:
         cc.target_cpu = target
         cc.verbose = False
         entries = {spec.name: _export(cc, spec) for spec in KERNELS if spec.argument_types}
-        cc.compile()
+        try:
+            cc.compile()
+        except Exception as error:  # numba's and distutils' own errors: one line, not a trace
+            raise RuntimeError(f"compiling the kernels failed (needs a C compiler such as gcc "
+                               f"and the Python headers): {error}") from error
         (built,) = Path(scratch).glob("_kernels*.so")
         # The old manifest goes first: a process starting meanwhile finds no build (and
         # compiles just in time) instead of the new module under the old manifest.
@@ -191,7 +195,10 @@ def build(force: bool = False, quiet: bool = False) -> Path:
 def _up_to_date(manifest: dict[str, Any]) -> bool:
     if not MANIFEST.exists() or not any(DIRECTORY.glob("_kernels*.so")):
         return False
-    old = json.loads(MANIFEST.read_text())
+    try:
+        old = json.loads(MANIFEST.read_text())
+    except ValueError:  # unreadable: build again
+        return False
     return all(old.get(key) == value for key, value in manifest.items())
 
 

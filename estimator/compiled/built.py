@@ -170,8 +170,14 @@ class BuiltKernels:
             raise BuiltKernelsError(
                 "no kernels built ahead of time (python -m estimator.compiled)", present=False
             )
-        manifest = json.loads(MANIFEST.read_text())
-        problem = mismatch(manifest)
+        try:
+            manifest = json.loads(MANIFEST.read_text())
+            problem = mismatch(manifest)
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as error:
+            raise BuiltKernelsError(
+                f"the manifest of the built kernels ({MANIFEST}) is unreadable: {error!r}; "
+                "rebuild: python -m estimator.compiled --force", present=True,
+            ) from None
         if problem:
             raise BuiltKernelsError(f"the kernels built ahead of time {problem}", present=True)
         try:
