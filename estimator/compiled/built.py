@@ -120,15 +120,15 @@ def _argument_check(arguments: list[dict[str, Any]]) -> Callable[[tuple], bool]:
     return namespace["check"]
 
 
-def _described(argument: dict[str, Any]) -> str:
+def _built_type(argument: dict[str, Any]) -> str:
     if argument["kind"] == "array":
         return f"{argument['dtype']}[{argument['ndim']}d{', C' if argument['contiguous'] else ''}]"
     if argument["kind"] == "tuple":
-        return "(" + ", ".join(_described(item) for item in argument["items"]) + ")"
+        return "(" + ", ".join(_built_type(item) for item in argument["items"]) + ")"
     return argument["kind"]
 
 
-def _describe(value: object) -> str:
+def _given_type(value: object) -> str:
     if isinstance(value, np.ndarray):
         layout = ", C" if value.flags.c_contiguous else ""
         return f"{value.dtype}[{value.ndim}d{layout}]"
@@ -144,7 +144,7 @@ class CompiledEntry:
         self.name = name
         self.variants = [(function, _argument_check(arguments)) for function, arguments in variants]
         self.expected = "; ".join(
-            "(" + ", ".join(_described(a) for a in arguments) + ")" for _f, arguments in variants
+            "(" + ", ".join(_built_type(a) for a in arguments) + ")" for _f, arguments in variants
         )
         self.__qualname__ = name
         self.__name__ = name.rsplit(".", 1)[-1]
@@ -153,7 +153,7 @@ class CompiledEntry:
         for function, check in self.variants:
             if check(args):
                 return function(*args)
-        given = ", ".join(_describe(value) for value in args)
+        given = ", ".join(_given_type(value) for value in args)
         raise TypeError(f"{self.name} was built for {self.expected}, not ({given})")
 
 
