@@ -426,7 +426,12 @@ def explain_validation_error(error: ValidationError, model: type[BaseModel] = Sw
         else:
             # A validator's own ValueError reads "Value error, <message>": keep the message.
             message = item["msg"].removeprefix("Value error, ")
-            problems.append(f"{where}: {message}")
+            given = item.get("input")
+            shown = ""
+            if isinstance(given, int | float | str):  # a value, shortened: never a payload
+                text = repr(given)
+                shown = f" (got {text if len(text) <= 40 else text[:37] + '...'})"
+            problems.append(f"{where}: {message}{shown}")
     return "; ".join(problems)
 
 

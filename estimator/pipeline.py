@@ -47,6 +47,17 @@ ESTIMATORS: tuple[str, ...] = tuple(name.value for name in Estimator)
 FIRST_FRAME_IMU_WINDOW_NS = 100_000_000
 
 
+def yaml_problem(error: yaml.YAMLError) -> str:
+    """PyYAML's several-line message as one line: the problem and where it is in the file."""
+    problem = getattr(error, "problem", None)
+    mark = getattr(error, "problem_mark", None)
+    if problem is None:
+        return " ".join(str(error).split())
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    context = getattr(error, "context", None)
+    return f"{problem}{where}" + (f" ({context})" if context else "")
+
+
 def load_config(path: Path, frame_interval_s: float | None = None) -> SwarmvoConfig:
     """SwarmvoConfig from a JSON or YAML file (a clear error for unknown or invalid fields).
 
@@ -58,7 +69,7 @@ def load_config(path: Path, frame_interval_s: float | None = None) -> SwarmvoCon
     try:
         data = yaml.safe_load(path.read_text())  # YAML is a superset of JSON
     except yaml.YAMLError as error:
-        raise ValueError(f"{path} is not valid JSON/YAML: {error}") from error
+        raise ValueError(f"{path} is not valid JSON/YAML: {yaml_problem(error)}") from None
     try:
         context = {FRAME_INTERVAL_CONTEXT: frame_interval_s}
         return SwarmvoConfig.model_validate(data or {}, context=context)

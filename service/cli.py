@@ -39,6 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # Imported here so `swarmvo --help` does not pay for FastAPI and SQLAlchemy.
+    from pydantic import ValidationError
+
+    from estimator.config import explain_validation_error
     from service.server import serve
     from service.settings import ServiceSettings
 
@@ -51,5 +54,9 @@ def run(args: argparse.Namespace) -> int:
         "executor": args.executor,
         "open": args.open,
     }
-    settings = ServiceSettings(**{k: v for k, v in overrides.items() if v is not None})
+    try:
+        settings = ServiceSettings(**{k: v for k, v in overrides.items() if v is not None})
+    except ValidationError as error:
+        raise ValueError(f"invalid settings: {explain_validation_error(error, ServiceSettings)}"
+                         ) from None
     return serve(settings, log_level=args.log_level)

@@ -96,3 +96,28 @@ def test_conflicting_flags_are_refused(tmp_path, capsys, euroc_v101_micro):
     assert "--export-storage needs --export-bag" in capsys.readouterr().err
     assert main(["run", str(euroc_v101_micro), "--left-topic", "/cam0"]) == 2
     assert "--left-topic is for bags" in capsys.readouterr().err
+
+
+def test_broken_yaml_is_one_line_with_its_place(tmp_path, capsys):
+    path = tmp_path / "broken.yaml"
+    path.write_text("frontend:\n  max_features: [1200\n")
+    assert main(["config", "--config", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err, err
+    assert err.startswith("swarmvo config: error: ") and "line 3" in err, err
+
+
+def test_a_bad_value_names_what_was_given(tmp_path, capsys):
+    path = tmp_path / "bad.yaml"
+    path.write_text("frontend: {max_features: -3}\n")
+    assert main(["config", "--config", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "frontend.max_features" in err and "(got -3)" in err, err
+
+
+def test_service_settings_out_of_range_are_one_line(capsys, monkeypatch):
+    monkeypatch.setenv("SWARMVO_WORKERS", "many")
+    assert main(["serve", "--port", "99999"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith("swarmvo serve: error: invalid settings: "), err
+    assert "port" in err and "99999" in err and "workers" in err and "'many'" in err, err

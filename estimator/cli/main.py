@@ -86,7 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(module.run(args) or 0)
     except (ValueError, FileNotFoundError, NotADirectoryError) as error:
-        print(f"swarmvo {args.command}: error: {error}", file=sys.stderr)
+        one_line = " ".join(str(error).split())  # a user's error is one line, never a dump
+        print(f"swarmvo {args.command}: error: {one_line}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # the reader went away (`swarmvo config | head`): not an error
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
