@@ -408,8 +408,13 @@ class SwarmvoConfig(_Section):
     backend: BackendConfig = Field(default_factory=BackendConfig)
 
 
-def explain_validation_error(error: ValidationError, model: type[BaseModel] = SwarmvoConfig) -> str:
-    """One plain line per problem, with a "did you mean" for a mistyped key.
+def explain_validation_error(
+    error: ValidationError,
+    model: type[BaseModel] = SwarmvoConfig,
+    hidden: frozenset[str] = frozenset(),
+) -> str:
+    """One plain line per problem, with a "did you mean" for a mistyped key and the value given
+    (never for the fields named in ``hidden``: passwords, keys).
 
     Pydantic's own message is several lines with a documentation URL for each error: accurate,
     but hard to read in a terminal or an HTTP answer.
@@ -428,7 +433,8 @@ def explain_validation_error(error: ValidationError, model: type[BaseModel] = Sw
             message = item["msg"].removeprefix("Value error, ")
             given = item.get("input")
             shown = ""
-            if isinstance(given, int | float | str):  # a value, shortened: never a payload
+            if isinstance(given, int | float | str) and not hidden.intersection(location):
+                # The value, shortened: never a payload.
                 text = repr(given)
                 shown = f" (got {text if len(text) <= 40 else text[:37] + '...'})"
             problems.append(f"{where}: {message}{shown}")

@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
 
     from estimator.config import explain_validation_error
     from service.server import serve
-    from service.settings import ServiceSettings
+    from service.settings import SECRET_SETTINGS, ServiceSettings
 
     overrides = {
         "host": args.host,
@@ -57,6 +57,6 @@ def run(args: argparse.Namespace) -> int:
     try:
         settings = ServiceSettings(**{k: v for k, v in overrides.items() if v is not None})
     except ValidationError as error:
-        raise ValueError(f"invalid settings: {explain_validation_error(error, ServiceSettings)}"
-                         ) from None
+        problems = explain_validation_error(error, ServiceSettings, SECRET_SETTINGS)
+        raise ValueError(f"invalid settings: {problems}") from None
     return serve(settings, log_level=args.log_level)

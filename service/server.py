@@ -26,6 +26,7 @@ from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIO
 
 from service.app import create_app
 from service.memory import reuse_frame_buffers
+from service.preflight import check_database, check_listen, prepare_data_dir
 from service.redact import redact_logs
 from service.settings import ServiceSettings
 
@@ -138,7 +139,9 @@ class StreamsFirstServer(uvicorn.Server):
 def serve(settings: ServiceSettings, log_level: str = "info") -> int:
     """Serve until interrupted; a configuration problem raises ValueError before binding."""
     settings.check_startable()
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    prepare_data_dir(settings.data_dir)
+    check_listen(settings.host, settings.port)
+    check_database(settings.resolved_database_url())
     logging.basicConfig(level=log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
     if settings.open:
         logging.getLogger("swarmvo.service").warning(

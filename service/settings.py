@@ -19,6 +19,10 @@ Executor = Literal["process", "thread"]
 QueuePolicy = Literal["reject", "drop_oldest"]
 
 
+# Settings whose values are never repeated in an error message (they hold passwords or keys).
+SECRET_SETTINGS = frozenset({"api_keys", "database_url"})
+
+
 def hash_key(key: str) -> str:
     """Stored form of an API key: sessions are owned by this digest, never by the key itself."""
     return hashlib.sha256(key.encode("utf-8")).hexdigest()
@@ -91,8 +95,13 @@ class ServiceSettings(BaseSettings):
 
     @field_validator("database_url")
     @classmethod
-    def _strip(cls, value: str) -> str:
-        return value.strip()
+    def _database_url(cls, value: str) -> str:
+        from service.storage.engine import check_database_url
+
+        value = value.strip()
+        if value:
+            check_database_url(value)
+        return value
 
     @property
     def key_hashes(self) -> frozenset[str]:

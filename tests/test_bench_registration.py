@@ -274,3 +274,10 @@ def test_strict_turns_a_miss_into_exit_code_1(
     arguments = ["bench", "registration", "--out", str(tmp_path), "--no-progress"]
     assert main(arguments) == 0
     assert main([*arguments, "--strict"]) == 1
+
+
+@pytest.mark.parametrize("mode", ["paper", "stereo"])
+def test_zero_trials_is_refused_not_taken_for_the_default(mode, tmp_path, capsys) -> None:
+    argv = ["bench", "registration", "--mode", mode, "--trials", "0", "--out", str(tmp_path)]
+    assert main(argv) == 2
+    assert "--trials must be >= 1, got 0" in capsys.readouterr().err

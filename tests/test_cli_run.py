@@ -150,6 +150,22 @@ def test_bad_input_gives_a_clean_error(tmp_path, capsys, rendered):
     assert "invalid choice" in capsys.readouterr().err
 
 
+def test_an_output_path_that_cannot_take_files_is_refused_before_the_run(
+    tmp_path, capsys, rendered
+):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    for flags, named in (
+        (["--out", str(blocker)], str(blocker)),
+        (["--out", str(blocker / "run")], str(blocker / "run")),
+        (["--out", str(tmp_path / "o"), "--export-bag", str(blocker / "x.bag")], str(blocker)),
+    ):
+        assert main(["run", str(rendered), "--quiet", *flags]) == 2
+        err = capsys.readouterr()
+        assert f"swarmvo run: error: cannot write into {named}" in err.err, err.err
+        assert "results:" not in err.out  # refused before a frame was computed
+
+
 def test_synth_bad_options_give_a_clean_error(tmp_path, capsys):
     assert main(["synth", str(tmp_path / "s"), "--frames", "1"]) == 2
     assert "swarmvo synth: error: frames must be >= 2" in capsys.readouterr().err

@@ -237,3 +237,22 @@ def test_hold_back_keeps_frames_the_server_would_refuse() -> None:
     assert kinds == ["frame", "frame", "imu", "frame"]
     sent, frames, connection = asyncio.run(scenario(False))  # the default sends every frame
     assert sent == [True] * 4 and frames.held_back == 0
+
+
+@pytest.mark.parametrize("websocket", [False, True])
+def test_replay_against_no_server_is_one_line_naming_it(euroc_v101_micro, tmp_path, capsys,
+                                                        websocket) -> None:
+    import socket
+
+    from swarmvo_client.cli import main
+
+    with socket.socket() as closed:  # a port nobody listens on
+        closed.bind(("127.0.0.1", 0))
+        url = f"http://127.0.0.1:{closed.getsockname()[1]}"
+    argv = ["replay", str(euroc_v101_micro), "--url", url, "--api-key", "k",
+            "--out", str(tmp_path), "--quiet", *(["--ws"] if websocket else [])]
+    assert main(argv) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    # The clip's unpaired images: a warning of one line, without our source line.
+    assert all(line.startswith("swarmvo-client: warning: ") for line in lines[:-1]), lines
+    assert lines[-1].startswith(f"swarmvo-client replay: error: cannot reach the server at {url}: ")

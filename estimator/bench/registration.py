@@ -141,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
         return run_stereo(args, args.out.with_name("registration-stereo") if default else args.out)
     sigmas = args.sigmas or (QUICK_SIGMAS if args.quick else SIGMAS)
     ratios = args.outlier_ratios or (QUICK_OUTLIER_RATIOS if args.quick else OUTLIER_RATIOS)
-    trials = args.trials or (QUICK_TRIALS if args.quick else TRIALS)
+    trials = args.trials if args.trials is not None else (QUICK_TRIALS if args.quick else TRIALS)
     if "OMP_NUM_THREADS" not in os.environ:
         print(
             "note: OMP_NUM_THREADS is not set; for one-core timings run "

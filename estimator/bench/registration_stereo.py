@@ -230,7 +230,9 @@ def run_stereo(args, out: Path) -> int:
     """The ``--mode stereo`` entry point: table on stdout, JSON and Markdown under ``out``."""
     quick = bool(getattr(args, "quick", False))
     ratios = list(args.outlier_ratios or ((0.0, 0.5, 0.9) if quick else (0.0, 0.3, 0.6, 0.8, 0.9)))
-    trials = args.trials or (5 if quick else 100)
+    trials = args.trials if args.trials is not None else (5 if quick else 100)
+    if trials < 1:
+        raise ValueError(f"--trials must be >= 1, got {trials}")
     report = run_stereo_grid(["euroc", "kitti"], ratios, trials, 400, args.seed)
     text = format_stereo(report)
     print(text)

@@ -7,8 +7,9 @@ import json
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import create_engine, event, func, select
-from sqlalchemy.engine import Engine
+from sqlalchemy import create_engine, event, func, select, text
+from sqlalchemy.engine import Engine, make_url
+from sqlalchemy.exc import ArgumentError, DBAPIError, NoSuchModuleError
 
 MIGRATIONS_DIR = Path(__file__).resolve().parents[1] / "migrations"
 # PostgreSQL advisory lock id held while migrating (any constant other applications do not use).
@@ -19,6 +20,12 @@ MIGRATION_LOCK_KEY = 0x5357_564F_4D49_4752  # "SWVOMIGR"
 # PostgreSQL ends a transaction left idle this long, and its locks with it; the service's own
 # transactions never wait between statements for more than milliseconds.
 IDLE_IN_TRANSACTION_TIMEOUT_MS = 5000
+# The databases the service runs on, and how their URLs look.
+DATABASE_BACKENDS = ("sqlite", "postgresql")
+URL_FORMS = "sqlite:///PATH or postgresql://USER:PASSWORD@HOST[:PORT]/DATABASE"
+# How long the start-up check waits for PostgreSQL to answer (an unreachable host would
+# otherwise hold the start for the system's TCP timeout).
+CHECK_CONNECT_TIMEOUT_S = 10
 
 
 def _strict_json(value: Any) -> str:
@@ -39,6 +46,45 @@ def with_driver(url: str) -> str:
         if url.startswith(scheme):
             return "postgresql+psycopg://" + url.removeprefix(scheme)
     return url
+
+
+def check_database_url(url: str) -> None:
+    """A URL of a database the service runs on (the scheme only; nothing is connected)."""
+    try:
+        backend = make_url(with_driver(url)).get_backend_name()
+    except ArgumentError:
+        raise ValueError(f"not a database URL; expected {URL_FORMS}") from None
+    if backend not in DATABASE_BACKENDS:
+        raise ValueError(f"unsupported database {backend!r}; expected {URL_FORMS}")
+
+
+def check_database(url: str) -> None:
+    """Connect once and run ``SELECT 1``: a database that is away or refuses this user is one
+    clear line at start-up (the password hidden), not a traceback from the migrations."""
+    check_database_url(url)
+    shown = make_url(with_driver(url)).render_as_string(hide_password=True)
+    if url.startswith("sqlite:///"):  # its folder is made, as the store makes it
+        try:
+            Path(url.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise ValueError(f"cannot open the database {shown}: {error.strerror}") from None
+    try:
+        engine = make_engine(url)
+    except NoSuchModuleError as error:  # the driver of a supported database is not installed
+        raise ValueError(f"cannot open the database {shown}: {error}") from None
+    if engine.dialect.name == "postgresql":
+        engine.dispose()
+        engine = create_engine(with_driver(url),
+                               connect_args={"connect_timeout": CHECK_CONNECT_TIMEOUT_S})
+    try:
+        with engine.connect() as connection:
+            connection.execute(text("SELECT 1"))
+    except DBAPIError as error:
+        reason = str(error.orig or error).strip().splitlines()
+        raise ValueError(f"cannot open the database {shown}: "
+                         f"{reason[0] if reason else type(error).__name__}") from None
+    finally:
+        engine.dispose()
 
 
 def make_engine(url: str, sqlite_synchronous: str = "NORMAL") -> Engine:

@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import socket
 import sys
+import warnings
 from pathlib import Path
 
 import httpx
@@ -118,13 +120,29 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings as one plain line: the user needs the message, not our source line."""
+    print(f"swarmvo-client: warning: {message}", file=file or sys.stderr)
+
+
+def _explained(error: Exception, url: str | None) -> str:
+    """One line; a server that cannot be reached is named."""
+    text = " ".join(str(error).split()) or type(error).__name__
+    unreachable = (httpx.TransportError, ConnectionError, TimeoutError, socket.gaierror)
+    if url and isinstance(error, unreachable):
+        return f"cannot reach the server at {url}: {text}"
+    return text
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    warnings.showwarning = _show_warning
     try:
         return int(args.handler(args))
     except (SwarmvoError, httpx.HTTPError, websockets.WebSocketException, OSError,
             ValueError) as error:
-        print(f"swarmvo-client {args.command}: error: {error}", file=sys.stderr)
+        message = _explained(error, getattr(args, "url", None))
+        print(f"swarmvo-client {args.command}: error: {message}", file=sys.stderr)
         return 2
 
 

@@ -18,6 +18,7 @@ and prints them.
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from estimator.cli.results_table import results_table
@@ -156,6 +157,20 @@ def open_input(args: argparse.Namespace) -> Sequence:
     )
 
 
+def _check_writable(out: Path, bag: Path | None) -> None:
+    """The output folder (and the bag's) exist or are made now, and take files: a run is not
+    computed to be lost at the end for a mistyped or read-only path."""
+    for folder in (out, *([bag.parent] if bag is not None else [])):
+        if folder.exists() and not folder.is_dir():
+            raise ValueError(f"cannot write into {folder}: it is a file, not a folder")
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise ValueError(f"cannot write into {folder}: {error.strerror}") from None
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise ValueError(f"cannot write into {folder}: permission denied")
+
+
 def run(args: argparse.Namespace) -> int:
     if args.imu and args.backend is False:
         raise ValueError("--imu needs the back end (the IMU is fused there); drop --no-backend")
@@ -172,6 +187,8 @@ def run(args: argparse.Namespace) -> int:
     config = build_config(args.estimator, args.seed, args.imu, args.backend, base)
     config, derived = apply_rig_settings(config, sequence.rig, interval)
     print(format_settings(sequence.rig, interval, derived), flush=True)
+    out = args.out if args.out is not None else Path("runs") / sequence.name
+    _check_writable(out, args.export_bag)
     try:
         result = run_sequence(
             sequence,
@@ -185,7 +202,6 @@ def run(args: argparse.Namespace) -> int:
     finally:
         getattr(sequence, "close", lambda: None)()  # a bag stops streaming
     result.derived = derived
-    out = args.out if args.out is not None else Path("runs") / sequence.name
     summary = write_outputs(result, out)
     write_odometry(result, out, args.export_bag, args.export_storage or "sqlite3")
     print(results_table(summary, path_length(result.poses())))
