@@ -10,19 +10,18 @@ from __future__ import annotations
 import socket
 from pathlib import Path
 
+from estimator.formats.folders import writable_folder
 from service.storage.engine import check_database
 
 __all__ = ["check_database", "check_listen", "prepare_data_dir"]
 
 
 def prepare_data_dir(folder: Path) -> None:
-    """Create the data folder (the SQLite file, logs of sessions) or say why it cannot be."""
-    if folder.exists() and not folder.is_dir():
-        raise ValueError(f"data directory {folder} is a file, not a folder")
+    """Make the data folder (the SQLite file lives there) or say why it cannot be."""
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise ValueError(f"cannot create the data directory {folder}: {error.strerror}") from None
+        writable_folder(folder)
+    except ValueError as error:
+        raise ValueError(f"data directory: {error}") from None
 
 
 def check_listen(host: str, port: int) -> None:

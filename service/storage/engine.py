@@ -11,6 +11,8 @@ from sqlalchemy import create_engine, event, func, select, text
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.exc import ArgumentError, DBAPIError, NoSuchModuleError
 
+from estimator.formats.folders import writable_folder
+
 MIGRATIONS_DIR = Path(__file__).resolve().parents[1] / "migrations"
 # PostgreSQL advisory lock id held while migrating (any constant other applications do not use).
 MIGRATION_LOCK_KEY = 0x5357_564F_4D49_4752  # "SWVOMIGR"
@@ -65,9 +67,9 @@ def check_database(url: str) -> None:
     shown = make_url(with_driver(url)).render_as_string(hide_password=True)
     if url.startswith("sqlite:///"):  # its folder is made, as the store makes it
         try:
-            Path(url.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
-        except OSError as error:
-            raise ValueError(f"cannot open the database {shown}: {error.strerror}") from None
+            writable_folder(Path(url.removeprefix("sqlite:///")).parent)
+        except ValueError as error:
+            raise ValueError(f"cannot open the database {shown}: {error}") from None
     try:
         engine = make_engine(url)
     except NoSuchModuleError as error:  # the driver of a supported database is not installed

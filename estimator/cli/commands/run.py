@@ -18,12 +18,12 @@ and prints them.
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 from estimator.cli.results_table import results_table
 from estimator.evaluation.metrics import path_length
 from estimator.formats.datasets import Sequence, open_sequence
+from estimator.formats.folders import writable_folder
 from estimator.pipeline import (
     ESTIMATORS,
     build_config,
@@ -158,17 +158,10 @@ def open_input(args: argparse.Namespace) -> Sequence:
 
 
 def _check_writable(out: Path, bag: Path | None) -> None:
-    """The output folder (and the bag's) exist or are made now, and take files: a run is not
-    computed to be lost at the end for a mistyped or read-only path."""
+    """The output folder (and the bag's) take files: a run is not computed to be lost at the
+    end for a mistyped or read-only path."""
     for folder in (out, *([bag.parent] if bag is not None else [])):
-        if folder.exists() and not folder.is_dir():
-            raise ValueError(f"cannot write into {folder}: it is a file, not a folder")
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-        except OSError as error:
-            raise ValueError(f"cannot write into {folder}: {error.strerror}") from None
-        if not os.access(folder, os.W_OK | os.X_OK):
-            raise ValueError(f"cannot write into {folder}: permission denied")
+        writable_folder(folder)
 
 
 def run(args: argparse.Namespace) -> int:
