@@ -74,3 +74,13 @@ def test_sqlite_folders_are_made_and_a_file_in_the_way_is_named(tmp_path):
     (tmp_path / "blocked").write_text("")
     with pytest.raises(ValueError, match="cannot open the database sqlite:///"):
         check_database(f"sqlite:///{tmp_path / 'blocked' / 'poses.sqlite3'}")
+
+
+def test_a_driver_that_is_not_there_is_named(tmp_path, capsys):
+    url = "postgresql+nosuchdriver://robot:hunter2@127.0.0.1/odometry"
+    with pytest.raises(ValueError, match="driver 'nosuchdriver' is not installed") as refused:
+        check_database(url)
+    assert "hunter2" not in str(refused.value)
+    # A SQLite URL naming its driver is still a file whose folder is made.
+    check_database(f"sqlite+pysqlite:///{tmp_path / 'made' / 'poses.sqlite3'}")
+    assert (tmp_path / "made" / "poses.sqlite3").exists()

@@ -60,24 +60,31 @@ def check_database_url(url: str) -> None:
         raise ValueError(f"unsupported database {backend!r}; expected {URL_FORMS}")
 
 
+def sqlite_folder(url: str) -> Path | None:
+    """The folder of a SQLite database file; None for another database or one in memory."""
+    parsed = make_url(with_driver(url))
+    if parsed.get_backend_name() != "sqlite" or parsed.database in (None, "", ":memory:"):
+        return None
+    return Path(parsed.database).parent
+
+
 def check_database(url: str) -> None:
-    """Connect once and run ``SELECT 1``: a database that is away or refuses this user is one
-    clear line at start-up (the password hidden), not a traceback from the migrations."""
+    """Connect once and run ``SELECT 1``: a database that is away, refuses this user or lacks
+    its driver is one clear line at start-up (the password hidden), not a traceback from the
+    migrations. A SQLite file's folder is made, as the store makes it."""
     check_database_url(url)
     shown = make_url(with_driver(url)).render_as_string(hide_password=True)
-    if url.startswith("sqlite:///"):  # its folder is made, as the store makes it
-        try:
-            writable_folder(Path(url.removeprefix("sqlite:///")).parent)
-        except ValueError as error:
-            raise ValueError(f"cannot open the database {shown}: {error}") from None
+    folder = sqlite_folder(url)
     try:
-        engine = make_engine(url)
-    except NoSuchModuleError as error:  # the driver of a supported database is not installed
+        if folder is not None:
+            writable_folder(folder)
+        engine = make_engine(url, connect_timeout_s=CHECK_CONNECT_TIMEOUT_S)
+    except ValueError as error:
         raise ValueError(f"cannot open the database {shown}: {error}") from None
-    if engine.dialect.name == "postgresql":
-        engine.dispose()
-        engine = create_engine(with_driver(url),
-                               connect_args={"connect_timeout": CHECK_CONNECT_TIMEOUT_S})
+    except (ImportError, NoSuchModuleError):  # a driver named in the URL, missing or unknown
+        driver = make_url(with_driver(url)).get_driver_name()
+        raise ValueError(f"cannot open the database {shown}: driver {driver!r} is not "
+                         "installed (plain postgresql:// uses psycopg 3)") from None
     try:
         with engine.connect() as connection:
             connection.execute(text("SELECT 1"))
@@ -89,8 +96,11 @@ def check_database(url: str) -> None:
         engine.dispose()
 
 
-def make_engine(url: str, sqlite_synchronous: str = "NORMAL") -> Engine:
-    """Engine for ``url``; SQLite gets WAL so readers never block the writer."""
+def make_engine(
+    url: str, sqlite_synchronous: str = "NORMAL", connect_timeout_s: float | None = None
+) -> Engine:
+    """Engine for ``url``; SQLite gets WAL so readers never block the writer.
+    ``connect_timeout_s``: how long a PostgreSQL connection may take to open (libpq's)."""
     if sqlite_synchronous not in ("NORMAL", "FULL"):
         raise ValueError(f"sqlite_synchronous must be NORMAL or FULL, not {sqlite_synchronous!r}")
     url = with_driver(url)
@@ -110,9 +120,13 @@ def make_engine(url: str, sqlite_synchronous: str = "NORMAL") -> Engine:
             cursor.close()
 
         return engine
-    options = f"-c idle_in_transaction_session_timeout={IDLE_IN_TRANSACTION_TIMEOUT_MS}"
+    connect: dict[str, Any] = {
+        "options": f"-c idle_in_transaction_session_timeout={IDLE_IN_TRANSACTION_TIMEOUT_MS}"
+    }
+    if connect_timeout_s is not None:
+        connect["connect_timeout"] = max(1, round(connect_timeout_s))  # libpq: whole seconds
     return create_engine(url, pool_pre_ping=True, json_serializer=_strict_json,
-                         connect_args={"options": options})
+                         connect_args=connect)
 
 
 def run_migrations(engine: Engine) -> None:

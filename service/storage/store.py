@@ -5,7 +5,6 @@ from __future__ import annotations
 import datetime as dt
 import uuid
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 from sqlalchemy import bindparam, delete, func, insert, select, update
@@ -13,7 +12,7 @@ from sqlalchemy.engine import Connection, Engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.answer import FrameAnswer
-from service.storage.engine import make_engine, run_migrations
+from service.storage.engine import make_engine, run_migrations, sqlite_folder
 from service.storage.records import (
     Fence,
     LeaseLost,
@@ -53,8 +52,9 @@ class Store:
 
     @classmethod
     def open(cls, url: str, sqlite_synchronous: str = "NORMAL") -> Store:
-        if url.startswith("sqlite:///"):
-            Path(url.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
+        folder = sqlite_folder(url)
+        if folder is not None:
+            folder.mkdir(parents=True, exist_ok=True)
         engine = make_engine(url, sqlite_synchronous)
         run_migrations(engine)
         return cls(engine)
