@@ -47,7 +47,7 @@ ESTIMATORS: tuple[str, ...] = tuple(name.value for name in Estimator)
 FIRST_FRAME_IMU_WINDOW_NS = 100_000_000
 
 
-def yaml_problem(error: yaml.YAMLError) -> str:
+def _yaml_problem(error: yaml.YAMLError) -> str:
     """PyYAML's several-line message as one line: the problem and where it is in the file."""
     problem = getattr(error, "problem", None)
     mark = getattr(error, "problem_mark", None)
@@ -69,7 +69,7 @@ def load_config(path: Path, frame_interval_s: float | None = None) -> SwarmvoCon
     try:
         data = yaml.safe_load(path.read_text())  # YAML is a superset of JSON
     except yaml.YAMLError as error:
-        raise ValueError(f"{path} is not valid JSON/YAML: {yaml_problem(error)}") from None
+        raise ValueError(f"{path} is not valid JSON/YAML: {_yaml_problem(error)}") from None
     try:
         context = {FRAME_INTERVAL_CONTEXT: frame_interval_s}
         return SwarmvoConfig.model_validate(data or {}, context=context)

@@ -183,7 +183,9 @@ class BuiltKernels:
         try:
             module = importlib.import_module(EXTENSION)
         except ImportError as error:
-            raise BuiltKernelsError(f"cannot load the built kernels: {error}", True) from None
+            raise BuiltKernelsError(
+                f"cannot load the built kernels: {error}", present=True
+            ) from None
         return cls(module, manifest)
 
     def entry(self, name: str) -> CompiledEntry:
