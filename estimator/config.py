@@ -106,6 +106,11 @@ class FrontendConfig(_Section):
     stereo_ratio: float = Field(0.9, gt=0, le=1)
     # Disparity refinement: SAD patch search + equiangular fit, Lucas-Kanade, or none.
     subpixel: Literal["sad", "lk", "none"] = "sad"
+    # The right shutter's time minus the left's, in milliseconds (cameras without a shared
+    # trigger), undone in every disparity (the image motion over it). None: measured from the
+    # stereo matches' rows and reported, not undone; 0: synchronised, not measured
+    # (estimator/frontend/shutter_offset.py).
+    stereo_time_offset_ms: float | None = Field(None, ge=-100, le=100)
     subpixel_window: int = Field(5, ge=1, le=15)  # half size of the patch
     disparity_sigma_px: float = Field(0.5, gt=0)  # disparity noise behind depth_sigma
     # Pixel noise of a stereo point's image position, for its full covariance (disparity noise

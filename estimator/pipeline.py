@@ -92,6 +92,8 @@ class RunResult:
     derived: list[DerivedSetting] = field(default_factory=list)
     # The session's estimated stereo noise level and how well it fits (stereo_noise.py).
     noise: dict[str, Any] = field(default_factory=dict)
+    # The right shutter's offset: configured, fitted, measured (frontend/shutter_offset.py).
+    stereo_timing: dict[str, Any] = field(default_factory=dict)
 
     @property
     def timestamps_ns(self) -> np.ndarray:
@@ -196,7 +198,10 @@ def run_sequence(
     elapsed = time.perf_counter() - start
     noise = odometry.noise.summary()
     skipped_ns.sort()
-    return RunResult(sequence, config, reports, elapsed, smoothed, skipped_ns, derived, noise)
+    timing = odometry.stereo_timing.summary()
+    return RunResult(
+        sequence, config, reports, elapsed, smoothed, skipped_ns, derived, noise, timing
+    )
 
 
 def _missing_pairs(sequence: Sequence, count: int, strict: bool) -> list[int]:
@@ -267,6 +272,7 @@ def summarize(
             for s in result.derived
         },
         "noise": result.noise or None,
+        "stereo_time_offset": result.stereo_timing or None,
     }
     ground_truth = result.sequence.ground_truth
     if ground_truth is None:

@@ -18,7 +18,7 @@ across it, which a single scalar sigma per point cannot express.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import cv2
 import numpy as np
@@ -56,9 +56,22 @@ class StereoPoints:
     depth_sigma: np.ndarray  # (N,) metres
     descriptors: np.ndarray  # (N, D) left descriptors
     binary: bool
+    # (N,) right keypoint's row minus the left's (pixels; None: not matched by rows), which a
+    # late right shutter moves with the image's vertical motion (shutter_offset.py)
+    row_offset: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.points)
+
+    def select(self, keep: np.ndarray) -> StereoPoints:
+        """The points where ``keep`` (every per-point array of this class or a subclass)."""
+        count = len(self)
+        chosen = {
+            item.name: value[keep]
+            for item in fields(self)
+            if isinstance(value := getattr(self, item.name), np.ndarray) and len(value) == count
+        }
+        return replace(self, **chosen)
 
     @staticmethod
     def empty(binary: bool = True) -> StereoPoints:
@@ -220,6 +233,7 @@ class StereoMatcher:
             )
         pixels = left.points[matches.a]
         disparity = pixels[:, 0] - right.points[matches.b, 0]
+        row_offset = right.points[matches.b, 1] - pixels[:, 1]
         keep = np.ones(len(matches), dtype=bool)
         if config.subpixel == "sad" and len(matches):
             pixels, disparity, keep = self._refine(
@@ -241,6 +255,7 @@ class StereoMatcher:
             depth_sigma=depth_sigma[in_range],
             descriptors=left.descriptors[matches.a[keep][in_range]],
             binary=left.binary,
+            row_offset=row_offset[keep][in_range],
         )
 
     def _refine_lk(

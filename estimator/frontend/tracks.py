@@ -18,7 +18,7 @@ frames share (:func:`match_tracks`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -46,7 +46,7 @@ _LK_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 10, 0.03)
 class TrackedPoints(StereoPoints):
     """Stereo points of one frame with the id of the track behind each."""
 
-    ids: np.ndarray  # (N,) int64, unique within the frame
+    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (N,) unique
 
 
 class Tracker:
@@ -265,7 +265,7 @@ def _empty() -> TrackedPoints:
     base = StereoPoints.empty()
     return TrackedPoints(
         base.pixels, base.disparity, base.points, base.depth_sigma,
-        np.zeros((0, 0), np.uint8), True, np.zeros(0, np.int64),
+        np.zeros((0, 0), np.uint8), True, ids=np.zeros(0, np.int64),
     )  # fmt: skip
 
 

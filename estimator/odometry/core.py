@@ -10,6 +10,7 @@ from estimator.config import SwarmvoConfig
 from estimator.formats.calibration import StereoRig
 from estimator.frontend.detection import FeatureDetector
 from estimator.frontend.photometric import normalise_contrast
+from estimator.frontend.shutter_offset import StereoTiming
 from estimator.frontend.stereo import StereoMatcher, StereoPoints
 from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel
 from estimator.frontend.tracks import Tracker
@@ -61,6 +62,9 @@ class Odometry:
         self.rectification = rig.rectification
         self.detector = FeatureDetector(self.config.frontend)
         self.stereo = StereoMatcher(self.config.frontend, self.rectification)
+        self.stereo_timing = StereoTiming(
+            self.rectification, self.config.frontend.stereo_time_offset_ms
+        )
         track_mode = self.config.frontend.mode == "track"
         self._tracker = Tracker(self.config.frontend, self.rectification) if track_mode else None
         self._frames = CameraFrames(self.rectification.R_left, self.rectification)
@@ -219,6 +223,7 @@ class Odometry:
         self._references.update(
             current.index, current.points, current.image, self._pose, estimate, frame.timestamp_ns
         )
+        self.stereo_timing.learn(self._references.measured_velocity())
 
     def _rectified(
         self, frame: StereoFrame, timings: dict[str, float]
@@ -255,12 +260,17 @@ class Odometry:
                 step = self._references.motion_over(self._frame_interval_ns)
                 self._tracker.follow(left, invert_pose(step))
             with stage(timings, "stereo"):
-                return self._tracker.stereo(right)
+                return self._in_step(self._tracker.stereo(right))
         with stage(timings, "detect"):
             left_features = self.detector.detect(left)
             right_features = self.detector.detect(right, same_scene=True)
         with stage(timings, "stereo"):
-            return self.stereo.match(left_features, right_features, left, right)
+            return self._in_step(self.stereo.match(left_features, right_features, left, right))
+
+    def _in_step(self, points: StereoPoints) -> StereoPoints:
+        """``points`` as if both shutters had opened together (frontend/shutter_offset.py)."""
+        velocity = self._references.velocity(self._frame_interval_ns)
+        return self.stereo_timing.corrected(points, velocity)
 
     def _normalised(self, image: np.ndarray) -> np.ndarray:
         frontend = self.config.frontend

@@ -8,7 +8,13 @@ import numpy as np
 from estimator.config import FrontendConfig
 from estimator.frontend.stereo import StereoPoints
 from estimator.frontend.temporal import PredictionUncertainty
-from estimator.geometry import invert_pose, rotation_angle_deg, scale_motion
+from estimator.geometry import (
+    invert_pose,
+    matrix_to_quat,
+    quat_to_rotation_vector,
+    rotation_angle_deg,
+    scale_motion,
+)
 from estimator.odometry.chains import PointSensitivity
 from estimator.odometry.frames import Estimate, Reference, sensitivities_of
 from estimator.odometry.gyro_prediction import GyroPrediction
@@ -75,6 +81,20 @@ class References:
             motion = motion.copy()
             motion[:3, :3] = rotation
         return motion
+
+    def velocity(self, interval_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The camera's predicted (angular rad/s, linear m/s) velocity in its own frame over
+        the ``interval_ns`` since the last frame (rectified); None while there is no measured
+        motion to predict from."""
+        if not self.motion_measured or interval_ns <= 0:
+            return None
+        return _velocity(self.motion_over(interval_ns), interval_ns)
+
+    def measured_velocity(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The velocity of the motion the last frame measured (None: it measured none)."""
+        if not self.motion_measured:
+            return None
+        return _velocity(self.motion, self.motion_interval_ns)
 
     def _gyro_rotation(self, span_ns: int) -> np.ndarray | None:
         return None if self.gyro is None else self.gyro.rotation_since_good(span_ns)
@@ -232,3 +252,10 @@ class References:
             or np.linalg.norm(motion[:3, 3]) > self.keyframe_translation_m()
             or rotation_angle_deg(motion[:3, :3]) > frontend.keyframe_max_rotation_deg
         )
+
+
+def _velocity(motion: np.ndarray, interval_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """(angular rad/s, linear m/s) of ``motion`` (T_earlier_later) over ``interval_ns``."""
+    seconds = interval_ns * 1e-9
+    angular = quat_to_rotation_vector(matrix_to_quat(motion[:3, :3])) / seconds
+    return angular, motion[:3, 3] / seconds

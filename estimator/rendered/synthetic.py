@@ -73,6 +73,10 @@ class SynthOptions:
     broken_fraction: float = 0.0  # fraction of frames made useless (black/blur/shuffled)
     imu_noise_scale: float = 1.0  # 1 = EuRoC's ADIS16448 noise, 0 = perfect IMU, zero bias
     imu_rate_hz: float = 200.0
+    # The right shutter this many milliseconds after the left (cameras without a shared
+    # trigger): the right image is rendered from the right camera's pose at that later time,
+    # to the nearest IMU sample (5 ms at 200 Hz); at most 0.2 s either way.
+    right_delay_ms: float = 0.0
     texture_px_per_m: float = 96.0
     # Seconds the body waits at its start pose before flying (extra frames in front of the
     # ``frames`` of the flight), as EuRoC's drones do: lets a VIO initialise its gyro bias.
@@ -110,6 +114,8 @@ class SynthOptions:
         ratio = self.imu_rate_hz / self.fps
         if abs(ratio - round(ratio)) > 1e-9:
             raise ValueError(f"imu_rate_hz ({self.imu_rate_hz}) must be a multiple of fps")
+        if abs(self.right_delay_ms) > 200.0:
+            raise ValueError(f"right_delay_ms must be within +-200, got {self.right_delay_ms}")
         for name in ("noise", "brightness", "blur", "imu_noise_scale", "standstill_s"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"{name} must be a finite number, got {getattr(self, name)}")
@@ -463,10 +469,11 @@ def _render_frames(
     """Yield (index, left, right) rendered, with gain changes, motion blur and sensor noise."""
     phases = rng.uniform(0.0, 2 * np.pi, size=4)
     world, T_BS = rig.world, rig.T_BS_cam0
+    delay_rows = round(options.right_delay_ms * 1e-3 * options.imu_rate_hz)
     for index, row in enumerate(frame_rows):
         T_WC0 = body_poses[row] @ T_BS
         left, inv_depth = world.render(T_WC0)
-        right, _ = world.render(T_WC0 @ rig.T_cam0_cam1)
+        right, _ = world.render(body_poses[row + delay_rows] @ T_BS @ rig.T_cam0_cam1)
         if options.blur > 0:
             # Exposure ends at the frame time: the camera moved over the blur fraction before.
             steps = options.blur * per_frame

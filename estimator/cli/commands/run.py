@@ -198,6 +198,14 @@ def run(args: argparse.Namespace) -> int:
     summary = write_outputs(result, out)
     write_odometry(result, out, args.export_bag, args.export_storage or "sqlite3")
     print(results_table(summary, path_length(result.poses())))
+    measured = result.stereo_timing.get("measured_ms")
+    if measured is not None:
+        print(
+            f"warning: the right shutter runs {measured:+.1f} ms after the left (measured from "
+            f"the stereo rows, +-{result.stereo_timing['standard_error_ms']:.2f}); cameras "
+            f"without a shared trigger cost depth accuracy: set "
+            f"frontend.stereo_time_offset_ms: {measured:.1f} to undo it"
+        )
     kitti_path = kitti_poses_path(result, out)
     print(
         f"wrote {out / 'trajectory.tum'}, {out / 'metrics.json'}, {out / 'trajectory.png'}"

@@ -57,6 +57,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--blur", type=float, default=0.0, help="motion blur: exposure / frame interval (0..1)"
     )
     parser.add_argument(
+        "--right-delay-ms",
+        type=float,
+        default=0.0,
+        help="right shutter this many ms after the left (cameras without a shared trigger)",
+    )
+    parser.add_argument(
         "--broken-fraction",
         type=float,
         default=0.0,
@@ -94,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
         noise=args.noise,
         brightness=args.brightness,
         blur=args.blur,
+        right_delay_ms=args.right_delay_ms,
         broken_fraction=args.broken_fraction,
         imu_noise_scale=args.imu_noise_scale,
         standstill_s=args.standstill_s,
