@@ -136,3 +136,12 @@ def test_stereo_points_select_keeps_every_per_point_array():
     )  # fmt: skip
     chosen = points.select(np.array([True, False, True]))
     assert len(chosen) == 2 and list(chosen.row_offset) == [0.1, 0.3]
+
+
+def test_swarmvo_run_warns_of_a_late_right_shutter(late_flight, tmp_path, capsys):
+    from estimator.cli.main import main
+
+    assert main(["run", str(late_flight), "--no-imu", "--quiet", "--out", str(tmp_path)]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if "right shutter" in line]
+    assert len(lines) == 1 and lines[0].startswith("warning: the right shutter runs +")
+    assert "frontend.stereo_time_offset_ms:" in lines[0]
