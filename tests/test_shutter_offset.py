@@ -145,3 +145,9 @@ def test_swarmvo_run_warns_of_a_late_right_shutter(late_flight, tmp_path, capsys
     lines = [line for line in capsys.readouterr().out.splitlines() if "right shutter" in line]
     assert len(lines) == 1 and lines[0].startswith("warning: the right shutter runs +")
     assert "frontend.stereo_time_offset_ms:" in lines[0]
+
+
+@pytest.mark.parametrize("delay_ms", [float("nan"), 250.0, -250.0])
+def test_a_rendered_delay_outside_the_ground_truth_margin_is_refused(delay_ms):
+    with pytest.raises(ValueError, match="right_delay_ms must be within"):
+        SynthOptions(right_delay_ms=delay_ms).validate()

@@ -114,7 +114,7 @@ class SynthOptions:
         ratio = self.imu_rate_hz / self.fps
         if abs(ratio - round(ratio)) > 1e-9:
             raise ValueError(f"imu_rate_hz ({self.imu_rate_hz}) must be a multiple of fps")
-        if abs(self.right_delay_ms) > 200.0:
+        if not abs(self.right_delay_ms) <= 200.0:  # NaN fails too
             raise ValueError(f"right_delay_ms must be within +-200, got {self.right_delay_ms}")
         for name in ("noise", "brightness", "blur", "imu_noise_scale", "standstill_s"):
             if not math.isfinite(getattr(self, name)):
