@@ -33,7 +33,9 @@ from estimator.frontend.stereo import StereoPoints, triangulate
 
 __all__ = ["ShutterOffset", "StereoTiming", "image_velocity", "undo_offset"]
 
-# Applied once the standard error of the slope is this many times below it ...
+Velocity = tuple[np.ndarray, np.ndarray]  # a camera's (angular rad/s, linear m/s), own frame
+
+# Reported once the standard error of the slope is this many times below it ...
 _SIGNIFICANCE = 5.0
 # ... it is at least this long (shorter offsets move a disparity by well under a tenth of a
 # pixel at a hand-held rig's rates) ...
@@ -63,7 +65,7 @@ class ShutterOffset:
 
     def __init__(self, configured_s: float | None = None) -> None:
         self.configured_s = configured_s
-        # Weighted sums of 1, g, g^2, r, g r, r^2 (g: vertical velocity, r: row offset).
+        # Sums over the matches of 1, g, g^2, r, g r, r^2 (g: vertical velocity, r: row offset).
         self._sums = np.zeros(6)
 
     @property
@@ -113,6 +115,7 @@ class ShutterOffset:
         """The offset the frames are corrected by: the configured one (0: none)."""
         return self.configured_s or 0.0
 
+
 def undo_offset(
     points: StereoPoints, horizontal_velocity: np.ndarray, offset_s: float,
     rectification: Rectification,
@@ -128,9 +131,6 @@ def undo_offset(
     return replace(
         kept, disparity=disparity[keep], points=moved, depth_sigma=kept.depth_sigma * depth_ratio**2
     )
-
-
-Velocity = tuple[np.ndarray, np.ndarray]  # a camera's (angular rad/s, linear m/s), own frame
 
 
 class StereoTiming:
