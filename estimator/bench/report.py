@@ -135,6 +135,26 @@ def driving_summary(results: Path) -> str:
     return _table(header, rows)
 
 
+def rigs_summary(results: Path) -> str:
+    """Rendered hand-held flights seen by other rigs: vision alone and fused, per settings."""
+    runs = _load(results, "rigs/rigs.json")
+    rows = []
+    for rig, by_settings in runs.items():
+        for settings, by_mode in by_settings.items():
+            vision, fused = by_mode.get("vision", {}), by_mode.get("fused", {})
+            lost = sum(m.get("frames_failed", 0) for m in by_mode.values())
+            rows.append([
+                rig, settings, _mm(vision.get("ate_rmse_m")),
+                _deg(vision.get("rpe_rot_rmse_deg")), _mm(fused.get("ate_rmse_m")),
+                _deg(fused.get("rpe_rot_rmse_deg")), str(lost),
+            ])  # fmt: skip
+    header = [
+        "rig", "settings", "vision ATE mm", "deg/frame", "fused ATE mm", "deg/frame",
+        "lost frames",
+    ]
+    return _table(header, rows)
+
+
 def registration_summary(results: Path) -> str:
     """The paper's simulation: worst success over the grid and the hardest cell's error/time."""
     cells = _load(results, "registration/registration.json")["cells"]
@@ -250,6 +270,10 @@ AREAS: dict[str, Area] = {
     "driving": Area(
         "Rendered KITTI-like drives", driving_summary, ("driving/driving.md",),
         "swarmvo bench driving",
+    ),
+    "rigs": Area(
+        "Other stereo rigs without a configuration (rendered)", rigs_summary,
+        ("rigs/rigs.md",), "swarmvo bench rigs",
     ),
     "registration": Area(
         "Registration: the paper's simulation", registration_summary,

@@ -1,4 +1,4 @@
-"""The ideal stereo rigs of the rendered sequences (EuRoC-like and KITTI-like).
+"""The ideal stereo rigs of the rendered sequences (EuRoC-, KITTI-, RealSense- and ZED-like).
 
 Undistorted and exactly rectified: the right camera sits at +x of the left one; the body
 frame is EuRoC's (cam0 -> body extrinsics of V1).
@@ -7,6 +7,7 @@ frame is EuRoC's (cam0 -> body extrinsics of V1).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -35,6 +36,18 @@ class SimCamera:
 CAMERA = SimCamera(width=752, height=480, f=458.0, cx=367.0, cy=248.0, baseline=0.11)
 # KITTI-like (sequence 00 grey cameras): 1241x376, 718.856 px, 0.54 m baseline.
 KITTI_CAMERA = SimCamera(width=1241, height=376, f=718.856, cx=607.1928, cy=185.2157, baseline=0.54)
+# RealSense D435-like infrared pair at 848x480: about 87 degrees wide, a 5 cm baseline.
+REALSENSE_CAMERA = SimCamera(width=848, height=480, f=425.0, cx=424.0, cy=240.0, baseline=0.05)
+# ZED-like pair at 1280x720 (HD720): about 85 degrees wide, a 12 cm baseline.
+ZED_CAMERA = SimCamera(width=1280, height=720, f=700.0, cx=640.0, cy=360.0, baseline=0.12)
+
+CameraName = Literal["euroc", "kitti", "realsense", "zed"]
+CAMERAS: dict[CameraName, SimCamera] = {
+    "euroc": CAMERA,
+    "kitti": KITTI_CAMERA,
+    "realsense": REALSENSE_CAMERA,
+    "zed": ZED_CAMERA,
+}
 
 
 def _euroc_cam0_T_BS() -> np.ndarray:

@@ -24,7 +24,9 @@ import numpy as np
 from estimator.geometry import invert_pose, make_pose, matrix_to_quat
 from estimator.rendered.camera import (
     CAMERA,
+    CAMERAS,
     T_BS_CAM0,
+    CameraName,
     SimCamera,
 )
 from estimator.rendered.render import blur_kernel, mean_flow
@@ -59,6 +61,9 @@ BROKEN_FILE = "broken_frames.csv"
 # ----------------------------------------------------------------------------- options
 
 
+_SCENARIO_CAMERA: dict[str, CameraName] = {"flight": "euroc", "driving": "kitti"}
+
+
 @dataclass
 class SynthOptions:
     """What to render. Defaults give a 20 m loop in 200 frames (10 s at 20 Hz)."""
@@ -85,6 +90,10 @@ class SynthOptions:
     # (estimator/rendered/synthetic_driving.py). Layout "kitti" writes KITTI's odometry folders.
     scenario: Scenario = "flight"
     layout: Layout = "euroc"
+    # The stereo pair (camera.py); None: the scenario's own (EuRoC-like for the flight,
+    # KITTI-like for the drive). The texture density above is for the scenario's own camera
+    # and scales with the focal length of another, so that its images are as sharp.
+    camera: CameraName | None = None
 
     @classmethod
     def driving(cls, **overrides: object) -> SynthOptions:
@@ -104,6 +113,8 @@ class SynthOptions:
             raise ValueError(f"scenario must be one of {get_args(Scenario)}, got {self.scenario!r}")
         if self.layout not in get_args(Layout):
             raise ValueError(f"layout must be one of {get_args(Layout)}, got {self.layout!r}")
+        if self.camera is not None and self.camera not in CAMERAS:
+            raise ValueError(f"camera must be one of {tuple(CAMERAS)}, got {self.camera!r}")
 
         if self.frames < 2:
             raise ValueError(f"frames must be >= 2, got {self.frames}")
@@ -138,6 +149,18 @@ class SynthOptions:
                 f"a drive of {self.length_m} m in {self.duration_s:.1f} s is "
                 f"{self.length_m / self.duration_s:.1f} m/s; keep it within 2..40 m/s"
             )
+
+    @property
+    def sim_camera(self) -> SimCamera:
+        """The rendered stereo pair: ``camera``, or the scenario's own."""
+        return CAMERAS[self.camera or _SCENARIO_CAMERA[self.scenario]]
+
+    @property
+    def texture_density(self) -> float:
+        """Texture pixels per metre for ``sim_camera`` (``texture_px_per_m`` scaled from the
+        scenario's own camera by the focal lengths)."""
+        own = CAMERAS[_SCENARIO_CAMERA[self.scenario]]
+        return self.texture_px_per_m * (self.sim_camera.f / own.f)  # exact for its own
 
     @property
     def duration_s(self) -> float:
@@ -341,10 +364,11 @@ def _scene(options: SynthOptions, duration: float, rng: np.random.Generator) -> 
         )
 
         drive = driving_for_length(options.length_m, duration, rng)
-        street = build_street(drive, rng, options.texture_px_per_m)
+        street = build_street(drive, rng, options.texture_density, options.sim_camera)
         return SceneRig(drive, street, DRIVING_T_BS_CAM0)
     loop = loop_for_length(options.length_m, duration)
-    return SceneRig(loop, build_world(loop, rng, options.texture_px_per_m), T_BS_CAM0)
+    world = build_world(loop, rng, options.texture_density, options.sim_camera)
+    return SceneRig(loop, world, T_BS_CAM0)
 
 
 Writer = Callable[[int, np.ndarray, str], None]

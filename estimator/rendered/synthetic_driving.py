@@ -287,8 +287,14 @@ def _add_towers(
         wanted -= 1
 
 
-def build_street(trajectory: DrivingTrajectory, rng: np.random.Generator, px_per_m: float) -> World:
-    """Ground tiles, building blocks, parked cars, poles and far towers along the road.
+def build_street(
+    trajectory: DrivingTrajectory,
+    rng: np.random.Generator,
+    px_per_m: float,
+    camera: SimCamera = DRIVING_CAMERA,
+) -> World:
+    """Ground tiles, building blocks, parked cars, poles and far towers along the road, seen
+    by ``camera``.
 
     The steps draw from ``rng`` in this order; changing it changes every rendered street.
     """
@@ -303,4 +309,4 @@ def build_street(trajectory: DrivingTrajectory, rng: np.random.Generator, px_per
     _add_kerbside(planes, street, rng, px_per_m)
     _add_towers(planes, street, rng, px_per_m)
     extent = float(np.abs(np.concatenate([lo, hi])).max()) + 250.0
-    return World(planes, (extent, extent, 60.0), DRIVING_CAMERA)
+    return World(planes, (extent, extent, 60.0), camera)

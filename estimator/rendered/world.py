@@ -107,8 +107,14 @@ def _add_box(
     add_plane(planes, (x0, y0, z1), ey, -ez, y1 - y0, h, px_per_m, rng)  # normal -x
 
 
-def build_world(trajectory: LoopTrajectory, rng: np.random.Generator, px_per_m: float) -> World:
-    """Hall around the loop plus pillars kept at least 1 m clear of the flown path."""
+def build_world(
+    trajectory: LoopTrajectory,
+    rng: np.random.Generator,
+    px_per_m: float,
+    camera: SimCamera = CAMERA,
+) -> World:
+    """Hall around the loop plus pillars kept at least 1 m clear of the flown path, seen by
+    ``camera``."""
     margin = 2.5
     half_x, half_y = trajectory.a + margin, trajectory.b + margin
     height = 3.5
@@ -145,4 +151,4 @@ def build_world(trajectory: LoopTrajectory, rng: np.random.Generator, px_per_m: 
         _add_box(
             planes, cx - sx / 2, cx + sx / 2, cy - sy / 2, cy + sy / 2, 0.0, height, px_per_m, rng
         )
-    return World(planes, (half_x, half_y, height))
+    return World(planes, (half_x, half_y, height), camera)

@@ -13,6 +13,7 @@ BENCHMARKS: dict[str, str] = {
     "backend": "estimator.bench.backend",
     "consistency": "estimator.bench.consistency",
     "driving": "estimator.bench.driving",
+    "rigs": "estimator.bench.rigs",
     "perturbations": "estimator.bench.perturbations",
     "report": "estimator.bench.report",
 }

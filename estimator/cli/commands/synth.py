@@ -16,6 +16,7 @@ from typing import get_args
 
 from tqdm import tqdm
 
+from estimator.rendered.camera import CAMERAS
 from estimator.rendered.synthetic import Layout, Scenario, SynthOptions, synthesize
 
 
@@ -43,6 +44,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="euroc",
         help="euroc: mav0/ with IMU and ground truth; kitti: image_0/, image_1/, calib.txt, "
         "times.txt, poses.txt (no IMU)",
+    )
+    parser.add_argument(
+        "--camera",
+        choices=tuple(CAMERAS),
+        help="the stereo pair: euroc (752x480, 11 cm), kitti (1241x376, 54 cm), realsense "
+        "(848x480, 5 cm), zed (1280x720, 12 cm); default euroc (flight), kitti (driving)",
     )
     parser.add_argument("--frames", type=int, help=both("frames"))
     parser.add_argument("--length-m", type=float, help="path length; " + both("length_m", " m"))
@@ -96,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
         defaults,
         **{name: value for name, value in given.items() if value is not None},
         layout=args.layout,
+        camera=args.camera,
         seed=args.seed,
         noise=args.noise,
         brightness=args.brightness,
