@@ -127,7 +127,7 @@ class FrontendConfig(_Section):
     # predicted motion's uncertainty projected at its pixel and depth (3 sigma), within
     # [min_search_radius_px, search_radius_px]; search_radius_px when the prediction is poor
     # (first frames, after a gap or a failed frame). None: search_radius_px for every point
-    # (derived from the rig where the wide window is large, estimator/rig_settings.py).
+    # (derived, 10 px, from the rig and its frame rate: estimator/rig_settings.py).
     min_search_radius_px: float | None = Field(None, ge=0)
     # What a constant-velocity prediction misses over a span T: angular and linear
     # acceleration times T^2 (one sigma).

@@ -18,11 +18,11 @@ interval, with constants chosen so that the real EuRoC rig (436 px after rectifi
 - ``search_radius_px``: the image motion a constant-velocity prediction misses grows with the
   focal length (pixels per radian) and the frame interval (the motion changes more between
   frames), so the window scales with f * dt: 40 px at 436 px and 50 ms.
-- ``min_search_radius_px``: where that wide window is much larger than EuRoC's (over
-  ``NARROW_WINDOWS_ABOVE_PX``: KITTI's 132 px), one window for every point hands each point
-  dozens of wrong candidates; each point then gets its own window from the prediction's
-  uncertainty and its depth, no narrower than ``NARROW_SEARCH_RADIUS_PX``
-  (estimator/frontend/temporal.py). Rigs with EuRoC-like windows keep one window for all.
+- ``min_search_radius_px``: one wide window for every point hands each point the candidates
+  of a motion it did not make (dozens in KITTI's 132 px window; on EuRoC's still V1_01 clip
+  21 000 candidate pairs per frame in 40 px windows for a motion of a pixel or two); each
+  point gets its own window from the prediction's uncertainty and its depth, within the wide
+  one and no narrower than ``NARROW_SEARCH_RADIUS_PX`` (estimator/frontend/temporal.py).
 - ``frontend.chain_common_rotation_bias``: the error a combined measurement cannot average out
   (estimator/odometry/combination.py, ``ChainCombination``), per unit of image motion: 0.005
   for a real rig (MH_01's keyframe measurements), 0 for an exact one.
@@ -73,7 +73,6 @@ __all__ = [
     "MAX_DERIVED_FEATURES",
     "MAX_RELATIVE_DEPTH_ERROR",
     "NARROW_SEARCH_RADIUS_PX",
-    "NARROW_WINDOWS_ABOVE_PX",
     "RIG_SETTINGS_KEY",
     "DerivedSetting",
     "FrameIntervalEstimate",
@@ -90,7 +89,7 @@ __all__ = [
 # whether the frame interval is still to come from the first frames' stamps.
 RIG_SETTINGS_KEY = "rig_settings"
 # Settings that need the frame interval (the others follow from the rig alone).
-# (min_search_radius_px follows the derived search_radius_px: a configured one leaves both.)
+# (min_search_radius_px goes with a search_radius_px that is not configured.)
 _INTERVAL_SETTINGS = ("search_radius_px",)
 # Back-end fields whose None means "from the rig's calibration accuracy".
 _GAIN_FIELDS = ("calibration_rotation_gain", "calibration_translation_gain")
@@ -108,9 +107,8 @@ SEARCH_RADIUS_PER_FOCAL_SECOND = 40.0 / (436.0 * 0.05)
 # Windows are kept within these bounds (a few px of noise; a third of a small image).
 MIN_SEARCH_RADIUS_PX = 20.0
 MAX_SEARCH_RADIUS_PX = 250.0
-# Wide windows above this get per-point windows with this floor (a few px of prediction noise
-# and of the session's first, still prior-sized, error level).
-NARROW_WINDOWS_ABOVE_PX = 50.0
+# The floor of the per-point windows: a few px of prediction noise and of the session's first,
+# still prior-sized, error level.
 NARROW_SEARCH_RADIUS_PX = 10.0
 # MH_01's keyframe measurements: rotation error beyond their covariance per unit of image
 # motion (benchmarks/chain_link_errors.py).
@@ -161,15 +159,16 @@ def derive_rig_settings(
                 f"{frame_interval_s * 1e3:.1f} ms",
             )
         )
-        if radius > NARROW_WINDOWS_ABOVE_PX and "search_radius_px" not in explicit:
-            settings.append(
-                DerivedSetting(
-                    "min_search_radius_px",
-                    NARROW_SEARCH_RADIUS_PX,
-                    f"per-point windows: the wide one ({radius:.0f} px) is over "
-                    f"{NARROW_WINDOWS_ABOVE_PX:g} px",
-                )
+    if "search_radius_px" not in explicit:
+        # Per point from the first frame, known frame rate or not (the windows follow the
+        # prediction's uncertainty; the wide one, derived or not yet, bounds them).
+        settings.append(
+            DerivedSetting(
+                "min_search_radius_px",
+                NARROW_SEARCH_RADIUS_PX,
+                "per-point windows within the wide one (search_radius_px)",
             )
+        )
     settings.append(common_rotation_bias(rig))
     return [
         DerivedSetting(

@@ -36,4 +36,4 @@ def test_the_readme_python_example_equals_run_sequence(euroc_v101_micro):
         expected.reports[-1].timestamp_ns
     )
     np.testing.assert_array_equal(namespace["report"].pose, expected.reports[-1].pose)
-    assert odometry.config == SwarmvoConfig()
+    assert odometry.config == expected.config  # the rig's derived settings, as run_sequence's

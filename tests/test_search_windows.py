@@ -230,20 +230,25 @@ def test_keyframe_spacing_scales_with_scene_depth() -> None:
 
 
 @pytest.mark.parametrize(
-    ("rig", "interval_s", "narrowed"),
+    ("rig", "interval_s", "wide"),
     [
-        ((752, 480, 436.2, 0.110), 0.05, False),  # EuRoC: one 40 px window, as tuned
-        ((1241, 376, 718.856, 0.54), 0.1, True),  # KITTI: 132 px wide, per-point windows
-        ((848, 480, 425.0, 0.050), 1 / 30, False),  # RealSense D435
-        ((1280, 720, 700.0, 0.120), 1 / 30, False),  # ZED
+        ((752, 480, 436.2, 0.110), 0.05, 40.0),  # EuRoC
+        ((1241, 376, 718.856, 0.54), 0.1, 131.9),  # KITTI
+        ((848, 480, 425.0, 0.050), 1 / 30, 26.0),  # RealSense D435
+        ((1280, 720, 700.0, 0.120), 1 / 30, 42.8),  # ZED
     ],
 )
-def test_per_point_windows_are_derived_where_the_wide_window_is_large(
-    rig, interval_s, narrowed
-) -> None:
-    config, _ = apply_rig_settings(SwarmvoConfig(), _rig(*rig), interval_s)
-    expected = NARROW_SEARCH_RADIUS_PX if narrowed else None
-    assert config.frontend.min_search_radius_px == expected
+def test_per_point_windows_are_derived_within_the_wide_window(rig, interval_s, wide) -> None:
+    config, settings = apply_rig_settings(SwarmvoConfig(), _rig(*rig), interval_s)
+    assert config.frontend.min_search_radius_px == NARROW_SEARCH_RADIUS_PX
+    assert config.frontend.search_radius_px == pytest.approx(wide, abs=0.1)
+    (setting,) = [s for s in settings if s.name == "min_search_radius_px"]
+    assert "per-point windows" in setting.reason
+    # Without a frame interval yet (a service session before its stamps tell the rate) the
+    # windows are per point from the first frame, within the default wide one.
+    config, _ = apply_rig_settings(SwarmvoConfig(), _rig(*rig), None)
+    assert config.frontend.min_search_radius_px == NARROW_SEARCH_RADIUS_PX
+    assert config.frontend.search_radius_px == SwarmvoConfig().frontend.search_radius_px
     # A configured wide window: nothing about the windows is derived.
     user = SwarmvoConfig.model_validate({"frontend": {"search_radius_px": 150.0}})
     config, _ = apply_rig_settings(user, _rig(*rig), interval_s)

@@ -122,10 +122,11 @@ class GyroPrediction:
 def gyro_prediction_for(rig: StereoRig, frontend: FrontendConfig) -> GyroPrediction | None:
     """The gyro's rotation for the per-point search windows (``frontend.gyro_prediction``).
 
-    Only where the windows are per point (``min_search_radius_px`` set, the drives): with
-    one wide window for every point (EuRoC-like rigs) the constant-velocity centre is what
-    the window was sized for, and the gyro's centre moved the noisy rendered flight's fused
-    trajectory by a few per cent either way (docs/performance.md, "Driving rig").
+    Only where the windows are per point (``min_search_radius_px`` set; derived for every rig
+    with a frame rate since 2026-12-04): with one wide window for every point the
+    constant-velocity centre is what the window was sized for, and the gyro's centre moved
+    the noisy rendered flight's fused trajectory by a few per cent either way
+    (docs/performance.md, "Driving rig").
     """
     if not frontend.gyro_prediction or frontend.min_search_radius_px is None:
         return None
