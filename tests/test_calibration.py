@@ -184,6 +184,9 @@ def test_rectification_of_synthetic_rig_is_consistent(model: str, distortion: li
 # ----------------------------------------------------------------------------- validation
 
 
+_RIGHT_ABOVE = make_pose(np.eye(3), [0.01, 0.1, 0.0]).tolist()  # a vertical pair
+
+
 @pytest.mark.parametrize(
     ("rig", "message"),
     [
@@ -193,6 +196,11 @@ def test_rectification_of_synthetic_rig_is_consistent(model: str, distortion: li
         ({"left": _camera(fx=0.0), "right": _camera()}, "focal lengths must be positive"),
         ({"left": _camera(fy=-3.0), "right": _camera()}, "focal lengths must be positive"),
         (_rig_dict(baseline=0.0), "baseline"),
+        (_rig_dict(baseline=-0.12), r"to the left of the left one \(x = -0.120 m.*swapped"),
+        (
+            {"left": _camera(), "right": _camera(T_BS=_RIGHT_ABOVE)},
+            "above or below the left one.*side-by-side",
+        ),
         ({"left": _camera(cx=float("nan")), "right": _camera()}, "finite"),
         ({"left": _camera(distortion=[0.1, 0.2, 0.3]), "right": _camera()}, "coefficients"),
         (

@@ -150,6 +150,22 @@ def test_bad_input_gives_a_clean_error(tmp_path, capsys, rendered):
     assert "invalid choice" in capsys.readouterr().err
 
 
+def test_swapped_cameras_are_refused_with_what_to_do(tmp_path, capsys, rendered):
+    """cam0 and cam1 exchanged (folders or topics): one line naming the swap, before any
+    frame, instead of a run without a single stereo point that coasts on the IMU."""
+    swapped = tmp_path / "swapped" / "mav0"
+    swapped.mkdir(parents=True)
+    for entry in (rendered / "mav0").iterdir():
+        name = {"cam0": "cam1", "cam1": "cam0"}.get(entry.name, entry.name)
+        (swapped / name).symlink_to(entry)
+    assert main(["run", str(swapped.parent), "--quiet", "--out", str(tmp_path / "o")]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert lines[-1].startswith("swarmvo run: error: the right camera sits to the left"), lines
+    assert "swapped" in lines[-1] and "results:" not in captured.out
+    assert not (tmp_path / "o" / "trajectory.tum").exists()
+
+
 def test_an_output_path_that_cannot_take_files_is_refused_before_the_run(
     tmp_path, capsys, rendered
 ):

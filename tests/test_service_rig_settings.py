@@ -106,3 +106,15 @@ def test_the_search_window_follows_the_first_frames_stamps() -> None:
     # With a declared rate nothing waits for the stamps.
     declared = factory.create(factory.prepare(rig.to_dict(), {}, None, 10.0), None, 0)
     assert not isinstance(declared, IntervalSettings)
+
+
+def test_a_session_with_swapped_cameras_is_refused_with_the_reason(tmp_path: Path) -> None:
+    """The same check as ``swarmvo run``'s: a 4xx naming the swap, no session created."""
+    width, height, focal, baseline, _ = RIGS["euroc"]
+    calibration = _rig(width, height, focal, baseline).to_dict()
+    calibration["left"], calibration["right"] = calibration["right"], calibration["left"]
+    with TestClient(create_app(settings_for(tmp_path), FakeFactory())) as client:
+        response = client.post("/v1/sessions", headers=A, json={"calibration": calibration})
+        assert response.status_code == 422, response.text
+        assert "left and right are swapped" in response.text
+        assert client.get("/v1/sessions", headers=A).json()["sessions"] == []

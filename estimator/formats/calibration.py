@@ -241,6 +241,25 @@ class StereoRig:
             raise ValueError(
                 f"stereo baseline is {self.baseline:.3g} m; the two cameras must be apart"
             )
+        self._check_side_by_side()
+
+    def _check_side_by_side(self) -> None:
+        """The right camera beside the left one, on its +x side: the stereo matching searches
+        along rows for a right pixel left of the left one. Swapped cameras (or topics) would
+        otherwise find no stereo point in any frame and a run would coast on the IMU."""
+        x, y, _ = self.T_left_right[:3, 3]  # the right camera's centre, left camera's frame
+        where = f"x = {x:+.3f} m, y = {y:+.3f} m in the left camera's frame"
+        if abs(y) > abs(x):
+            raise ValueError(
+                f"the right camera sits above or below the left one ({where}); only "
+                "side-by-side stereo pairs are supported"
+            )
+        if x < 0:
+            raise ValueError(
+                f"the right camera sits to the left of the left one ({where}): left and right "
+                "are swapped; give the left camera's images and calibration as the left "
+                "(EuRoC: cam0, KITTI: image_0)"
+            )
 
     @property
     def size(self) -> tuple[int, int]:
