@@ -166,7 +166,7 @@ def derive_rig_settings(
             DerivedSetting(
                 "min_search_radius_px",
                 NARROW_SEARCH_RADIUS_PX,
-                "per-point windows within the wide one (search_radius_px)",
+                "per-point windows, within search_radius_px",
             )
         )
     settings.append(common_rotation_bias(rig))
