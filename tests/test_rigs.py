@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimator.bench.rigs import FRAME_RATES, rendered_flight, table
+from estimator.bench.rigs import FRAME_RATES, rendered_flight, seed_mean, table
 from estimator.cli.main import main
 from estimator.formats.datasets import open_sequence
 from estimator.pipeline import build_config, run_sequence, summarize
@@ -68,11 +68,18 @@ def test_a_hand_held_flight_is_tracked_with_no_configuration(tmp_path, name):
     assert metrics["rpe_rot_rmse_deg"] < 0.02
 
 
-def test_the_bench_table_names_each_rig_with_its_pair_and_rate():
-    metrics = {
+def test_the_bench_table_names_each_rig_and_averages_its_flights():
+    first = {
         "ate_rmse_m": 0.00123, "final_drift_pct": 0.05, "rpe_rot_rmse_deg": 0.0031,
         "frames_failed": 0, "matches_median": 312.0, "fps": 30.25,
     }  # fmt: skip
-    text = table({"zed": {"derived": {"vision": metrics}}})
-    assert "| zed (1280x720, 12 cm, 30 Hz) / derived / vision | 1.23 | 0.05 | 0.0031 | 0 " in text
+    second = {**first, "ate_rmse_m": 0.00223, "frames_failed": 2, "matches_median": 300.0}
+    runs = {"zed": {"derived": {"vision": {"0": first, "1": second}}}}
+    text = table(runs)
+    name = "zed (1280x720, 12 cm, 30 Hz) / derived / vision"
+    assert f"| {name} / 0 | 1.23 | 0.05 | 0.0031 | 0 | 312 | 30.2 |" in text
+    assert f"| {name} / 1 | 2.23 | 0.05 | 0.0031 | 2 | 300 |" in text
+    # The mean row: means, the lost frames of both flights summed.
+    assert f"| **{name} / mean** (lost: total) | 1.73 | 0.05 | 0.0031 | 2 | 306 |" in text
+    assert seed_mean(runs["zed"]["derived"]["vision"])["frames_failed"] == 2
     assert FRAME_RATES["zed"] == 30.0

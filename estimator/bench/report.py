@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from estimator.bench.readme import read_block, write_block
+from estimator.bench.rigs import seed_mean
 
 __all__ = ["AREAS", "add_arguments", "full_results", "run", "summaries"]
 
@@ -136,21 +137,23 @@ def driving_summary(results: Path) -> str:
 
 
 def rigs_summary(results: Path) -> str:
-    """Rendered hand-held flights seen by other rigs: vision alone and fused, per settings."""
+    """Rendered hand-held flights seen by other rigs: vision alone and fused, per settings,
+    the mean over the flights (seeds) and the lost frames of all of them."""
     runs = _load(results, "rigs/rigs.json")
     rows = []
     for rig, by_settings in runs.items():
         for settings, by_mode in by_settings.items():
-            vision, fused = by_mode.get("vision", {}), by_mode.get("fused", {})
-            lost = sum(m.get("frames_failed", 0) for m in by_mode.values())
+            vision = seed_mean(by_mode.get("vision", {}))
+            fused = seed_mean(by_mode.get("fused", {}))
             rows.append([
-                rig, settings, _mm(vision.get("ate_rmse_m")),
-                _deg(vision.get("rpe_rot_rmse_deg")), _mm(fused.get("ate_rmse_m")),
-                _deg(fused.get("rpe_rot_rmse_deg")), str(lost),
+                rig, settings, str(len(by_mode.get("vision", {}))),
+                _mm(vision.get("ate_rmse_m")), _deg(vision.get("rpe_rot_rmse_deg")),
+                _mm(fused.get("ate_rmse_m")), _deg(fused.get("rpe_rot_rmse_deg")),
+                str(vision["frames_failed"] + fused["frames_failed"]),
             ])  # fmt: skip
     header = [
-        "rig", "settings", "vision ATE mm", "deg/frame", "fused ATE mm", "deg/frame",
-        "lost frames",
+        "rig", "settings", "flights", "vision ATE mm (mean)", "deg/frame", "fused ATE mm (mean)",
+        "deg/frame", "lost frames",
     ]
     return _table(header, rows)
 
