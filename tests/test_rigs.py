@@ -47,6 +47,13 @@ def test_an_unknown_camera_is_refused(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_the_bench_refuses_a_negative_seed_by_name(tmp_path, capsys):
+    assert main(["bench", "rigs", "--seeds", "-1", "--data", str(tmp_path / "d"),
+                 "--out", str(tmp_path / "o")]) == 2  # fmt: skip
+    assert capsys.readouterr().err.strip() == "swarmvo bench: error: seed must be >= 0, got -1"
+    assert not (tmp_path / "d").exists() or not any((tmp_path / "d").iterdir())
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["realsense", "zed"])
 def test_a_hand_held_flight_is_tracked_with_no_configuration(tmp_path, name):

@@ -332,6 +332,7 @@ def test_large_loop_keeps_clear_of_the_pillars():
     [
         ("frames", 1), ("length_m", 0.0), ("noise", -1.0), ("blur", 2.0),
         ("broken_fraction", 0.9), ("standstill_s", float("nan")), ("standstill_s", 61.0),
+        ("seed", -1),
     ],
 )
 def test_bad_options_are_rejected(tmp_path, field, value):

@@ -118,6 +118,8 @@ class SynthOptions:
 
         if self.frames < 2:
             raise ValueError(f"frames must be >= 2, got {self.frames}")
+        if self.seed < 0:  # NumPy's generator refuses it with no name attached
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
         if not 0.5 <= self.length_m <= 1000.0:
             raise ValueError(f"length_m must be in [0.5, 1000], got {self.length_m}")
         if self.fps <= 0 or self.imu_rate_hz <= 0:
