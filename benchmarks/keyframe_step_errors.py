@@ -19,7 +19,7 @@ import numpy as np
 from clip_args import clip_parser, open_clip
 
 from estimator.evaluation.metrics import camera_ground_truth
-from estimator.geometry import invert_pose, matrix_to_quat, quat_to_rotation_vector
+from estimator.geometry import invert_pose, rotation_vector
 from estimator.pipeline import RunResult, build_config, run_sequence
 
 
@@ -28,7 +28,7 @@ def _error(estimate: np.ndarray, truth: np.ndarray, first: int, second: int) -> 
     relative = invert_pose(truth[first]) @ truth[second]
     measured = invert_pose(estimate[first]) @ estimate[second]
     error = invert_pose(relative) @ measured
-    rotation = quat_to_rotation_vector(matrix_to_quat(error[:3, :3]))
+    rotation = rotation_vector(error[:3, :3])
     return np.concatenate([np.degrees(rotation) * 1e3, error[:3, 3] * 1e3])
 
 

@@ -30,6 +30,7 @@ __all__ = [
     "quat_to_matrix",
     "quat_to_rotation_vector",
     "rotation_angle_deg",
+    "rotation_vector",
     "rotation_vector_to_quat",
     "scale_motion",
     "se3_adjoint",
@@ -270,6 +271,11 @@ def quat_to_rotation_vector(q: np.ndarray) -> np.ndarray:
     return vec * scale
 
 
+def rotation_vector(rotation: np.ndarray) -> np.ndarray:
+    """Logarithm map of rotation matrix (or matrices, (..., 3, 3)): axis x angle in radians."""
+    return quat_to_rotation_vector(matrix_to_quat(rotation))
+
+
 def skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrices [v]x (skew(a) @ b == a x b), broadcast over leading axes."""
     v = np.asarray(v, dtype=float)
@@ -320,7 +326,7 @@ def scale_motion(pose: np.ndarray, factor: float) -> np.ndarray:
     translation scaled (constant-velocity prediction across unequal frame intervals)."""
     if factor == 1.0:
         return np.array(pose, dtype=float)
-    rotvec = quat_to_rotation_vector(matrix_to_quat(pose[:3, :3])) * factor
+    rotvec = rotation_vector(pose[:3, :3]) * factor
     return make_pose(quat_to_matrix(rotation_vector_to_quat(rotvec)), pose[:3, 3] * factor)
 
 

@@ -32,10 +32,9 @@ from estimator.evaluation.metrics import camera_ground_truth
 from estimator.formats.datasets import GroundTruth
 from estimator.geometry import (
     kabsch,
-    matrix_to_quat,
     quat_multiply,
     quat_to_matrix,
-    quat_to_rotation_vector,
+    rotation_vector,
     rotation_vector_to_quat,
     skew,
 )
@@ -131,7 +130,7 @@ def _relative_rotations(first: np.ndarray, second: np.ndarray) -> np.ndarray:
 
 def _log(rotations: np.ndarray) -> np.ndarray:
     """Rotation vectors (N, 3) of rotation matrices (N, 3, 3)."""
-    return np.atleast_2d(quat_to_rotation_vector(matrix_to_quat(rotations)))
+    return np.atleast_2d(rotation_vector(rotations))
 
 
 def _rms_norm(residuals: np.ndarray) -> float:

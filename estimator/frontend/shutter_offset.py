@@ -149,12 +149,17 @@ class StereoTiming:
         self._current: StereoPoints | None = None  # this frame's points, as matched
         self._waiting: tuple[StereoPoints, Velocity] | None = None  # last frame's, velocity in
 
+    @property
+    def correcting(self) -> bool:
+        """Whether the frames' disparities are corrected (an offset is configured)."""
+        return self.offset.offset_s != 0.0
+
     def corrected(self, points: StereoPoints, velocity: Velocity | None) -> StereoPoints:
         """``points`` with the offset undone; ``velocity``: the camera's predicted velocity at
         the frame, None when there is no prediction yet (the points are kept as they are)."""
         self._current = points
         offset_s = self.offset.offset_s
-        if velocity is None or len(points) == 0 or offset_s == 0.0:
+        if velocity is None or len(points) == 0 or not self.correcting:
             return points
         flow = image_velocity(points.points, *velocity, self.rectification)
         return undo_offset(points, flow[:, 0], offset_s, self.rectification)

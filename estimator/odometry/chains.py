@@ -26,9 +26,8 @@ import numpy as np
 
 from estimator.geometry import (
     make_pose,
-    matrix_to_quat,
     quat_to_matrix,
-    quat_to_rotation_vector,
+    rotation_vector,
     rotation_vector_to_quat,
     se3_adjoint,
     transport_covariance,
@@ -64,7 +63,7 @@ class PointSensitivity:
 def pose_difference(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     """xi (6,) with ``second`` = ``first`` perturbed on the right by xi."""
     rotation = first[:3, :3].T @ second[:3, :3]
-    omega = quat_to_rotation_vector(matrix_to_quat(rotation))
+    omega = rotation_vector(rotation)
     return np.concatenate([omega, first[:3, :3].T @ (second[:3, 3] - first[:3, 3])])
 
 

@@ -268,9 +268,11 @@ class Odometry:
             return self._in_step(self.stereo.match(left_features, right_features, left, right))
 
     def _in_step(self, points: StereoPoints) -> StereoPoints:
-        """``points`` as if both shutters had opened together (frontend/shutter_offset.py)."""
-        velocity = self._references.velocity(self._frame_interval_ns)
-        return self.stereo_timing.corrected(points, velocity)
+        """``points`` as if both shutters had opened together (frontend/shutter_offset.py);
+        the predicted velocity only when there is an offset to undo."""
+        timing = self.stereo_timing
+        velocity = self._references.velocity(self._frame_interval_ns) if timing.correcting else None
+        return timing.corrected(points, velocity)
 
     def _normalised(self, image: np.ndarray) -> np.ndarray:
         frontend = self.config.frontend

@@ -16,11 +16,10 @@ import numpy as np
 from estimator.config import FrontendConfig
 from estimator.formats.calibration import StereoRig
 from estimator.geometry import (
-    matrix_to_quat,
     quat_multiply,
     quat_to_matrix,
-    quat_to_rotation_vector,
     rotation_angle_deg,
+    rotation_vector,
     rotation_vector_to_quat,
 )
 from estimator.imu_sampling import sample_segments, samples_cover
@@ -112,7 +111,7 @@ class GyroPrediction:
         For small angles log(measured^T gyro) is the integrated rate error, in the camera.
         """
         span_s = span_ns * 1e-9
-        miss = quat_to_rotation_vector(matrix_to_quat(measured.T @ gyro))
+        miss = rotation_vector(measured.T @ gyro)
         rate_error = self.rect_from_body.T @ miss / span_s  # body frame
         self.bias = self.bias + _BIAS_GAIN * rate_error
         angle = np.radians(rotation_angle_deg(measured.T @ gyro))

@@ -10,9 +10,8 @@ from estimator.frontend.stereo import StereoPoints
 from estimator.frontend.temporal import PredictionUncertainty
 from estimator.geometry import (
     invert_pose,
-    matrix_to_quat,
-    quat_to_rotation_vector,
     rotation_angle_deg,
+    rotation_vector,
     scale_motion,
 )
 from estimator.odometry.chains import PointSensitivity
@@ -257,5 +256,5 @@ class References:
 def _velocity(motion: np.ndarray, interval_ns: int) -> tuple[np.ndarray, np.ndarray]:
     """(angular rad/s, linear m/s) of ``motion`` (T_earlier_later) over ``interval_ns``."""
     seconds = interval_ns * 1e-9
-    angular = quat_to_rotation_vector(matrix_to_quat(motion[:3, :3])) / seconds
+    angular = rotation_vector(motion[:3, :3]) / seconds
     return angular, motion[:3, 3] / seconds

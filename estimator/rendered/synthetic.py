@@ -46,6 +46,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "BROKEN_KINDS",
+    "SCENARIO_CAMERAS",
     "SynthOptions",
     "SyntheticSequence",
     "read_broken_frames",
@@ -61,7 +62,8 @@ BROKEN_FILE = "broken_frames.csv"
 # ----------------------------------------------------------------------------- options
 
 
-_SCENARIO_CAMERA: dict[str, CameraName] = {"flight": "euroc", "driving": "kitti"}
+# Each scenario's own stereo pair (``SynthOptions.camera`` None).
+SCENARIO_CAMERAS: dict[str, CameraName] = {"flight": "euroc", "driving": "kitti"}
 
 
 @dataclass
@@ -155,13 +157,13 @@ class SynthOptions:
     @property
     def sim_camera(self) -> SimCamera:
         """The rendered stereo pair: ``camera``, or the scenario's own."""
-        return CAMERAS[self.camera or _SCENARIO_CAMERA[self.scenario]]
+        return CAMERAS[self.camera or SCENARIO_CAMERAS[self.scenario]]
 
     @property
     def texture_density(self) -> float:
         """Texture pixels per metre for ``sim_camera`` (``texture_px_per_m`` scaled from the
         scenario's own camera by the focal lengths)."""
-        own = CAMERAS[_SCENARIO_CAMERA[self.scenario]]
+        own = CAMERAS[SCENARIO_CAMERAS[self.scenario]]
         return self.texture_px_per_m * (self.sim_camera.f / own.f)  # exact for its own
 
     @property

@@ -17,7 +17,13 @@ from typing import get_args
 from tqdm import tqdm
 
 from estimator.rendered.camera import CAMERAS
-from estimator.rendered.synthetic import Layout, Scenario, SynthOptions, synthesize
+from estimator.rendered.synthetic import (
+    SCENARIO_CAMERAS,
+    Layout,
+    Scenario,
+    SynthOptions,
+    synthesize,
+)
 
 
 def _scenario_defaults(scenario: str) -> SynthOptions:
@@ -45,11 +51,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="euroc: mav0/ with IMU and ground truth; kitti: image_0/, image_1/, calib.txt, "
         "times.txt, poses.txt (no IMU)",
     )
+    pairs = ", ".join(
+        f"{name} ({c.width}x{c.height}, {c.baseline * 100:g} cm)" for name, c in CAMERAS.items()
+    )
+    defaults = ", ".join(f"{camera} ({scenario})" for scenario, camera in SCENARIO_CAMERAS.items())
     parser.add_argument(
-        "--camera",
-        choices=tuple(CAMERAS),
-        help="the stereo pair: euroc (752x480, 11 cm), kitti (1241x376, 54 cm), realsense "
-        "(848x480, 5 cm), zed (1280x720, 12 cm); default euroc (flight), kitti (driving)",
+        "--camera", choices=tuple(CAMERAS), help=f"the stereo pair: {pairs}; default {defaults}"
     )
     parser.add_argument("--frames", type=int, help=both("frames"))
     parser.add_argument("--length-m", type=float, help="path length; " + both("length_m", " m"))
