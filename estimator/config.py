@@ -407,7 +407,7 @@ class BackendConfig(_Section):
 class SwarmvoConfig(_Section):
     """Everything the odometry needs besides the calibration."""
 
-    seed: int = 0
+    seed: int = Field(0, ge=0)  # NumPy seeds are non-negative
     registration: RegistrationConfig = Field(default_factory=RegistrationConfig)
     frontend: FrontendConfig = Field(default_factory=FrontendConfig)
     backend: BackendConfig = Field(default_factory=BackendConfig)

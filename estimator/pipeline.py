@@ -130,7 +130,10 @@ def build_config(
         data.setdefault("backend", {})["enabled"] = backend
     if imu is not None:
         data.setdefault("backend", {})["use_imu"] = imu
-    return SwarmvoConfig.model_validate(data)
+    try:
+        return SwarmvoConfig.model_validate(data)
+    except ValidationError as error:  # a flag's value (--seed -1): one plain line
+        raise ValueError(f"invalid configuration: {explain_validation_error(error)}") from None
 
 
 def run_sequence(

@@ -143,7 +143,17 @@ def test_bad_input_gives_a_clean_error(tmp_path, capsys, rendered):
     assert main(["run", str(rendered), "--format", "kitti"]) == 2
     assert "no KITTI image folders" in capsys.readouterr().err
     assert main(["run", str(rendered), "--limit", "1"]) == 2
-    assert "at least 2 frames" in capsys.readouterr().err
+    captured = capsys.readouterr()
+    assert "at least 2 frames" in captured.err
+    assert "settings derived" not in captured.out  # refused before the dataset is read
+    out = tmp_path / "negative-seed"
+    assert main(["run", str(rendered), "--seed", "-1", "--out", str(out), "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.strip().splitlines()[-1] == (
+        "swarmvo run: error: invalid configuration: seed: Input should be greater than or "
+        "equal to 0 (got -1)"
+    )
+    assert not out.exists()
     with pytest.raises(SystemExit) as exit_info:
         main(["run", str(rendered), "--format", "tum"])
     assert exit_info.value.code == 2

@@ -64,7 +64,7 @@ def _camera(model: str, side: str = "left") -> dict:
         ({"calibration": {"left": _camera("equidistant"), "right": _camera("radtan", "right")}},
          "mixed equidistant"),
         ({"config": {"frontend": {"min_depth_m": 50, "max_depth_m": 1}}}, "min_depth_m"),
-        ({"config": {"seed": -1}}, "cannot run"),
+        ({"config": {"seed": -1}}, "seed: Input should be greater than or equal to 0"),
         ({"config": {"registration": {"options": {"bogus": 1}}}}, "bogus"),
         ({"config": {"registration": {"options": {"particles": "many"}}}}, "registration"),
         ({"calibration": calibration(width=100_000)}, "exceeds the maximum image size"),

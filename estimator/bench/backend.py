@@ -91,6 +91,8 @@ def _seed_list(text: str) -> list[int]:
 def run(args: argparse.Namespace) -> int:
     if args.frames < 10:
         raise ValueError(f"--frames must be at least 10, got {args.frames}")
+    if args.seed < 0:  # NumPy's generators take no negative seed
+        raise ValueError(f"--seed must be >= 0, got {args.seed}")
     if not 0.0 <= args.standstill_s <= 60.0:  # also refuses NaN, before anything is written
         raise ValueError(f"--standstill-s must be in [0, 60] s, got {args.standstill_s}")
     out: Path = args.out

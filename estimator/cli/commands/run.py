@@ -165,6 +165,8 @@ def _check_writable(out: Path, bag: Path | None) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.limit is not None and args.limit < 2:  # before the dataset is read
+        raise ValueError(f"--limit must be at least 2 frames, got {args.limit}")
     if args.imu and args.backend is False:
         raise ValueError("--imu needs the back end (the IMU is fused there); drop --no-backend")
     if args.config is not None and not args.config.is_file():
