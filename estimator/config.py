@@ -62,6 +62,12 @@ class RegistrationConfig(_Section):
     # the kernel, now at the right scale, biased rendered rotations (4 standard errors about the
     # optical axis); 6 removes that and is as accurate on the real clip.
     refine_robust_scale: float = Field(6.0, gt=0)
+    # ... times the inliers' own spread at the registration's pose where that is below 1,
+    # sqrt(median d^2 / chi-square median) (refine.residual_spread): 1 once the measured level
+    # fits, but while a session's first frames still run on the generous noise prior a moving
+    # car's pairs look consistent and pull the pose (a rendered drive with traffic: 18 -> 3 mm
+    # ATE vision alone; docs/frontend.md, "The kernel in the inliers' own spread").
+    refine_scale_from_residuals: bool = True
     # The refinement's 6x6 covariance (estimator/registration/refine.py): "median", the inverse
     # Hessian scaled by the median squared Mahalanobis residual; "sandwich", the robust sandwich
     # from the residuals the inliers actually show (their heavy tails move the pose more than a

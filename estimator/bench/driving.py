@@ -71,6 +71,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--quick", action="store_true", help="40 frames / 44 m, one seed")
     parser.add_argument(
+        "--traffic",
+        type=float,
+        default=0.0,
+        help="moving vehicles per 100 m of road and a lead vehicle (swarmvo synth --traffic)",
+    )
+    parser.add_argument(
         "--modes",
         nargs="+",
         choices=MODES,
@@ -92,10 +98,14 @@ def _layout(modes: list[str]) -> Layout:
 
 def _rendered(args: argparse.Namespace, seed: int, layout: Layout) -> Path:
     frames, length = (40, 44.0) if args.quick else (args.frames, args.length_m)
-    suffix = "" if layout == "kitti" else "_euroc"
+    suffix = ("" if layout == "kitti" else "_euroc") + (
+        f"_traffic{args.traffic:g}" if args.traffic else ""
+    )
     root = args.data / f"driving_{frames}f_{length:g}m_seed{seed}{suffix}"
     if not (root / ("image_0" if layout == "kitti" else "mav0")).is_dir():
-        options = SynthOptions.driving(frames=frames, length_m=length, seed=seed, layout=layout)
+        options = SynthOptions.driving(
+            frames=frames, length_m=length, seed=seed, layout=layout, traffic=args.traffic
+        )
         synthesize(root, options)
     return root
 
@@ -172,6 +182,7 @@ def _lane_rows(label: str, runs: dict[str, dict[str, Any]], verdicts: list[str])
 
 
 def run(args: argparse.Namespace) -> int:
+    SynthOptions.driving(traffic=args.traffic).validate()  # before anything is written
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     seeds = args.seeds[:1] if args.quick else args.seeds
@@ -196,6 +207,9 @@ def run(args: argparse.Namespace) -> int:
                 results[estimator][mode][str(seed)] = summary
                 print(_row(f"{estimator} {mode} seed {seed}", summary), flush=True)
     table = _table(results)
+    if args.traffic:
+        vehicles = f"{args.traffic:g} moving vehicles per 100 m and a lead vehicle"
+        table = f"With traffic: {vehicles}.\n\n" + table
     print("\n" + table)
     if not args.quick:
         (out / "driving.md").write_text(table)

@@ -108,7 +108,16 @@ def perturbation_summary(results: Path) -> str:
 def driving_summary(results: Path) -> str:
     """Rendered drives with the rig-derived settings: mean over the seeds, lost frames summed,
     per estimator and mode (vision alone / fused; files without modes are vision alone)."""
-    runs = _load(results, "driving/driving.json")
+    return _drives_table(results, "driving/driving.json")
+
+
+def traffic_summary(results: Path) -> str:
+    """The same drives among moving vehicles and a lead car (``bench driving --traffic``)."""
+    return _drives_table(results, "driving-traffic/driving.json")
+
+
+def _drives_table(results: Path, relative: str) -> str:
+    runs = _load(results, relative)
     rows = []
     for name, by_mode in runs.items():
         first = next(iter(by_mode.values()), {})
@@ -273,6 +282,10 @@ AREAS: dict[str, Area] = {
     "driving": Area(
         "Rendered KITTI-like drives", driving_summary, ("driving/driving.md",),
         "swarmvo bench driving",
+    ),
+    "traffic": Area(
+        "Rendered drives with traffic", traffic_summary, ("driving-traffic/driving.md",),
+        "swarmvo bench driving --traffic 2 --out benchmarks/results/driving-traffic",
     ),
     "rigs": Area(
         "Other stereo rigs without a configuration (rendered)", rigs_summary,

@@ -23,7 +23,11 @@ from estimator.odometry.frames import (
     stage,
 )
 from estimator.odometry.observation import MeasurementKind, MeasurementObserver, observed
-from estimator.registration.refine import RefinementResult, refine_pose_mahalanobis
+from estimator.registration.refine import (
+    RefinementResult,
+    refine_pose_mahalanobis,
+    residual_spread,
+)
 from estimator.registration.registry import estimator_spec, register
 from estimator.registration.sensitivity import point_sensitivities
 
@@ -202,13 +206,18 @@ class PoseEstimation:
             current_cov[inliers],
             reference_cov[inliers],
         )
+        start = (estimate.reference_from_current[:3, :3], estimate.reference_from_current[:3, 3])
+        robust_scale = registration.refine_robust_scale
+        if registration.refine_scale_from_residuals:
+            # Narrower only: a wider kernel would let in what an estimator without a
+            # Mahalanobis support test (msac, svd) left among its inliers.
+            robust_scale *= min(residual_spread(*pairs, *start), 1.0)
         refined = refine_pose_mahalanobis(
             *pairs,
-            estimate.reference_from_current[:3, :3],
-            estimate.reference_from_current[:3, 3],
+            *start,
             iterations=registration.refine_iterations,
             robust=registration.refine_robust,
-            robust_scale=registration.refine_robust_scale,
+            robust_scale=robust_scale,
             sandwich=registration.refine_covariance != "median",
         )
         if refined.success:
@@ -221,7 +230,7 @@ class PoseEstimation:
                 estimate.reported_covariance = robust
             if self.sensitivities:
                 estimate.pending_sensitivity = functools.partial(
-                    self._sensitivities, estimate, correspondences, pairs, refined
+                    self._sensitivities, estimate, correspondences, pairs, refined, robust_scale
                 )
         return estimate
 
@@ -231,10 +240,12 @@ class PoseEstimation:
         correspondences: Correspondences,
         pairs: tuple[np.ndarray, ...],
         refined: RefinementResult,
+        robust_scale: float,
     ) -> None:
         """How the refined pose moves with the current and the reference inlier points
-        (``pairs``: the refinement's inlier points and covariances), scaled like its covariance
-        (estimator/odometry/chains.py weighs the chains sharing them by it)."""
+        (``pairs``: the refinement's inlier points and covariances; ``robust_scale``: its
+        kernel's), scaled like its covariance (estimator/odometry/chains.py weighs the chains
+        sharing them by it)."""
         assert estimate.result is not None
         registration = self.config.registration
         inliers = estimate.result.inliers
@@ -244,7 +255,7 @@ class PoseEstimation:
             refined.rotation,
             refined.translation,
             robust=registration.refine_robust,
-            robust_scale=registration.refine_robust_scale,
+            robust_scale=robust_scale,
         )
         if gains is None:
             return

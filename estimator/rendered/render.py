@@ -9,6 +9,7 @@ follows the mean image flow between two views.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import cv2
@@ -39,6 +40,16 @@ class Plane:
         self.levels = [self.texture]
         while len(self.levels) < MIP_LEVELS and min(self.levels[-1].shape) >= 16:
             self.levels.append(np.maximum(cv2.pyrDown(self.levels[-1]), 1))
+
+    def moved(self, pose: np.ndarray) -> Plane:
+        """This plane carried by the rigid ``pose`` (4x4), sharing its texture and mipmaps: a
+        moving object is re-posed every frame without rebuilding its pyramid."""
+        moved = copy.copy(self)
+        rotation = pose[:3, :3]
+        moved.origin = rotation @ self.origin + pose[:3, 3]
+        moved.u, moved.v = rotation @ self.u, rotation @ self.v
+        moved.normal = rotation @ self.normal
+        return moved
 
     @property
     def corners(self) -> np.ndarray:

@@ -57,6 +57,7 @@ Scenario = Literal["flight", "driving"]
 Layout = Literal["euroc", "kitti"]
 BROKEN_KINDS = ("black", "blur", "shuffled")
 BROKEN_FILE = "broken_frames.csv"
+TRAFFIC_STREAM = 7  # the vehicles' random stream beside the scene's (seed, 7)
 
 
 # ----------------------------------------------------------------------------- options
@@ -96,6 +97,9 @@ class SynthOptions:
     # KITTI-like for the drive). The texture density above is for the scenario's own camera
     # and scales with the focal length of another, so that its images are as sharp.
     camera: CameraName | None = None
+    # Driving only: moving vehicles per 100 m of road, and a lead vehicle in the ego's lane
+    # (estimator/rendered/traffic.py); 0 = a static street.
+    traffic: float = 0.0
 
     @classmethod
     def driving(cls, **overrides: object) -> SynthOptions:
@@ -146,6 +150,10 @@ class SynthOptions:
             raise ValueError(f"broken_fraction must be in [0, 0.5], got {self.broken_fraction}")
         if self.standstill_s > 60.0:
             raise ValueError(f"standstill_s must be <= 60, got {self.standstill_s}")
+        if not 0.0 <= self.traffic <= 10.0:  # NaN fails too
+            raise ValueError(f"traffic must be in [0, 10] vehicles per 100 m, got {self.traffic}")
+        if self.traffic and self.scenario != "driving":
+            raise ValueError("traffic is for the driving scenario (vehicles on the road)")
         if self.texture_px_per_m < 8:
             raise ValueError(f"texture_px_per_m must be >= 8, got {self.texture_px_per_m}")
         if self.scenario == "driving" and not 2.0 <= self.length_m / self.duration_s <= 40.0:
@@ -291,7 +299,10 @@ def synthesize(
         _write_ground_truth(mav0, imu_ns, state, gyro_bias, accel_bias)
 
     broken = _choose_broken(options, total, rng)
-    rendered = _render_frames(rig, body_poses, frame_rows, per_frame, options, rng, progress)
+    row_times = imu_index * (imu_step_ns * 1e-9)  # where the moving vehicles are
+    rendered = _render_frames(
+        rig, body_poses, (frame_rows, row_times), per_frame, options, rng, progress
+    )
     _write_frames(writer, rendered, broken, total)
     if broken:
         lines = [f"{frame_ns[i]},{i},{kind}" for i, kind in sorted(broken.items())]
@@ -338,6 +349,8 @@ def _write_summary(
     )
     summary = {"options": asdict(options), "path_length_m": path_length, **scene}
     summary["planes"] = len(world.planes)
+    if world.movers is not None:
+        summary["moving_planes"] = len(world.movers(0.0))
     (out_dir / "synth.json").write_text(json.dumps(summary, indent=2))
     return path_length
 
@@ -369,6 +382,14 @@ def _scene(options: SynthOptions, duration: float, rng: np.random.Generator) -> 
 
         drive = driving_for_length(options.length_m, duration, rng)
         street = build_street(drive, rng, options.texture_density, options.sim_camera)
+        if options.traffic:
+            from estimator.rendered.traffic import build_traffic
+
+            # Its own stream: the street stays the one rendered without traffic.
+            vehicles = np.random.default_rng([options.seed, TRAFFIC_STREAM])
+            street.movers = build_traffic(
+                drive, options.traffic, vehicles, 2.0 * options.texture_density
+            )
         return SceneRig(drive, street, DRIVING_T_BS_CAM0)
     loop = loop_for_length(options.length_m, duration)
     world = build_world(loop, rng, options.texture_density, options.sim_camera)
@@ -488,20 +509,24 @@ def _choose_broken(options: SynthOptions, total: int, rng: np.random.Generator) 
 def _render_frames(
     rig: SceneRig,
     body_poses: np.ndarray,
-    frame_rows: np.ndarray,
+    rows: tuple[np.ndarray, np.ndarray],
     per_frame: int,
     options: SynthOptions,
     rng: np.random.Generator,
     progress: Callable[[int], object] | None,
 ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
-    """Yield (index, left, right) rendered, with gain changes, motion blur and sensor noise."""
+    """Yield (index, left, right) rendered, with gain changes, motion blur and sensor noise;
+    ``rows``: each frame's row of the IMU grid, and every row's time (s)."""
     phases = rng.uniform(0.0, 2 * np.pi, size=4)
     world, T_BS = rig.world, rig.T_BS_cam0
     delay_rows = round(options.right_delay_ms * 1e-3 * options.imu_rate_hz)
+    frame_rows, times = rows
     for index, row in enumerate(frame_rows):
         T_WC0 = body_poses[row] @ T_BS
-        left, inv_depth = world.render(T_WC0)
-        right, _ = world.render(body_poses[row + delay_rows] @ T_BS @ rig.T_cam0_cam1)
+        left, inv_depth = world.render(T_WC0, time_s=times[row])
+        right_row = row + delay_rows
+        T_WC1 = body_poses[right_row] @ T_BS @ rig.T_cam0_cam1
+        right, _ = world.render(T_WC1, time_s=times[right_row])
         if options.blur > 0:
             # Exposure ends at the frame time: the camera moved over the blur fraction before.
             steps = options.blur * per_frame

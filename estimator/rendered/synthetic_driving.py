@@ -34,6 +34,7 @@ __all__ = [
     "DRIVING_CAMERA",
     "DRIVING_T_BS_CAM0",
     "DrivingTrajectory",
+    "add_upright_box",
     "build_street",
     "driving_for_length",
 ]
@@ -157,7 +158,7 @@ def driving_for_length(
 # ----------------------------------------------------------------------------- street
 
 
-def _add_upright_box(
+def add_upright_box(
     planes: list[Plane],
     center: np.ndarray,
     heading: float,
@@ -243,7 +244,7 @@ def _add_buildings(
             index, heading, normal = street.at(s + 0.5 * length)
             center = street.road[index] + side * offset * normal
             if street.clear(_footprint(center, heading, length, depth), ROAD_CLEARANCE_M):
-                _add_upright_box(planes, center, heading, (length, depth, height), px_per_m, rng)
+                add_upright_box(planes, center, heading, (length, depth, height), px_per_m, rng)
             gap = rng.uniform(15.0, 25.0) if rng.random() < 0.15 else rng.uniform(1.0, 6.0)
             s += length + gap
 
@@ -263,7 +264,7 @@ def _add_kerbside(
         offset = rng.uniform(3.0, 4.5) + 0.5 * size[1]
         center = street.road[index] + side * offset * normal
         if street.clear(_footprint(center, heading, size[0], size[1]), KERB_CLEARANCE_M):
-            _add_upright_box(planes, center, heading, size, 2.0 * px_per_m, rng)
+            add_upright_box(planes, center, heading, size, 2.0 * px_per_m, rng)
         s += rng.uniform(8.0, 30.0)
 
 
@@ -283,7 +284,7 @@ def _add_towers(
         width, height = rng.uniform(20.0, 40.0), rng.uniform(20.0, 60.0)
         if not street.clear(_footprint(center, angle, width, width), 50.0):
             continue
-        _add_upright_box(planes, center, angle, (width, width, height), 0.25 * px_per_m, rng)
+        add_upright_box(planes, center, angle, (width, width, height), 0.25 * px_per_m, rng)
         wanted -= 1
 
 

@@ -6,6 +6,7 @@ patches and small checkers, so ORB finds many distinct corners).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -56,10 +57,16 @@ class World:
     planes: list[Plane]
     bounds: tuple[float, float, float]  # hall half-extents x, y and height
     camera: SimCamera = CAMERA
+    # The planes of moving objects at a time (s), in the world frame (traffic.py); None: static.
+    movers: Callable[[float], list[Plane]] | None = None
 
-    def render(self, T_WC: np.ndarray, z_near: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
-        """Grey image (uint8) and inverse depth (float32, 0 = nothing) seen by a camera."""
-        return render_view(self.planes, T_WC, z_near, self.camera)
+    def render(
+        self, T_WC: np.ndarray, z_near: float = 0.05, time_s: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Grey image (uint8) and inverse depth (float32, 0 = nothing) seen by a camera at
+        ``time_s`` (where the moving objects are then)."""
+        planes = self.planes if self.movers is None else self.planes + self.movers(time_s)
+        return render_view(planes, T_WC, z_near, self.camera)
 
 
 def add_plane(

@@ -95,6 +95,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=flight.standstill_s,
         help="seconds the body stands still before flying (extra frames before the flight)",
     )
+    parser.add_argument(
+        "--traffic",
+        type=float,
+        default=0.0,
+        help="driving: moving vehicles per 100 m of road (oncoming and in the next lane), "
+        "plus a lead vehicle a fixed gap ahead in the car's lane (0: a static street)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -119,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
         broken_fraction=args.broken_fraction,
         imu_noise_scale=args.imu_noise_scale,
         standstill_s=args.standstill_s,
+        traffic=args.traffic,
     )
     options.validate()
     start = time.perf_counter()
