@@ -10,7 +10,11 @@ from scipy.spatial.transform import Rotation
 from estimator.formats.calibration import Rectification, StereoRig
 from estimator.frontend.stereo import point_covariances
 from estimator.geometry import kabsch, rotation_angle_deg
-from estimator.registration.refine import refine_pose_mahalanobis, residual_spread
+from estimator.registration.refine import (
+    refine_pose_mahalanobis,
+    residual_spread,
+    squared_mahalanobis,
+)
 
 # A stereo rig like EuRoC's: 460 px focal length, 11 cm baseline.
 FOCAL, BASELINE = 460.0, 0.11
@@ -234,7 +238,7 @@ def test_the_kernel_in_the_residuals_own_spread_resists_a_coherent_cluster() -> 
         generous = (64.0 * _covariances(source), 64.0 * _covariances(target))
         # Started at the majority's motion, where the registration's support vote puts it.
         start_r, start_t = rotation, translation
-        spread = residual_spread(source, target, *generous, start_r, start_t)
+        spread = residual_spread(squared_mahalanobis(source, target, *generous, start_r, start_t))
         fixed = refine_pose_mahalanobis(
             source, target, *generous, start_r, start_t, robust_scale=6.0
         )
@@ -255,7 +259,7 @@ def test_the_spread_is_one_when_the_covariances_fit() -> None:
         source, target, rotation, translation = _scene(rng)
         source, target = _noisy(source, rng), _noisy(target, rng)
         covariances = (_covariances(source), _covariances(target))
-        spreads.append(residual_spread(source, target, *covariances, rotation, translation))
+        squared = squared_mahalanobis(source, target, *covariances, rotation, translation)
+        spreads.append(residual_spread(squared))
     assert np.median(spreads) == pytest.approx(1.0, abs=0.1)
-    few = (source[:5], target[:5], covariances[0][:5], covariances[1][:5])
-    assert residual_spread(*few, rotation, translation) == 1.0  # too few pairs to measure
+    assert residual_spread(squared[:5]) == 1.0  # too few pairs to measure

@@ -27,6 +27,7 @@ from estimator.registration.refine import (
     RefinementResult,
     refine_pose_mahalanobis,
     residual_spread,
+    squared_mahalanobis,
 )
 from estimator.registration.registry import estimator_spec, register
 from estimator.registration.sensitivity import point_sensitivities
@@ -211,7 +212,7 @@ class PoseEstimation:
         if registration.refine_scale_from_residuals:
             # Narrower only: a wider kernel would let in what an estimator without a
             # Mahalanobis support test (msac, svd) left among its inliers.
-            robust_scale *= min(residual_spread(*pairs, *start), 1.0)
+            robust_scale *= min(_spread(pairs, start), 1.0)
         refined = refine_pose_mahalanobis(
             *pairs,
             *start,
@@ -266,3 +267,12 @@ class PoseEstimation:
         estimate.reference_sensitivity = PointSensitivity(
             correspondences.reference_index[inliers], gains[1] * scale, reference_cov
         )
+
+
+def _spread(pairs: tuple[np.ndarray, ...], pose: tuple[np.ndarray, np.ndarray]) -> float:
+    """The inliers' own spread at the registration's pose (refine.residual_spread); 1 where a
+    point covariance is singular (the refinement then reports it and keeps the pose)."""
+    try:
+        return residual_spread(squared_mahalanobis(*pairs, *pose))
+    except np.linalg.LinAlgError:
+        return 1.0

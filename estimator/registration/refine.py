@@ -114,25 +114,15 @@ def squared_mahalanobis(
     return squared
 
 
-def residual_spread(
-    source: np.ndarray,
-    target: np.ndarray,
-    source_cov: np.ndarray,
-    target_cov: np.ndarray,
-    rotation: np.ndarray,
-    translation: np.ndarray,
-) -> float:
-    """sqrt(median d^2 / chi-square median) of the pairs at a pose: 1 when their covariances
-    fit their residuals, below 1 when the covariances are too generous (a session's first
-    frames, still on the noise prior). A robust kernel in standard deviations times this is in
-    units of the residuals' own robust spread (a scale-equivariant M-estimator), so a cluster
-    of wrong pairs that generous covariances make look consistent is still weighed down.
-    1 for fewer than 6 pairs or a singular covariance (no spread to measure)."""
-    if len(source) < 6:
-        return 1.0
-    try:
-        squared = squared_mahalanobis(source, target, source_cov, target_cov, rotation, translation)
-    except np.linalg.LinAlgError:
+def residual_spread(squared: np.ndarray) -> float:
+    """sqrt(median d^2 / chi-square median) of pairs' squared Mahalanobis distances
+    (``squared_mahalanobis`` at a pose): 1 when their covariances fit their residuals, below 1
+    when the covariances are too generous (a session's first frames, still on the noise
+    prior). A robust kernel in standard deviations times this is in units of the residuals' own
+    robust spread (a scale-equivariant M-estimator), so a cluster of wrong pairs that generous
+    covariances make look consistent is still weighed down. 1 for fewer than 6 pairs (no
+    spread to measure)."""
+    if len(squared) < 6:
         return 1.0
     middle = median(squared)
     return float(np.sqrt(middle / CHI2_3_MEDIAN)) if middle > 0 and np.isfinite(middle) else 1.0
