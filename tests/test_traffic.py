@@ -126,3 +126,13 @@ def test_a_drive_with_a_lead_vehicle_and_traffic_is_tracked(tmp_path) -> None:
     assert metrics["frames_failed"] == 0
     assert metrics["ate_rmse_m"] < 0.006  # measured 3.1 mm (2.0 without traffic)
     assert metrics["rpe_rot_rmse_deg"] < 0.005  # measured 0.0027 (0.0020 without traffic)
+
+
+def test_bench_driving_refuses_bad_traffic_before_writing(tmp_path, capsys) -> None:
+    out = tmp_path / "results"
+    args = ["bench", "driving", "--traffic", "-2", "--out", str(out), "--data", str(tmp_path)]
+    assert main(args) == 2
+    assert capsys.readouterr().err.strip() == (
+        "swarmvo bench: error: traffic must be in [0, 10] vehicles per 100 m, got -2.0"
+    )
+    assert not out.exists()
