@@ -46,7 +46,7 @@ class Vehicle:
     planes: tuple[Plane, ...]
     lane_offset_m: float  # to the left of the centreline
     start_s: float  # arc length at time 0 (the lead: its gap ahead of the ego)
-    speed_mps: float  # along the road; negative towards the road's start
+    speed_mps: float  # along the road, negative towards its start (the lead: the ego's mean)
 
     def arc_length(self, road: DrivingTrajectory, time_s: float) -> float:
         if self.kind is VehicleKind.LEAD:
