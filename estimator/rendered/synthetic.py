@@ -58,6 +58,7 @@ Layout = Literal["euroc", "kitti"]
 BROKEN_KINDS = ("black", "blur", "shuffled")
 BROKEN_FILE = "broken_frames.csv"
 TRAFFIC_STREAM = 7  # the vehicles' random stream beside the scene's (seed, 7)
+MAX_TRAFFIC_PER_100M = 10.0
 
 
 # ----------------------------------------------------------------------------- options
@@ -150,8 +151,11 @@ class SynthOptions:
             raise ValueError(f"broken_fraction must be in [0, 0.5], got {self.broken_fraction}")
         if self.standstill_s > 60.0:
             raise ValueError(f"standstill_s must be <= 60, got {self.standstill_s}")
-        if not 0.0 <= self.traffic <= 10.0:  # NaN fails too
-            raise ValueError(f"traffic must be in [0, 10] vehicles per 100 m, got {self.traffic}")
+        if not 0.0 <= self.traffic <= MAX_TRAFFIC_PER_100M:  # NaN fails too
+            raise ValueError(
+                f"traffic must be in [0, {MAX_TRAFFIC_PER_100M:g}] vehicles per 100 m, "
+                f"got {self.traffic}"
+            )
         if self.traffic and self.scenario != "driving":
             raise ValueError("traffic is for the driving scenario (vehicles on the road)")
         if self.texture_px_per_m < 8:

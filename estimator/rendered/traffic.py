@@ -13,20 +13,17 @@ same street as without it.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
 
-from estimator.geometry import make_pose, quat_to_matrix, rotation_vector_to_quat
 from estimator.rendered.render import Plane
 from estimator.rendered.synthetic_driving import DrivingTrajectory, add_upright_box
 
 __all__ = ["LANE_OFFSET_M", "Traffic", "Vehicle", "VehicleKind", "build_traffic"]
 
 LANE_OFFSET_M = 2.0  # the next lanes' centres from the road's centreline (the ego's lane)
-MAX_PER_100M = 10.0
 LEAD_GAP_M = (15.0, 30.0)  # the lead vehicle's centre ahead of the ego's body
 ONCOMING_SPEED_MPS = (8.0, 14.0)
 SAME_WAY_SPEED_MPS = (6.0, 16.0)
@@ -62,19 +59,19 @@ class Traffic:
     vehicles: tuple[Vehicle, ...]
 
     def poses_at(self, time_s: float) -> np.ndarray:
-        """(N, 4, 4) world poses of the vehicles at ``time_s``."""
+        """(N, 4, 4) world poses of the vehicles at ``time_s``: on the road, turned with it (an
+        oncoming vehicle facing the other way)."""
         s = np.array([vehicle.arc_length(self.road, time_s) for vehicle in self.vehicles])
         heading, _ = self.road.heading(s)
-        centre = self.road.road(s)
-        offsets = np.array([vehicle.lane_offset_m for vehicle in self.vehicles])
         left = np.column_stack([-np.sin(heading), np.cos(heading)])
-        position = centre + offsets[:, None] * left
-        poses = np.empty((len(s), 4, 4))
-        for index, (yaw, (x, y)) in enumerate(zip(heading, position, strict=True)):
-            if self.vehicles[index].speed_mps < 0:
-                yaw += math.pi  # an oncoming vehicle faces the other way
-            turn = quat_to_matrix(rotation_vector_to_quat(np.array([0.0, 0.0, yaw])))
-            poses[index] = make_pose(turn, [x, y, 0.0])
+        offsets = np.array([vehicle.lane_offset_m for vehicle in self.vehicles])
+        oncoming = np.array([vehicle.speed_mps < 0 for vehicle in self.vehicles])
+        yaw = heading + np.where(oncoming, np.pi, 0.0)
+        cos, sin = np.cos(yaw), np.sin(yaw)
+        poses = np.zeros((len(s), 4, 4))
+        poses[:, 0, 0], poses[:, 0, 1], poses[:, 1, 0], poses[:, 1, 1] = cos, -sin, sin, cos
+        poses[:, 2, 2] = poses[:, 3, 3] = 1.0
+        poses[:, :2, 3] = self.road.road(s) + offsets[:, None] * left
         return poses
 
     def planes_at(self, time_s: float) -> list[Plane]:
@@ -103,9 +100,8 @@ def build_traffic(
     road: DrivingTrajectory, per_100m: float, rng: np.random.Generator, px_per_m: float
 ) -> Traffic:
     """A lead vehicle and ``per_100m`` vehicles per 100 m of road, half of them oncoming,
-    spread along the drive; textures at ``px_per_m`` (as the parked cars')."""
-    if not 0.0 < per_100m <= MAX_PER_100M:  # NaN fails too
-        raise ValueError(f"traffic must be in (0, {MAX_PER_100M:g}] vehicles per 100 m")
+    spread along the drive; textures at ``px_per_m`` (as the parked cars'). ``per_100m`` is
+    checked by ``SynthOptions.validate``."""
     length = road.path_length()
     gap = rng.uniform(*LEAD_GAP_M)
     vehicles = [Vehicle(VehicleKind.LEAD, _box(rng, px_per_m), 0.0, gap, road.mean_speed)]
