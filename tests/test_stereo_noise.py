@@ -156,3 +156,69 @@ def test_the_compiled_covariances_are_the_array_formula_bit_for_bit() -> None:
         expected = point_covariances(points, rectification, *level.as_tuple())
         np.testing.assert_array_equal(model.covariances(points), expected)
         np.testing.assert_array_equal(model.covariances(points[:0]), expected[:0])
+
+
+def _growing_frame(level: NoiseLevel, gain: float, rng: np.random.Generator, count: int = 300):
+    """Inlier pairs of one frame whose disparity noise grows with the disparity:
+    sigma_d x (1 + gain x d) for each point (pixel noise as ``level``)."""
+    depth = rng.uniform(0.6, 20.0, count)  # disparities of 2.5-80 px
+    pixels = rng.uniform([20, 20], [732, 460], size=(count, 2))
+    reference = np.column_stack([(pixels - [CX, CY]) * depth[:, None] / F, depth])
+    rotation = quat_to_matrix(rotation_vector_to_quat(rng.normal(0, np.radians(1.0), 3)))
+    translation = rng.normal(0, 0.02, 3)
+    current = (reference - translation) @ rotation  # R^T (p - t)
+
+    def sigmas(points: np.ndarray) -> np.ndarray:
+        disparity = F * BASELINE / points[:, 2]
+        result = np.tile(level.as_tuple(), (len(points), 1))
+        result[:, 2] *= 1.0 + gain * disparity
+        return result
+
+    measured = (_measured(points, sigmas(points), rng) for points in (reference, current))
+    return *measured, rotation, translation
+
+
+def test_the_growth_of_the_disparity_noise_with_the_disparity_is_measured() -> None:
+    rng = np.random.default_rng(12)
+    level, gain = NoiseLevel(0.08, 0.08, 0.03), 0.04
+    model = StereoNoiseModel(_rectification(), PRIOR)
+    for _ in range(25):
+        model.update(*_growing_frame(level, gain, rng))
+    assert model.disparity_gain == pytest.approx(gain, rel=0.3)
+    # The level's disparity noise is the one at the typical disparity, and each point's
+    # covariance then has the noise of its own disparity along the ray.
+    typical = model.typical_disparity
+    assert model.level.sigma_d_px == pytest.approx(0.03 * (1.0 + gain * typical), rel=0.2)
+    near, far = _triangulate(np.array([[376.0, 240.0, 70.0], [376.0, 240.0, 4.0]]))
+    for point, disparity in ((near, 70.0), (far, 4.0)):
+        depth_sigma = np.sqrt(model.covariances(point[None])[0, 2, 2])
+        expected = point[2] / disparity * 0.03 * (1.0 + gain * disparity)  # Z sigma_d / d
+        assert depth_sigma == pytest.approx(expected, rel=0.25)
+    assert abs(model.summary()["median_squared_mahalanobis"] / CHI2_3_MEDIAN - 1.0) < 0.15
+
+
+def test_a_disparity_noise_that_does_not_grow_gives_no_gain() -> None:
+    rng = np.random.default_rng(13)
+    model = StereoNoiseModel(_rectification(), PRIOR)
+    fixed = StereoNoiseModel(_rectification(), PRIOR, disparity_growth=False)
+    for _ in range(25):
+        model.update(*_growing_frame(NoiseLevel(0.08, 0.08, 0.1), 0.0, rng))
+        fixed.update(*_growing_frame(NoiseLevel(0.08, 0.08, 0.03), 0.04, rng))
+    assert model.disparity_gain < 0.003
+    assert fixed.disparity_gain == 0.0  # switched off: one disparity noise at every depth
+
+
+def test_the_compiled_covariances_with_a_growing_disparity_noise_are_the_array_formula() -> None:
+    rng = np.random.default_rng(14)
+    rectification = _rectification()
+    model = StereoNoiseModel(rectification, PRIOR)
+    for _ in range(10):
+        model.update(*_growing_frame(NoiseLevel(0.08, 0.08, 0.03), 0.04, rng))
+    assert model.disparity_gain > 0.0 and model.typical_disparity > 0.0
+    points = _triangulate(np.column_stack([rng.uniform(0, 752, 300), rng.uniform(0, 480, 300),
+                                           rng.uniform(0.5, 90.0, 300)]))  # fmt: skip
+    expected = point_covariances(
+        points, rectification, *model.level.as_tuple(), model.disparity_gain,
+        model.typical_disparity,
+    )  # fmt: skip
+    np.testing.assert_array_equal(model.covariances(points), expected)

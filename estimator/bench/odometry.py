@@ -229,12 +229,15 @@ def _noise_line(runs: dict[str, Any]) -> str:
     ratio = noise["median_squared_mahalanobis"] / CHI2_3_MEDIAN
     return (
         "\nnoise model (pso-robust, vision alone): sigma_u {sigma_u_px:.3f} px, sigma_v "
-        "{sigma_v_px:.3f} px, sigma_d {sigma_d_px:.3f} px; median squared Mahalanobis residual "
+        "{sigma_v_px:.3f} px, sigma_d {sigma_d_px:.3f} px at {typical_disparity} px of disparity, "
+        "growing {growth}; median squared Mahalanobis residual "
         "of the inliers {median_squared_mahalanobis:.3f} (chi-square 3 DOF: {chi2:.3f}, "
         "ratio {ratio:.2f}, within 20 %: {ok})"
     ).format(
         chi2=CHI2_3_MEDIAN,
         ratio=ratio,
+        typical_disparity=f"{noise.get('typical_disparity_px', 0.0):.1f}",
+        growth=f"{noise.get('disparity_gain_per_px', 0.0):.3f} per px of disparity",
         ok="PASS" if abs(ratio - 1.0) <= 0.2 else "MISS",
         **noise,
     )

@@ -169,18 +169,24 @@ def point_covariances(
     sigma_u: float,
     sigma_v: float,
     sigma_d: float,
+    disparity_gain: float = 0.0,
+    typical_disparity: float = 0.0,
 ) -> np.ndarray:
     """(N, 3, 3) covariances of triangulated points from pixel and disparity noise (pixels).
 
-    J diag(sigma_u^2, sigma_v^2, sigma_d^2) J^T with J of :func:`triangulation_jacobian`,
+    J diag(sigma_u^2, sigma_v^2, sigma_d'^2) J^T with J of :func:`triangulation_jacobian`,
     written out: (Z / f)^2 diag(sigma_u^2, sigma_v^2, 0) across the ray plus
-    (sigma_d / d)^2 p p^T along it. It needs only the points (d = f b / Z), so points
-    re-triangulated after a sub-pixel refinement need no extra bookkeeping.
+    (sigma_d' / d)^2 p p^T along it, where sigma_d' = sigma_d (1 + g d) / (1 + g d_typical)
+    with g = ``disparity_gain`` (``sigma_d`` holds at ``typical_disparity``): a near point's two
+    views differ more, so its disparity is less certain. It needs only the
+    points (d = f b / Z), so points re-triangulated after a sub-pixel refinement need no
+    extra bookkeeping.
     """
     points = np.asarray(points, dtype=float)
     f, b = rectification.fx, rectification.baseline
     depth = points[:, 2]
-    along = (sigma_d * depth / (f * b)) ** 2  # (sigma_d / d)^2
+    sigma_d = sigma_d / (1.0 + disparity_gain * typical_disparity)
+    along = (sigma_d * (depth + disparity_gain * (f * b)) / (f * b)) ** 2
     covariance = points[:, :, None] * (points[:, None, :] * along[:, None, None])
     across = (depth / f) ** 2
     covariance[:, 0, 0] += across * sigma_u**2

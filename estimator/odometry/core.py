@@ -84,6 +84,7 @@ class Odometry:
             NoiseLevel(
                 frontend.pixel_sigma_u_px, frontend.pixel_sigma_v_px, frontend.disparity_sigma_px
             ),
+            disparity_growth=self.config.registration.disparity_noise_growth,
         )
         self._fusion: FusionStep | None = None
         if self.config.backend.enabled:
