@@ -233,17 +233,7 @@ class StereoNoiseModel:
         self._q90.append(quantile(predicted_squared, 0.9))
         predicted = current @ rotation.T + translation
         seen = project(reference, self.rectification)
-        errors = seen - project(predicted, self.rectification)
-        # The level holds the disparity noise at the typical disparity: each pair's disparity
-        # residual is brought there by the growth known so far, after the growth's own fit
-        # has seen the raw residuals.
-        gain = self.disparity_gain
-        growth = (1.0 + gain * seen[:, 2]) / (1.0 + gain * self.typical_disparity)
-        if self.disparity_growth:
-            self._disparity_sums = self.gain_memory * self._disparity_sums + _line_terms(
-                seen[:, 2], np.abs(errors[:, 2])
-            )
-        errors[:, 2] /= growth
+        errors = self._at_typical_disparity(seen - project(predicted, self.rectification), seen)
         # Both points are noisy: the difference has twice the variance of one measurement.
         sigma = _MAD_TO_SIGMA * column_medians(np.abs(errors)) / np.sqrt(2.0)
         sigma = np.maximum(sigma, _MIN_SIGMA_PX)
@@ -266,6 +256,19 @@ class StereoNoiseModel:
         self._medians.append(predicted_median)
         self._updates += 1
         return predicted_median
+
+    def _at_typical_disparity(self, errors: np.ndarray, seen: np.ndarray) -> np.ndarray:
+        """``errors`` (u, v, d) with each disparity residual brought to the typical disparity,
+        where the level holds, by the growth known before this frame; the growth's own fit
+        sees the raw residuals first."""
+        gain = self.disparity_gain
+        growth = (1.0 + gain * seen[:, 2]) / (1.0 + gain * self.typical_disparity)
+        if self.disparity_growth:
+            self._disparity_sums = self.gain_memory * self._disparity_sums + _line_terms(
+                seen[:, 2], np.abs(errors[:, 2])
+            )
+        errors[:, 2] /= growth
+        return errors
 
     def _fold_line(self, errors: np.ndarray, moved: np.ndarray) -> None:
         """Add this frame's (flow, residual size) pairs to the running line fit."""
