@@ -393,7 +393,7 @@ def _scene(options: SynthOptions, duration: float, rng: np.random.Generator) -> 
             vehicles = np.random.default_rng([options.seed, TRAFFIC_STREAM])
             street.movers = build_traffic(
                 drive, options.traffic, vehicles, 2.0 * options.texture_density
-            )
+            ).planes_at
         return SceneRig(drive, street, DRIVING_T_BS_CAM0)
     loop = loop_for_length(options.length_m, duration)
     world = build_world(loop, rng, options.texture_density, options.sim_camera)

@@ -53,7 +53,7 @@ class Vehicle:
 
 @dataclass(frozen=True)
 class Traffic:
-    """The vehicles on ``road``; call it (or ``planes_at``) for their planes at a time."""
+    """The vehicles on ``road``; ``planes_at`` gives their planes at a time."""
 
     road: DrivingTrajectory
     vehicles: tuple[Vehicle, ...]
@@ -81,8 +81,6 @@ class Traffic:
             for vehicle, pose in zip(self.vehicles, poses, strict=True)
             for plane in vehicle.planes
         ]
-
-    __call__ = planes_at
 
 
 def _box(rng: np.random.Generator, px_per_m: float) -> tuple[Plane, ...]:
