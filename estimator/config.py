@@ -163,6 +163,10 @@ class FrontendConfig(_Section):
     track_levels: int = Field(3, ge=0, le=6)  # LK pyramid levels of the tracks in time
     track_refill_ratio: float = Field(0.8, gt=0, le=1)  # new corners below this share
     track_min_distance_px: float = Field(12.0, gt=0)  # new corners this far from live tracks
+    # When fewer than this share of the keyframe's tracks are still live (a black, blurred or
+    # dropped frame lost them on the way), the lost ones are searched again from the
+    # keyframe's own image, so the frame still shares tracks with its keyframe. 0: never.
+    track_recover_ratio: float = Field(0.5, ge=0, le=1)
     temporal_refine: bool = True  # sub-pixel current positions by Lucas-Kanade
     temporal_refine_window: int = Field(5, ge=1, le=15)  # half size of the LK window
     # Warp each reference patch by the predicted motion (roll, change of scale) before the

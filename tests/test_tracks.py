@@ -10,10 +10,10 @@ from test_odometry import _config, _rendered_flight, _rendered_rig, _run
 from estimator.config import FrontendConfig
 from estimator.evaluation.metrics import relative_to_first
 from estimator.frontend.stereo import StereoPoints
-from estimator.frontend.tracks import TrackedPoints, Tracker, match_tracks
+from estimator.frontend.tracks import KeyframeView, TrackedPoints, Tracker, match_tracks
 from estimator.geometry import invert_pose
 from estimator.odometry import Odometry
-from estimator.types import FrameStatus
+from estimator.types import FrameStatus, StereoFrame
 
 
 def _tracked(config: FrontendConfig, images: list[tuple[np.ndarray, np.ndarray]]):
@@ -88,6 +88,37 @@ def test_track_pairs_carry_the_known_motion() -> None:
         match_tracks(StereoPoints.empty(), current, config, rect)
 
 
+@pytest.mark.parametrize("recover_ratio", [0.5, 0.0])
+def test_keyframe_tracks_found_again_after_a_black_frame(recover_ratio: float) -> None:
+    """A black frame loses every track; the next frame finds the keyframe's tracks again from
+    the keyframe's image (same ids, where the image moved), unless recovery is off."""
+    texture = _texture(7)
+    shift = (3.4, -1.7)
+    depths = (2.0, 5.0)
+    config = FrontendConfig(max_tracks=300, track_recover_ratio=recover_ratio)
+    rect = _rig().rectification
+    keyframe_images = _two_plane_pair(texture, depths)
+    current_images = _two_plane_pair(texture, depths, *shift)
+    black = np.zeros_like(keyframe_images[0])
+    tracker = Tracker(config, rect)
+    tracker.follow(keyframe_images[0])
+    keyframe = tracker.stereo(keyframe_images[1])
+    view = KeyframeView(keyframe, keyframe_images[0], np.eye(4))
+    tracker.follow(black, None, view)
+    assert len(tracker.stereo(black)) == 0
+    tracker.follow(current_images[0], None, view)
+    current = tracker.stereo(current_images[1])
+    assert len(np.unique(current.ids)) == len(current)
+    pairs = match_tracks(keyframe, current, config, rect, images=(keyframe_images[0],
+                         current_images[0]))  # fmt: skip
+    if recover_ratio == 0.0:
+        assert len(pairs) == 0
+        return
+    assert len(pairs) > 0.7 * len(keyframe)
+    moved = current.pixels[pairs.current_index] - keyframe.pixels[pairs.reference_index]
+    assert np.median(np.linalg.norm(moved - shift, axis=1)) < 0.1
+
+
 def test_track_mode_on_a_blank_image_has_no_points() -> None:
     blank = np.full((480, WIDTH), 90, np.uint8)
     points = _tracked(FrontendConfig(), [(blank, blank), (blank, blank)])
@@ -120,3 +151,28 @@ def test_track_mode_same_seed_same_trajectory() -> None:
     for a, b in zip(first, second, strict=True):
         np.testing.assert_array_equal(a.pose, b.pose)
         assert a.inliers == b.inliers
+
+
+@pytest.mark.slow
+def test_track_mode_frame_after_a_black_one_is_tracked() -> None:
+    """Only the black frame itself goes without a vision estimate: the next one finds the
+    keyframe's tracks again (with recovery off it is lost too)."""
+    frames, truth = _rendered_flight()
+    frames = list(frames)
+    black = frames[8]
+    frames[8] = StereoFrame(black.timestamp_ns, np.zeros_like(black.left),
+                            np.zeros_like(black.right))  # fmt: skip
+    lost = {}
+    for ratio in (0.5, 0.0):
+        config = _config(
+            backend={"enabled": False},
+            frontend={"mode": "track", "track_recover_ratio": ratio, "tracking": "keyframe"},
+        )
+        reports = _run(Odometry(_rendered_rig(), config), frames)
+        lost[ratio] = [i for i, r in enumerate(reports) if r.status != FrameStatus.OK]
+        if ratio == 0.5:
+            estimate = np.array([report.pose for report in reports])
+            error = invert_pose(relative_to_first(truth)) @ estimate
+            assert np.sqrt(np.mean(np.sum(error[:, :3, 3] ** 2, axis=1))) < 0.01
+    assert lost[0.5] == [8]
+    assert lost[0.0] == [8, 9]

@@ -31,7 +31,7 @@ from estimator.frontend.stereo import StereoPoints, triangulate
 from estimator.frontend.temporal import Correspondences, project, refine_pixels
 from estimator.geometry import transform_points
 
-__all__ = ["TrackedPoints", "Tracker", "match_tracks"]
+__all__ = ["KeyframeView", "TrackedPoints", "Tracker", "match_tracks"]
 
 # A track must come back within this of where it started (forward-backward check), pixels.
 _ROUND_TRIP_PX = 0.5
@@ -47,6 +47,17 @@ class TrackedPoints(StereoPoints):
     """Stereo points of one frame with the id of the track behind each."""
 
     ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (N,) unique
+
+
+@dataclass(frozen=True)
+class KeyframeView:
+    """What the tracker needs of the keyframe to find its lost tracks again: its points
+    (with their track ids), its rectified left image and the predicted motion from it to the
+    current frame (4x4, rectified)."""
+
+    points: StereoPoints
+    image: np.ndarray
+    current_from_keyframe: np.ndarray
 
 
 class Tracker:
@@ -82,15 +93,64 @@ class Tracker:
 
     # ------------------------------------------------------------------ left image, in time
 
-    def follow(self, image: np.ndarray, current_from_previous: np.ndarray | None = None) -> None:
-        """Move the tracks into ``image`` (the next rectified left image), drop the lost ones
-        and start new ones where they thinned out. ``current_from_previous`` (4x4, rectified)
-        predicts where tracks with a depth appear."""
+    def follow(
+        self,
+        image: np.ndarray,
+        current_from_previous: np.ndarray | None = None,
+        keyframe: KeyframeView | None = None,
+    ) -> None:
+        """Move the tracks into ``image`` (the next rectified left image), drop the lost ones,
+        find the ``keyframe``'s lost tracks again when most are gone, and start new ones where
+        they thinned out. ``current_from_previous`` (4x4, rectified) predicts where tracks with
+        a depth appear."""
         if self._image is not None and len(self._ids):
             self._track_into(image, current_from_previous)
+        if keyframe is not None and isinstance(keyframe.points, TrackedPoints):
+            self._recover(image, keyframe)
         self._image = image
         if len(self._ids) < self.config.track_refill_ratio * self.config.max_tracks:
             self._add_corners(image)
+
+    def _recover(self, image: np.ndarray, keyframe: KeyframeView) -> None:
+        """The keyframe's tracks that are no longer live, tracked by LK straight from the
+        keyframe's image (started where the predicted motion puts their points) when fewer
+        than ``track_recover_ratio`` of them are live: after a black or blurred frame every
+        track is lost, and new ones share nothing with the keyframe."""
+        points = keyframe.points
+        assert isinstance(points, TrackedPoints)
+        lost = ~np.isin(points.ids, self._ids)
+        if not lost.any() or (~lost).sum() >= self.config.track_recover_ratio * len(lost):
+            return
+        moved = transform_points(keyframe.current_from_keyframe, points.points[lost])
+        rect = self.rectification
+        guess = project(moved, rect.fx, rect.cx, rect.cy)
+        usable = np.isfinite(guess).all(axis=1) & (moved[:, 2] > 0)
+        if not usable.any():
+            return
+        start = points.pixels[lost][usable].astype(np.float32)
+        levels = self.config.track_levels
+        tracked, forward, _ = cv2.calcOpticalFlowPyrLK(
+            keyframe.image, image, start, guess[usable].astype(np.float32), maxLevel=levels,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk,
+        )  # fmt: skip
+        back, backward, _ = cv2.calcOpticalFlowPyrLK(
+            image, keyframe.image, tracked, start.copy(), maxLevel=levels,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk,
+        )  # fmt: skip
+        found = (
+            (forward.ravel() == 1)
+            & (backward.ravel() == 1)
+            & (np.linalg.norm(back - start, axis=1) < _ROUND_TRIP_PX)
+            & self._inside(tracked, image.shape)
+        )
+        if not found.any():
+            return
+        moved = moved[usable][found]
+        f_b = rect.fx * rect.baseline
+        self._pixels = np.ascontiguousarray(np.vstack([self._pixels, tracked[found]]))
+        self._ids = np.concatenate([self._ids, points.ids[lost][usable][found]])
+        self._disparity = np.concatenate([self._disparity, f_b / moved[:, 2]])
+        self._points = np.vstack([self._points, moved])
 
     def _track_into(self, image: np.ndarray, current_from_previous: np.ndarray | None) -> None:
         assert self._image is not None

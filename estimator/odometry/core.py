@@ -13,7 +13,7 @@ from estimator.frontend.photometric import normalise_contrast
 from estimator.frontend.shutter_offset import StereoTiming
 from estimator.frontend.stereo import StereoMatcher, StereoPoints
 from estimator.frontend.stereo_noise import NoiseLevel, StereoNoiseModel
-from estimator.frontend.tracks import Tracker
+from estimator.frontend.tracks import KeyframeView, Tracker
 from estimator.geometry import invert_pose, nearest_rigid
 from estimator.odometry.combination import ChainCombination, chains_through_previous
 from estimator.odometry.estimation import PoseEstimation
@@ -259,7 +259,7 @@ class Odometry:
         if self._tracker is not None:
             with stage(timings, "detect"):
                 step = self._references.motion_over(self._frame_interval_ns)
-                self._tracker.follow(left, invert_pose(step))
+                self._tracker.follow(left, invert_pose(step), self._keyframe_view())
             with stage(timings, "stereo"):
                 return self._in_step(self._tracker.stereo(right))
         with stage(timings, "detect"):
@@ -267,6 +267,17 @@ class Odometry:
             right_features = self.detector.detect(right, same_scene=True)
         with stage(timings, "stereo"):
             return self._in_step(self.stereo.match(left_features, right_features, left, right))
+
+    def _keyframe_view(self) -> KeyframeView | None:
+        """The keyframe's tracks, image and predicted motion to this frame, for the tracker
+        to find lost keyframe tracks again (None before the first keyframe)."""
+        references = self._references
+        keyframe, previous = references.reference, references.previous
+        if keyframe is None or previous is None or self._last_timestamp_ns is None:
+            return None
+        since_previous = references.motion_over(self._last_timestamp_ns - previous.timestamp_ns)
+        keyframe_from_current = references.reference_from_previous @ since_previous
+        return KeyframeView(keyframe.points, keyframe.image, invert_pose(keyframe_from_current))
 
     def _in_step(self, points: StereoPoints) -> StereoPoints:
         """``points`` as if both shutters had opened together (frontend/shutter_offset.py);
