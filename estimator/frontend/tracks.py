@@ -128,21 +128,7 @@ class Tracker:
         if not usable.any():
             return
         start = points.pixels[lost][usable].astype(np.float32)
-        levels = self.config.track_levels
-        tracked, forward, _ = cv2.calcOpticalFlowPyrLK(
-            keyframe.image, image, start, guess[usable].astype(np.float32), maxLevel=levels,
-            flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk,
-        )  # fmt: skip
-        back, backward, _ = cv2.calcOpticalFlowPyrLK(
-            image, keyframe.image, tracked, start.copy(), maxLevel=levels,
-            flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk,
-        )  # fmt: skip
-        found = (
-            (forward.ravel() == 1)
-            & (backward.ravel() == 1)
-            & (np.linalg.norm(back - start, axis=1) < _ROUND_TRIP_PX)
-            & self._inside(tracked, image.shape)
-        )
+        tracked, found = self._both_ways(keyframe.image, image, start, guess[usable])
         if not found.any():
             return
         moved = moved[usable][found]
@@ -164,25 +150,34 @@ class Tracker:
             usable = np.isfinite(predicted).all(axis=1)
             rows = np.flatnonzero(known)[usable]
             guess[rows] = predicted[usable]
-        levels = self.config.track_levels
-        tracked, forward, _ = cv2.calcOpticalFlowPyrLK(
-            self._image, image, start, guess, maxLevel=levels,
-            flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk,
-        )  # fmt: skip
-        back, backward, _ = cv2.calcOpticalFlowPyrLK(
-            image, self._image, tracked, start.copy(), maxLevel=levels,
-            flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk,
-        )  # fmt: skip
-        keep = (
-            (forward.ravel() == 1)
-            & (backward.ravel() == 1)
-            & (np.linalg.norm(back - start, axis=1) < _ROUND_TRIP_PX)
-            & self._inside(tracked, image.shape)
-        )
+        tracked, keep = self._both_ways(self._image, image, start, guess)
         self._pixels = np.ascontiguousarray(tracked[keep])
         self._ids = self._ids[keep]
         self._disparity = self._disparity[keep]
         self._points = self._points[keep]
+
+    def _both_ways(
+        self, source: np.ndarray, target: np.ndarray, start: np.ndarray, guess: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``start`` (pixels of ``source``) tracked into ``target`` from ``guess`` by pyramidal
+        LK and back: the tracked pixels, and which returned within ``_ROUND_TRIP_PX`` and stay
+        inside the image."""
+        levels = self.config.track_levels
+        tracked, forward, _ = cv2.calcOpticalFlowPyrLK(
+            source, target, start, guess.astype(np.float32), maxLevel=levels,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk,
+        )  # fmt: skip
+        back, backward, _ = cv2.calcOpticalFlowPyrLK(
+            target, source, tracked, start.copy(), maxLevel=levels,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk,
+        )  # fmt: skip
+        kept = (
+            (forward.ravel() == 1)
+            & (backward.ravel() == 1)
+            & (np.linalg.norm(back - start, axis=1) < _ROUND_TRIP_PX)
+            & self._inside(tracked, target.shape)
+        )
+        return tracked, kept
 
     @staticmethod
     def _inside(pixels: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
