@@ -153,26 +153,47 @@ def test_track_mode_same_seed_same_trajectory() -> None:
         assert a.inliers == b.inliers
 
 
+def test_forgotten_frame_leaves_the_tracks_as_they_were() -> None:
+    """A frame without a vision estimate is undone in the tracker: the next frame follows the
+    tracks from the last good image, with their ids."""
+    texture = _texture(7)
+    shift = (3.4, -1.7)
+    first = _two_plane_pair(texture, (2.0, 5.0))
+    second = _two_plane_pair(texture, (2.0, 5.0), *shift)
+    tracker = Tracker(FrontendConfig(max_tracks=300), _rig().rectification)
+    tracker.follow(first[0])
+    tracker.stereo(first[1])
+    ids, pixels = tracker.live
+    tracker.follow(np.zeros_like(first[0]))
+    assert len(tracker) == 0
+    tracker.forget_frame()
+    np.testing.assert_array_equal(tracker.live[0], ids)
+    np.testing.assert_array_equal(tracker.live[1], pixels)
+    tracker.follow(second[0])
+    after_ids, after_pixels = tracker.live
+    kept = np.isin(ids, after_ids)
+    assert kept.mean() > 0.9
+    moved = after_pixels[np.isin(after_ids, ids)] - pixels[kept]
+    assert np.median(np.linalg.norm(moved - shift, axis=1)) < 0.1
+
+
 @pytest.mark.slow
-def test_track_mode_frame_after_a_black_one_is_tracked() -> None:
-    """Only the black frame itself goes without a vision estimate: the next one finds the
-    keyframe's tracks again (with recovery off it is lost too)."""
+@pytest.mark.parametrize("recover_ratio", [0.5, 0.0])
+def test_track_mode_frame_after_a_black_one_is_tracked(recover_ratio: float) -> None:
+    """Only the black frame itself goes without a vision estimate (the tracker forgets it,
+    and finds lost keyframe tracks again when recovery is on)."""
     frames, truth = _rendered_flight()
     frames = list(frames)
     black = frames[8]
     frames[8] = StereoFrame(black.timestamp_ns, np.zeros_like(black.left),
                             np.zeros_like(black.right))  # fmt: skip
-    lost = {}
-    for ratio in (0.5, 0.0):
-        config = _config(
-            backend={"enabled": False},
-            frontend={"mode": "track", "track_recover_ratio": ratio, "tracking": "keyframe"},
-        )
-        reports = _run(Odometry(_rendered_rig(), config), frames)
-        lost[ratio] = [i for i, r in enumerate(reports) if r.status != FrameStatus.OK]
-        if ratio == 0.5:
-            estimate = np.array([report.pose for report in reports])
-            error = invert_pose(relative_to_first(truth)) @ estimate
-            assert np.sqrt(np.mean(np.sum(error[:, :3, 3] ** 2, axis=1))) < 0.01
-    assert lost[0.5] == [8]
-    assert lost[0.0] == [8, 9]
+    config = _config(
+        backend={"enabled": False},
+        frontend={"mode": "track", "track_recover_ratio": recover_ratio, "tracking": "keyframe"},
+    )
+    reports = _run(Odometry(_rendered_rig(), config), frames)
+    assert [i for i, r in enumerate(reports) if r.status != FrameStatus.OK] == [8]
+    assert reports[9].matches > 50
+    estimate = np.array([report.pose for report in reports])
+    error = invert_pose(relative_to_first(truth)) @ estimate
+    assert np.sqrt(np.mean(np.sum(error[:, :3, 3] ** 2, axis=1))) < 0.01

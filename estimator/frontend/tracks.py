@@ -80,6 +80,7 @@ class Tracker:
         self._disparity = np.zeros(0)  # NaN: no stereo match yet
         self._points = np.zeros((0, 3))  # NaN rows: no stereo match
         self._next_id = 0
+        self._before: tuple | None = None  # the state before the last follow
         size = 2 * config.track_window + 1
         self._lk = {"winSize": (size, size), "criteria": _LK_CRITERIA}
 
@@ -103,6 +104,8 @@ class Tracker:
         find the ``keyframe``'s lost tracks again when most are gone, and start new ones where
         they thinned out. ``current_from_previous`` (4x4, rectified) predicts where tracks with
         a depth appear."""
+        self._before = (self._image, self._pixels.copy(), self._ids.copy(),
+                        self._disparity.copy(), self._points.copy())  # fmt: skip
         if self._image is not None and len(self._ids):
             self._track_into(image, current_from_previous)
         if keyframe is not None and isinstance(keyframe.points, TrackedPoints):
@@ -110,6 +113,13 @@ class Tracker:
         self._image = image
         if len(self._ids) < self.config.track_refill_ratio * self.config.max_tracks:
             self._add_corners(image)
+
+    def forget_frame(self) -> None:
+        """The tracks as they were before the last :meth:`follow`: a frame that gave no
+        vision estimate (black, blurred) is not one to follow them through."""
+        if self._before is not None:
+            self._image, self._pixels, self._ids, self._disparity, self._points = self._before
+            self._before = None
 
     def _recover(self, image: np.ndarray, keyframe: KeyframeView) -> None:
         """The keyframe's tracks that are no longer live, tracked by LK straight from the

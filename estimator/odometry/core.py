@@ -220,6 +220,9 @@ class Odometry:
     ) -> None:
         """What the next frame starts from: the noise level, the poses and the references."""
         self._estimation.measure_noise(estimate)
+        if self._tracker is not None and self._references.reference is not None:
+            if estimate.reference_from_current is None:  # no frame to follow the tracks by
+                self._tracker.forget_frame()
         self._answered, self._pose = answer[0], answer[1]
         self._references.update(
             current.index, current.points, current.image, self._pose, estimate, frame.timestamp_ns
