@@ -167,6 +167,10 @@ class FrontendConfig(_Section):
     # dropped frame lost them on the way), the lost ones are searched again from the
     # keyframe's own image, so the frame still shares tracks with its keyframe. 0: never.
     track_recover_ratio: float = Field(0.5, ge=0, le=1)
+    # A frame whose tracks' median LK residual in time is above this times the recent frames'
+    # (motion blur, a flash) is not followed: no points, and the tracks stay where they were
+    # for the next frame. 0: always followed.
+    track_blur_ratio: float = Field(4.0, ge=0)
     temporal_refine: bool = True  # sub-pixel current positions by Lucas-Kanade
     temporal_refine_window: int = Field(5, ge=1, le=15)  # half size of the LK window
     # Warp each reference patch by the predicted motion (roll, change of scale) before the

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from test_frontend import BASELINE, FOCAL, WIDTH, _rig, _shift, _texture, _two_plane_pair
@@ -175,6 +176,39 @@ def test_forgotten_frame_leaves_the_tracks_as_they_were() -> None:
     assert kept.mean() > 0.9
     moved = after_pixels[np.isin(after_ids, ids)] - pixels[kept]
     assert np.median(np.linalg.norm(moved - shift, axis=1)) < 0.1
+
+
+def test_a_motion_blurred_frame_is_not_followed() -> None:
+    """A frame streaked by motion blur leaves the tracks' LK residual several times the recent
+    frames': it gets no points and the tracks wait for the next sharp frame; a level that
+    stays (three such frames in a row) is taken as the new normal."""
+    texture = _texture(3)
+    frames = [_shift(texture, 1.5 * k, 0.5 * k)[:, :WIDTH].clip(0, 255).astype(np.uint8)
+              for k in range(8)]  # fmt: skip
+    streak = np.full((1, 25), 1 / 25, np.float32)
+    blurred = cv2.filter2D(frames[5], -1, streak)
+    tracker = Tracker(FrontendConfig(max_tracks=300), _rig().rectification)
+    for image in frames[:5]:
+        tracker.follow(image)
+        assert len(tracker) > 200
+    ids = tracker.live[0]
+    tracker.follow(blurred)
+    assert len(tracker) == 0
+    tracker.forget_frame()
+    tracker.follow(frames[6])  # two frames on from the last sharp one
+    assert np.isin(ids, tracker.live[0]).mean() > 0.9
+    followed = []
+    for _ in range(3):  # as the odometry does: a frame without points is forgotten
+        tracker.follow(cv2.filter2D(frames[7], -1, streak))
+        followed.append(len(tracker) > 0)
+        if not followed[-1]:
+            tracker.forget_frame()
+    assert followed == [False, False, True]
+    off = Tracker(FrontendConfig(max_tracks=300, track_blur_ratio=0), _rig().rectification)
+    for image in frames[:5]:
+        off.follow(image)
+    off.follow(blurred)
+    assert len(off) > 0
 
 
 @pytest.mark.slow

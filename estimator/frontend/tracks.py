@@ -18,6 +18,7 @@ frames share (:func:`match_tracks`).
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 
 import cv2
@@ -39,6 +40,9 @@ _ROUND_TRIP_PX = 0.5
 _BORDER_PX = 8
 # A new track's SAD disparity must beat every other disparity (beyond +-2 px) by this factor.
 _UNIQUENESS = 0.9
+# At most this many frames in a row are left out for their LK residual; then the residual
+# level is taken as the scene's new normal (a light switched on, a textured wall).
+_MAX_UNLIKE_FRAMES = 2
 _LK_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 10, 0.03)
 
 
@@ -81,6 +85,8 @@ class Tracker:
         self._points = np.zeros((0, 3))  # NaN rows: no stereo match
         self._next_id = 0
         self._before: tuple | None = None  # the state before the last follow
+        self._errors: deque[float] = deque(maxlen=10)  # recent frames' median LK residual
+        self._unlike = 0  # frames in a row not followed for their residual
         size = 2 * config.track_window + 1
         self._lk = {"winSize": (size, size), "criteria": _LK_CRITERIA}
 
@@ -106,11 +112,14 @@ class Tracker:
         a depth appear."""
         self._before = (self._image, self._pixels.copy(), self._ids.copy(),
                         self._disparity.copy(), self._points.copy())  # fmt: skip
+        followed = True
         if self._image is not None and len(self._ids):
-            self._track_into(image, current_from_previous)
+            followed = self._track_into(image, current_from_previous)
+        self._image = image
+        if not followed:
+            return
         if keyframe is not None and isinstance(keyframe.points, TrackedPoints):
             self._recover(image, keyframe)
-        self._image = image
         if len(self._ids) < self.config.track_refill_ratio * self.config.max_tracks:
             self._add_corners(image)
 
@@ -138,7 +147,7 @@ class Tracker:
         if not usable.any():
             return
         start = points.pixels[lost][usable].astype(np.float32)
-        tracked, found = self._both_ways(keyframe.image, image, start, guess[usable])
+        tracked, found, _ = self._both_ways(keyframe.image, image, start, guess[usable])
         if not found.any():
             return
         moved = moved[usable][found]
@@ -148,7 +157,9 @@ class Tracker:
         self._disparity = np.concatenate([self._disparity, f_b / moved[:, 2]])
         self._points = np.vstack([self._points, moved])
 
-    def _track_into(self, image: np.ndarray, current_from_previous: np.ndarray | None) -> None:
+    def _track_into(self, image: np.ndarray, current_from_previous: np.ndarray | None) -> bool:
+        """The live tracks followed into ``image``; False when the frame is unlike the recent
+        ones (``_like_recent``) and every track was left out."""
         assert self._image is not None
         start = self._pixels
         guess = start.copy()
@@ -160,20 +171,41 @@ class Tracker:
             usable = np.isfinite(predicted).all(axis=1)
             rows = np.flatnonzero(known)[usable]
             guess[rows] = predicted[usable]
-        tracked, keep = self._both_ways(self._image, image, start, guess)
+        tracked, keep, error = self._both_ways(self._image, image, start, guess)
+        if not self._like_recent(error[keep]):
+            keep[:] = False
         self._pixels = np.ascontiguousarray(tracked[keep])
         self._ids = self._ids[keep]
         self._disparity = self._disparity[keep]
         self._points = self._points[keep]
+        return bool(keep.any())
+
+    def _like_recent(self, error: np.ndarray) -> bool:
+        """Whether the tracks' median LK residual in time is within ``track_blur_ratio`` of
+        the recent frames' (then it joins them). A motion-blurred frame or a flash leaves
+        residuals several times larger (MH_01: 1.4-6 grey levels, 15-28 with a 25 px streak),
+        and its tracks would follow the streaks."""
+        if not len(error):
+            return True
+        median = float(np.median(error))
+        ratio = self.config.track_blur_ratio
+        if ratio > 0 and len(self._errors) >= 3 and median > ratio * np.median(self._errors):
+            self._unlike += 1
+            if self._unlike <= _MAX_UNLIKE_FRAMES:
+                return False
+            self._errors.clear()  # the scene's level changed: this is the new normal
+        self._unlike = 0
+        self._errors.append(median)
+        return True
 
     def _both_ways(
         self, source: np.ndarray, target: np.ndarray, start: np.ndarray, guess: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``start`` (pixels of ``source``) tracked into ``target`` from ``guess`` by pyramidal
-        LK and back: the tracked pixels, and which returned within ``_ROUND_TRIP_PX`` and stay
-        inside the image."""
+        LK and back: the tracked pixels, which returned within ``_ROUND_TRIP_PX`` and stay
+        inside the image, and LK's residual of each (mean absolute grey-level difference)."""
         levels = self.config.track_levels
-        tracked, forward, _ = cv2.calcOpticalFlowPyrLK(
+        tracked, forward, error = cv2.calcOpticalFlowPyrLK(
             source, target, start, guess.astype(np.float32), maxLevel=levels,
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk,
         )  # fmt: skip
@@ -187,7 +219,7 @@ class Tracker:
             & (np.linalg.norm(back - start, axis=1) < _ROUND_TRIP_PX)
             & self._inside(tracked, target.shape)
         )
-        return tracked, kept
+        return tracked, kept, error.ravel()
 
     @staticmethod
     def _inside(pixels: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
