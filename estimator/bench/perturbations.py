@@ -26,11 +26,13 @@ from estimator.rendered.perturb import PERTURBATIONS, perturb_sequence
 __all__ = ["SETTINGS", "add_arguments", "run", "run_one"]
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2].parent / "shared/data/euroc_mh01_moving"
-# Estimator settings compared: the default, the swarm without per-point sigmas, and MSAC.
+# Settings compared: the default, the swarm without per-point sigmas, MSAC, and the front end
+# that follows corners by LK instead of detecting them again (track mode).
 SETTINGS: dict[str, dict[str, Any]] = {
     "default": {},
     "no-sigmas": {"registration": {"use_point_sigmas": False}},
     Estimator.MSAC.value: {"registration": {"method": Estimator.MSAC.value}},
+    "track": {"frontend": {"mode": "track"}},
 }
 MODES = ("vision", "fused")
 
