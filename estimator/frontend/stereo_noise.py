@@ -233,7 +233,12 @@ class StereoNoiseModel:
         self._q90.append(quantile(predicted_squared, 0.9))
         predicted = current @ rotation.T + translation
         seen = project(reference, self.rectification)
-        errors = self._at_typical_disparity(seen - project(predicted, self.rectification), seen)
+        errors = seen - project(predicted, self.rectification)
+        # Disparity residuals brought to the typical disparity, where the level holds, by the
+        # growth known before this frame; the growth's own fit takes the raw residuals.
+        growth = self._disparity_growth(seen[:, 2])
+        self._fold_disparity_line(seen[:, 2], errors[:, 2])
+        errors[:, 2] /= growth
         # Both points are noisy: the difference has twice the variance of one measurement.
         sigma = _MAD_TO_SIGMA * column_medians(np.abs(errors)) / np.sqrt(2.0)
         sigma = np.maximum(sigma, _MIN_SIGMA_PX)
@@ -257,18 +262,17 @@ class StereoNoiseModel:
         self._updates += 1
         return predicted_median
 
-    def _at_typical_disparity(self, errors: np.ndarray, seen: np.ndarray) -> np.ndarray:
-        """``errors`` (u, v, d) with each disparity residual brought to the typical disparity,
-        where the level holds, by the growth known before this frame; the growth's own fit
-        sees the raw residuals first."""
+    def _disparity_growth(self, disparity: np.ndarray) -> np.ndarray:
+        """(1 + g d) / (1 + g typical): each disparity's noise against the level's."""
         gain = self.disparity_gain
-        growth = (1.0 + gain * seen[:, 2]) / (1.0 + gain * self.typical_disparity)
+        return (1.0 + gain * disparity) / (1.0 + gain * self.typical_disparity)
+
+    def _fold_disparity_line(self, disparity: np.ndarray, residual: np.ndarray) -> None:
+        """Add this frame's (disparity, |disparity residual|) pairs to the running line fit
+        of the growth (nothing when the growth is off: its gain stays 0)."""
         if self.disparity_growth:
-            self._disparity_sums = self.gain_memory * self._disparity_sums + _line_terms(
-                seen[:, 2], np.abs(errors[:, 2])
-            )
-        errors[:, 2] /= growth
-        return errors
+            terms = _line_terms(disparity, np.abs(residual))
+            self._disparity_sums = self.gain_memory * self._disparity_sums + terms
 
     def _fold_line(self, errors: np.ndarray, moved: np.ndarray) -> None:
         """Add this frame's (flow, residual size) pairs to the running line fit."""

@@ -278,8 +278,7 @@ class Odometry:
         keyframe, previous = references.reference, references.previous
         if keyframe is None or previous is None or self._last_timestamp_ns is None:
             return None
-        since_previous = references.motion_over(self._last_timestamp_ns - previous.timestamp_ns)
-        keyframe_from_current = references.reference_from_previous @ since_previous
+        keyframe_from_current = references.predicted_reference_from(self._last_timestamp_ns)
         return KeyframeView(keyframe.points, keyframe.image, invert_pose(keyframe_from_current))
 
     def _in_step(self, points: StereoPoints) -> StereoPoints:

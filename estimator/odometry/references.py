@@ -81,6 +81,14 @@ class References:
             motion[:3, :3] = rotation
         return motion
 
+    def predicted_reference_from(self, now_ns: int) -> np.ndarray:
+        """T_ref_cur predicted for a frame at ``now_ns`` (rectified): the measured keyframe ->
+        previous frame step, then the last motion at the same velocity since the previous
+        frame (a previous frame is set)."""
+        assert self.previous is not None
+        since_previous = self.motion_over(now_ns - self.previous.timestamp_ns)
+        return self.reference_from_previous @ since_previous
+
     def velocity(self, interval_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
         """The camera's predicted (angular rad/s, linear m/s) velocity in its own frame over
         the ``interval_ns`` since the last frame (rectified); None while there is no measured

@@ -30,8 +30,7 @@ class Tracking:
         keyframe, previous = references.reference, references.previous
         assert keyframe is not None and previous is not None
         previous_ns = current.timestamp_ns - previous.timestamp_ns
-        since_previous = references.motion_over(previous_ns)
-        prediction = references.reference_from_previous @ since_previous
+        prediction = references.predicted_reference_from(current.timestamp_ns)
         estimate = self.estimation.measured(
             keyframe, prediction, current, previous_ns,
             references.prediction_uncertainty(previous_ns),
