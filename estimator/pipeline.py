@@ -94,6 +94,8 @@ class RunResult:
     noise: dict[str, Any] = field(default_factory=dict)
     # The right shutter's offset: configured, fitted, measured (frontend/shutter_offset.py).
     stereo_timing: dict[str, Any] = field(default_factory=dict)
+    # Times the front end went back to an older keyframe (odometry/revisits.py); None: off.
+    keyframe_revisits: int | None = None
 
     @property
     def timestamps_ns(self) -> np.ndarray:
@@ -203,8 +205,9 @@ def run_sequence(
     skipped_ns.sort()
     timing = odometry.stereo_timing.summary()
     return RunResult(
-        sequence, config, reports, elapsed, smoothed, skipped_ns, derived, noise, timing
-    )
+        sequence, config, reports, elapsed, smoothed, skipped_ns, derived, noise, timing,
+        odometry.keyframe_revisits,
+    )  # fmt: skip
 
 
 def _missing_pairs(sequence: Sequence, count: int, strict: bool) -> list[int]:
@@ -276,6 +279,7 @@ def summarize(
         },
         "noise": result.noise or None,
         "stereo_time_offset": result.stereo_timing or None,
+        "keyframe_revisits": result.keyframe_revisits,
     }
     ground_truth = result.sequence.ground_truth
     if ground_truth is None:

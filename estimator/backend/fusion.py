@@ -439,7 +439,7 @@ class FusionBackend:
             covariance = self._shared_error_growth * covariance
         placement = self._vision.placement
         covariance = placement.report(self._index, self._body_pose, covariance)
-        placement.forget_before(self._window.oldest_reference)
+        placement.forget_before(self._window.oldest_reference, self._window.kept_indices())
         return FusedEstimate(
             pose=answer @ self.body_from_camera,
             body_pose=answer,

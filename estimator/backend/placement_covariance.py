@@ -81,9 +81,9 @@ class PlacementCovariance:
         if self._reported:
             self._carried = self._reported[max(self._reported)].copy()
 
-    def forget_before(self, oldest: int) -> None:
-        """Drop the frames older than ``oldest``: the front end's references only move
-        forward."""
-        for index in [i for i in self._reported if i < oldest]:
+    def forget_before(self, oldest: int, kept: set[int] = frozenset()) -> None:
+        """Drop the frames older than ``oldest`` but the ``kept`` keyframes (a revisit measures
+        against them again)."""
+        for index in [i for i in self._reported if i < oldest and i not in kept]:
             del self._reported[index]
             self._counts.pop(index, None)

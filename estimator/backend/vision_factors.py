@@ -109,7 +109,7 @@ class VisionFactors:
             reference_pose = (
                 self._smoother.pose(reference)
                 if live
-                else self._window.references[int(reference_ns)][1]  # type: ignore[arg-type]
+                else self._window.reference_pose(int(reference_ns))  # type: ignore[arg-type]
             )
         body_motion = _motion_from_previous(previous.body_pose, body_measured, reference_pose)
         if step.still:  # vision must agree with the standstill too
@@ -129,6 +129,8 @@ class VisionFactors:
                 covariance,
             )
         self._window.oldest_reference = max(self._window.oldest_reference, reference)
+        if reference_ns is not None:
+            self._window.used_as_reference(int(reference_ns))
         return body_motion
 
     def _vision_reference(

@@ -14,6 +14,10 @@ from estimator.backend.smoother import STAMP_MARGIN_S, Smoother
 
 __all__ = ["FrameWindow", "OpenFrame"]
 
+# Keyframes kept after a newer one is in use: a front end that revisits a place measures
+# against them again (frontend.revisit_keyframes).
+_KEPT_KEYFRAMES = 64
+
 
 @dataclass
 class OpenFrame:
@@ -38,6 +42,9 @@ class FrameWindow:
         # latest body pose estimate), the pose for references that have left the window.
         self.references: OrderedDict[int, tuple[int, np.ndarray]] = OrderedDict()
         self.oldest_reference = 0
+        # Frames measured against before (stamp -> (index, latest body pose)), kept when
+        # newer references are in use: a revisit measures against them again.
+        self.keyframes: OrderedDict[int, tuple[int, np.ndarray]] = OrderedDict()
 
     def take_final_poses(self) -> tuple[tuple[int, np.ndarray], ...]:
         """The final poses gathered since the last call (each frame once)."""
@@ -61,6 +68,8 @@ class FrameWindow:
                 except (IndexError, RuntimeError):  # GTSAM: unknown key / numerical failure
                     pass  # keep the latest estimate read
             self._final_poses.append((frame.timestamp_ns, frame.body_pose @ self.body_from_camera))
+            if frame.timestamp_ns in self.keyframes:
+                self.keyframes[frame.timestamp_ns] = (frame.index, frame.body_pose)
 
     def in_window(self, index: int, cutoff: float) -> bool:
         """Whether frame ``index`` has a variable that survives an update dropping the keys
@@ -87,10 +96,28 @@ class FrameWindow:
         while self.references and next(iter(self.references.values()))[0] < self.oldest_reference:
             self.references.popitem(last=False)
 
+    def used_as_reference(self, reference_ns: int) -> None:
+        """Keep the pose of frame ``reference_ns`` (measured against) for later revisits."""
+        frame = self.references.get(int(reference_ns))
+        if frame is None or int(reference_ns) in self.keyframes:
+            return
+        self.keyframes[int(reference_ns)] = frame
+        while len(self.keyframes) > _KEPT_KEYFRAMES:
+            self.keyframes.popitem(last=False)
+
+    def kept_indices(self) -> set[int]:
+        return {index for index, _ in self.keyframes.values()}
+
     def reference_index(self, reference_ns: int | None, latest: int) -> int | None:
         """Frame index of ``reference_ns`` (None: ``latest``, the previous frame; unknown:
         None)."""
         if reference_ns is None:
             return latest
-        frame = self.references.get(int(reference_ns))
+        frame = self.references.get(int(reference_ns)) or self.keyframes.get(int(reference_ns))
         return None if frame is None else frame[0]
+
+    def reference_pose(self, reference_ns: int) -> np.ndarray:
+        """The latest body pose of a frame that may be referenced (a recent one or a kept
+        keyframe)."""
+        frame = self.references.get(int(reference_ns)) or self.keyframes[int(reference_ns)]
+        return frame[1]

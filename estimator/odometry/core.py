@@ -23,6 +23,7 @@ from estimator.odometry.gyro_prediction import GyroPrediction, gyro_prediction_f
 from estimator.odometry.measurements import CameraFrames
 from estimator.odometry.observation import MeasurementObserver
 from estimator.odometry.references import References
+from estimator.odometry.revisits import KeyframeRevisits, revisits_on
 from estimator.odometry.tracking import Tracking
 from estimator.types import (
     FrameReport,
@@ -101,6 +102,11 @@ class Odometry:
             frontend, rig, self._estimation, self._references, through_previous
         )
         self._tracking = Tracking(self._estimation, self._references, self._chains)
+        self._revisits: KeyframeRevisits | None = None
+        if revisits_on(frontend, imu_fused):
+            self._revisits = KeyframeRevisits(
+                frontend, self._estimation, self._references, self._frames
+            )
 
     @property
     def frame_count(self) -> int:
@@ -121,6 +127,11 @@ class Odometry:
         """
         reference = self._references.reference
         return reference.index if reference is not None else None
+
+    @property
+    def keyframe_revisits(self) -> int | None:
+        """How often the reference went back to an older keyframe (None: revisits off)."""
+        return self._revisits.count if self._revisits is not None else None
 
     @property
     def common_rotation_bias(self) -> float:
@@ -224,9 +235,12 @@ class Odometry:
             if estimate.reference_from_current is None:  # no frame to follow the tracks by
                 self._tracker.forget_frame()
         self._answered, self._pose = answer[0], answer[1]
+        replaced = self._references.reference
         self._references.update(
             current.index, current.points, current.image, self._pose, estimate, frame.timestamp_ns
         )
+        if self._revisits is not None:
+            self._revisits.after_update(current, replaced, estimate)
         self.stereo_timing.learn(self._references.measured_velocity())
 
     def _rectified(

@@ -51,6 +51,10 @@ class CameraFrames:
         """A relative pose of rectified frames as one of the original left camera."""
         return self.camera_from_rect @ rectified_motion @ self.rect_from_camera
 
+    def in_rectified(self, camera_motion: np.ndarray) -> np.ndarray:
+        """A relative pose of the original left camera as one of rectified frames."""
+        return self.rect_from_camera @ camera_motion @ self.camera_from_rect
+
     def measurement(self, estimate: Estimate, noise: StereoNoiseModel | None = None) -> Measurement:
         """The estimate for the back end: T_ref_cur against the frame it was made from (the back
         end ties the two frames directly instead of through the poses in between). With the

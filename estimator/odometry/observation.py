@@ -35,6 +35,9 @@ class MeasurementKind(StrEnum):
     # A chain's plausible last step (its reference -> the current frame), before it is
     # combined with the keyframe measurement; its covariance without the link's bias.
     LINK = "link"
+    # A registration against an older keyframe tried as the reference again (keyframe
+    # revisits, odometry/revisits.py), as it came out (refused ones too).
+    REVISIT = "revisit"
 
 
 @dataclass(frozen=True)

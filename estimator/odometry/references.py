@@ -224,6 +224,15 @@ class References:
             self.previous_estimate = estimate
         self.previous = current
 
+    def go_back_to(self, keyframe: Reference, estimate: Estimate) -> None:
+        """An older ``keyframe`` is the reference again, the last frame measured in it by
+        ``estimate`` (a keyframe revisit, odometry/revisits.py)."""
+        self.reference = keyframe
+        self.reference_from_previous = estimate.reference_from_current
+        self.reference_from_previous_covariance = estimate.covariance
+        self.previous_estimate = estimate
+        self.older = None
+
     def _gyro_frame_done(self, failed: bool, estimate: Estimate) -> None:
         """The gyro learns from vision's rotation since the last good frame (the previous)."""
         if self.gyro is None:
