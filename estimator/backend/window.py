@@ -106,6 +106,7 @@ class FrameWindow:
             self.keyframes.popitem(last=False)
 
     def kept_indices(self) -> set[int]:
+        """Indices of the kept keyframes (their reported covariances stay too)."""
         return {index for index, _ in self.keyframes.values()}
 
     def reference_index(self, reference_ns: int | None, latest: int) -> int | None:
@@ -113,11 +114,15 @@ class FrameWindow:
         None)."""
         if reference_ns is None:
             return latest
-        frame = self.references.get(int(reference_ns)) or self.keyframes.get(int(reference_ns))
+        frame = self._referable(int(reference_ns))
         return None if frame is None else frame[0]
 
     def reference_pose(self, reference_ns: int) -> np.ndarray:
-        """The latest body pose of a frame that may be referenced (a recent one or a kept
-        keyframe)."""
-        frame = self.references.get(int(reference_ns)) or self.keyframes[int(reference_ns)]
+        """The latest body pose of a frame that may be referenced."""
+        frame = self._referable(int(reference_ns))
+        assert frame is not None, reference_ns
         return frame[1]
+
+    def _referable(self, reference_ns: int) -> tuple[int, np.ndarray] | None:
+        """(index, latest body pose) of a recent frame or a kept keyframe; None: unknown."""
+        return self.references.get(reference_ns) or self.keyframes.get(reference_ns)
