@@ -27,6 +27,9 @@ FRAME_INTERVAL_CONTEXT = "frame_interval_s"
 # The rate the old frame-counted defaults were chosen at (EuRoC's 20 Hz), assumed when the
 # frame period is not known at validation time.
 ASSUMED_FRAME_INTERVAL_S = 0.05
+# The most keyframes a front end keeps for revisits (frontend.revisit_max_keyframes); the back
+# end keeps the poses of a few times as many frames that were measured against.
+MAX_REVISIT_KEYFRAMES = 64
 
 
 class _Section(BaseModel):
@@ -212,7 +215,7 @@ class FrontendConfig(_Section):
     # old keyframe (docs/frontend.md, "Keyframe revisits"). The translation limit, None: 1.2 x
     # the keyframes' own. ``revisit_max_keyframes`` keyframes are kept, each with its image.
     revisit_keyframes: bool | None = None
-    revisit_max_keyframes: int = Field(16, ge=1)
+    revisit_max_keyframes: int = Field(16, ge=1, le=MAX_REVISIT_KEYFRAMES)
     revisit_min_age_s: float = Field(0.5, ge=0)
     revisit_max_rotation_deg: float = Field(15.0, gt=0)
     revisit_max_translation_m: float | None = Field(None, gt=0)

@@ -11,12 +11,15 @@ import numpy as np
 
 from estimator.backend.imu import SpecificForceDelta
 from estimator.backend.smoother import STAMP_MARGIN_S, Smoother
+from estimator.config import MAX_REVISIT_KEYFRAMES
 
 __all__ = ["FrameWindow", "OpenFrame"]
 
-# Keyframes kept after a newer one is in use: a front end that revisits a place measures
-# against them again (frontend.revisit_keyframes).
-_KEPT_KEYFRAMES = 64
+# Frames measured against, kept after a newer one is in use: a front end that revisits a
+# place measures against its keyframes again (frontend.revisit_keyframes). Frames measured
+# against that were no keyframe (the previous frame after a failed one) count too, hence
+# a few times the keyframes a front end keeps.
+_KEPT_KEYFRAMES = 4 * MAX_REVISIT_KEYFRAMES
 
 
 @dataclass
