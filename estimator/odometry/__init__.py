@@ -7,6 +7,8 @@ pose -> fuse with the IMU in the back end. Frames are matched against a *referen
 a keyframe that is kept while the view still overlaps well, so that standing still (or hovering)
 measures the same relative pose again and again instead of integrating frame-to-frame noise into
 a creeping drift; ``frontend.tracking = "frame"`` matches against the previous frame instead.
+Vision alone, a frame that would become a new keyframe where an older keyframe was is measured
+against that one instead, which is the reference again (keyframe revisits).
 
 Geometry runs in the rectified left camera frame; reported poses are of the original
 (unrectified) left camera, so the relative pose is conjugated by the rectifying rotation.
@@ -31,6 +33,7 @@ Modules, one job each:
 - ``combination``: the keyframe measurement combined with the chains through the previous
   frame and the keyframe before (``chains``: the combination's math).
 - ``references``: the reference (keyframe) policy and the measured motion that predicts.
+- ``revisits``: the older keyframes a returning camera is measured against again.
 - ``measurements``: a rectified estimate as the back end and the reports take it.
 - ``fusion_step``: the fuse step: the frame handed to the back end, its answer in the world.
 - ``gyro_prediction``: the gyro's rotation that centres the search windows.
