@@ -13,7 +13,8 @@ When the references are about to take a new keyframe, the stored keyframes at le
 ``revisit_max_translation_m`` of the new one are candidates; the nearest is measured against
 (the prediction is the front end's own relative pose, which holds the drift, so the search
 window is the wide one). With ``revisit_min_inlier_ratio`` x ``keyframe_min_inliers`` inliers
-or more it becomes the reference again, else the new keyframe is kept and stored.
+or more it becomes the reference again, else the new keyframe stays (and is stored once a
+later one replaces it, having been measured against).
 """
 
 from __future__ import annotations
