@@ -215,23 +215,27 @@ class References:
             self.reference_from_previous_covariance = np.zeros((6, 6))
             self.previous_estimate = None
         else:
-            assert reference_from_current is not None
-            self.reference_from_previous = reference_from_current
-            self.reference_from_previous_covariance = (
-                estimate.covariance if estimate.chain_covariance is None
-                else estimate.chain_covariance
-            )  # fmt: skip
-            self.previous_estimate = estimate
+            self._link_previous(estimate)
         self.previous = current
 
     def go_back_to(self, keyframe: Reference, estimate: Estimate) -> None:
         """An older ``keyframe`` is the reference again, the last frame measured in it by
         ``estimate`` (a keyframe revisit, odometry/revisits.py)."""
         self.reference = keyframe
-        self.reference_from_previous = estimate.reference_from_current
-        self.reference_from_previous_covariance = estimate.covariance
-        self.previous_estimate = estimate
         self.older = None
+        self._link_previous(estimate)
+
+    def _link_previous(self, estimate: Estimate) -> None:
+        """The frame ``estimate`` measured in the reference is the previous one: the link the
+        next frame is predicted and chained by (the combination's covariance when a chain was
+        combined into it)."""
+        assert estimate.reference_from_current is not None
+        self.reference_from_previous = estimate.reference_from_current
+        self.reference_from_previous_covariance = (
+            estimate.covariance if estimate.chain_covariance is None
+            else estimate.chain_covariance
+        )  # fmt: skip
+        self.previous_estimate = estimate
 
     def _gyro_frame_done(self, failed: bool, estimate: Estimate) -> None:
         """The gyro learns from vision's rotation since the last good frame (the previous)."""
