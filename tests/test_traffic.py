@@ -136,3 +136,28 @@ def test_bench_driving_refuses_bad_traffic_before_writing(tmp_path, capsys) -> N
         "swarmvo bench: error: traffic must be in [0, 10] vehicles per 100 m, got -2.0"
     )
     assert not out.exists()
+
+
+def test_bench_driving_refuses_bad_camera_imperfections_before_writing(tmp_path, capsys) -> None:
+    out = tmp_path / "results"
+    args = ["bench", "driving", "--blur", "2", "--out", str(out), "--data", str(tmp_path)]
+    assert main(args) == 2
+    assert capsys.readouterr().err.strip() == (
+        "swarmvo bench: error: blur is an exposure fraction in [0, 1], got 2.0"
+    )
+    assert not out.exists()
+
+
+def test_bench_driving_names_what_the_drives_were_rendered_with() -> None:
+    import argparse
+
+    from estimator.bench.driving import _scene, _scene_note
+
+    args = argparse.Namespace(traffic=2.0, noise=3.0, blur=0.0, brightness=0.2)
+    scene = _scene(args)
+    assert scene == {"traffic": 2.0, "noise": 3.0, "brightness": 0.2}  # unset ones left out
+    assert _scene_note(scene) == (
+        "With traffic: 2 moving vehicles per 100 m and a lead vehicle.\n\n"
+        "Cameras: image noise sigma 3 grey levels, gains varying by +-20 % (per camera).\n\n"
+    )
+    assert _scene_note({}) == ""

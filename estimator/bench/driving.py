@@ -11,7 +11,10 @@ Per run: final drift (% of path), RPE rotation (deg per frame), frames not track
 temporal matches per frame, frames/s, and KITTI's segment errors. Writes ``driving.json``
 (estimator -> mode -> seed) and ``driving.md`` (the printed table) and checks the targets
 (final drift <= 1 %, <= 0.03 deg/frame, no frame lost, median >= 300 matches/frame, >= 30
-frames/s) and that fused is no worse than vision in rotation.
+frames/s) and that fused is no worse than vision in rotation. ``--traffic``, ``--noise``,
+``--blur`` and ``--brightness`` render the drives among moving vehicles and through imperfect
+cameras (as ``swarmvo synth`` takes them): rendered images are cleaner than a real car's, so the
+targets are also checked with sensor noise, motion blur and gain changes.
 """
 
 from __future__ import annotations
@@ -76,6 +79,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.0,
         help="moving vehicles per 100 m of road and a lead vehicle (swarmvo synth --traffic)",
     )
+    parser.add_argument("--noise", type=float, default=0.0, help="image noise sigma [grey levels]")
+    parser.add_argument(
+        "--blur", type=float, default=0.0, help="motion blur: exposure / frame interval (0..1)"
+    )
+    parser.add_argument(
+        "--brightness", type=float, default=0.0, help="relative amplitude of gain changes"
+    )
     parser.add_argument(
         "--modes",
         nargs="+",
@@ -96,15 +106,41 @@ def _layout(modes: list[str]) -> Layout:
     return "euroc" if "fused" in modes else "kitti"
 
 
+def _scene(args: argparse.Namespace) -> dict[str, float]:
+    """What the drives are rendered with beyond the defaults: traffic and the cameras'
+    imperfections (as ``swarmvo synth`` takes them), only those that are set."""
+    values = {name: getattr(args, name) for name in ("traffic", "noise", "blur", "brightness")}
+    return {name: value for name, value in values.items() if value}
+
+
+def _scene_note(scene: dict[str, float]) -> str:
+    """The table's first lines: what the drives had beyond a static street and ideal cameras."""
+    lines = []
+    if "traffic" in scene:
+        vehicles = f"{scene['traffic']:g} moving vehicles per 100 m and a lead vehicle"
+        lines.append(f"With traffic: {vehicles}.")
+    cameras = []
+    if "noise" in scene:
+        cameras.append(f"image noise sigma {scene['noise']:g} grey levels")
+    if "blur" in scene:
+        cameras.append(f"motion blur over {100 * scene['blur']:g} % of the frame interval")
+    if "brightness" in scene:
+        cameras.append(f"gains varying by +-{100 * scene['brightness']:g} % (per camera)")
+    if cameras:
+        lines.append("Cameras: " + ", ".join(cameras) + ".")
+    return "".join(f"{line}\n\n" for line in lines)
+
+
 def _rendered(args: argparse.Namespace, seed: int, layout: Layout) -> Path:
     frames, length = (40, 44.0) if args.quick else (args.frames, args.length_m)
-    suffix = ("" if layout == "kitti" else "_euroc") + (
-        f"_traffic{args.traffic:g}" if args.traffic else ""
+    scene = _scene(args)
+    suffix = ("" if layout == "kitti" else "_euroc") + "".join(
+        f"_{name}{value:g}" for name, value in scene.items()
     )
     root = args.data / f"driving_{frames}f_{length:g}m_seed{seed}{suffix}"
     if not (root / ("image_0" if layout == "kitti" else "mav0")).is_dir():
         options = SynthOptions.driving(
-            frames=frames, length_m=length, seed=seed, layout=layout, traffic=args.traffic
+            frames=frames, length_m=length, seed=seed, layout=layout, **scene
         )
         synthesize(root, options)
     return root
@@ -182,7 +218,7 @@ def _lane_rows(label: str, runs: dict[str, dict[str, Any]], verdicts: list[str])
 
 
 def run(args: argparse.Namespace) -> int:
-    SynthOptions.driving(traffic=args.traffic).validate()  # before anything is written
+    SynthOptions.driving(**_scene(args)).validate()  # before anything is written
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     seeds = args.seeds[:1] if args.quick else args.seeds
@@ -206,10 +242,7 @@ def run(args: argparse.Namespace) -> int:
                 summary = write_outputs(result, out / f"seed{seed}" / estimator / mode)
                 results[estimator][mode][str(seed)] = summary
                 print(_row(f"{estimator} {mode} seed {seed}", summary), flush=True)
-    table = _table(results)
-    if args.traffic:
-        vehicles = f"{args.traffic:g} moving vehicles per 100 m and a lead vehicle"
-        table = f"With traffic: {vehicles}.\n\n" + table
+    table = _scene_note(_scene(args)) + _table(results)
     print("\n" + table)
     if not args.quick:
         (out / "driving.md").write_text(table)

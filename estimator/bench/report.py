@@ -116,6 +116,12 @@ def traffic_summary(results: Path) -> str:
     return _drives_table(results, "driving-traffic/driving.json")
 
 
+def imaging_summary(results: Path) -> str:
+    """The drives with traffic through imperfect cameras (``bench driving --noise --blur
+    --brightness``)."""
+    return _drives_table(results, "driving-imaging/driving.json")
+
+
 def _drives_table(results: Path, relative: str) -> str:
     runs = _load(results, relative)
     rows = []
@@ -286,6 +292,12 @@ AREAS: dict[str, Area] = {
     "traffic": Area(
         "Rendered drives with traffic", traffic_summary, ("driving-traffic/driving.md",),
         "swarmvo bench driving --traffic 2 --out benchmarks/results/driving-traffic",
+    ),
+    "imaging": Area(
+        "Rendered drives with traffic through imperfect cameras", imaging_summary,
+        ("driving-imaging/driving.md",),
+        "swarmvo bench driving --traffic 2 --noise 3 --blur 0.1 --brightness 0.2 "
+        "--out benchmarks/results/driving-imaging",
     ),
     "rigs": Area(
         "Other stereo rigs without a configuration (rendered)", rigs_summary,
