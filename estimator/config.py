@@ -125,6 +125,11 @@ class FrontendConfig(_Section):
     # stereo matches' rows and reported, not undone; 0: synchronised, not measured
     # (estimator/frontend/shutter_offset.py).
     stereo_time_offset_ms: float | None = Field(None, ge=-100, le=100)
+    # A constant offset in every disparity (pixels; a slightly-off calibration of the right
+    # camera), taken out of each one. None: measured from the registrations and taken out once
+    # measured (detect mode; track mode keeps 0); a number: that offset from the first frame
+    # (estimator/frontend/disparity_offset.py).
+    disparity_offset_px: float | None = Field(None, ge=-5, le=5)
     subpixel_window: int = Field(5, ge=1, le=15)  # half size of the patch
     disparity_sigma_px: float = Field(0.5, gt=0)  # disparity noise behind depth_sigma
     # Pixel noise of a stereo point's image position, for its full covariance (disparity noise

@@ -94,6 +94,8 @@ class RunResult:
     noise: dict[str, Any] = field(default_factory=dict)
     # The right shutter's offset: configured, fitted, measured (frontend/shutter_offset.py).
     stereo_timing: dict[str, Any] = field(default_factory=dict)
+    # The disparity offset: measured, in use (frontend/disparity_offset.py).
+    disparity_offset: dict[str, Any] = field(default_factory=dict)
     # Times the front end went back to an older keyframe (odometry/revisits.py); None: off.
     keyframe_revisits: int | None = None
 
@@ -206,7 +208,7 @@ def run_sequence(
     timing = odometry.stereo_timing.summary()
     return RunResult(
         sequence, config, reports, elapsed, smoothed, skipped_ns, derived, noise, timing,
-        odometry.keyframe_revisits,
+        odometry.disparity_offset.summary(), odometry.keyframe_revisits,
     )  # fmt: skip
 
 
@@ -279,6 +281,7 @@ def summarize(
         },
         "noise": result.noise or None,
         "stereo_time_offset": result.stereo_timing or None,
+        "disparity_offset": result.disparity_offset or None,
         "keyframe_revisits": result.keyframe_revisits,
     }
     ground_truth = result.sequence.ground_truth

@@ -24,12 +24,11 @@ tolerance and the velocity's errors (docs/frontend.md, "A late right shutter").
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 
 from estimator.formats.calibration import Rectification
-from estimator.frontend.stereo import StereoPoints, triangulate
+from estimator.frontend.stereo import StereoPoints, shift_disparities
 
 __all__ = ["ShutterOffset", "StereoTiming", "image_velocity", "undo_offset"]
 
@@ -123,14 +122,7 @@ def undo_offset(
     """``points`` as a right image taken with the left one would have given them: each right
     pixel moved back by its horizontal velocity times ``offset_s`` (disparity + velocity x
     offset), re-triangulated; points whose disparity would not stay positive are dropped."""
-    disparity = points.disparity + horizontal_velocity * offset_s
-    keep = disparity > 0
-    kept = points.select(keep)
-    moved = triangulate(kept.pixels, disparity[keep], rectification)
-    depth_ratio = moved[:, 2] / kept.points[:, 2]
-    return replace(
-        kept, disparity=disparity[keep], points=moved, depth_sigma=kept.depth_sigma * depth_ratio**2
-    )
+    return shift_disparities(points, horizontal_velocity * offset_s, rectification)
 
 
 class StereoTiming:

@@ -38,6 +38,7 @@ __all__ = [
     "StereoPoints",
     "point_covariances",
     "row_band_pairs",
+    "shift_disparities",
     "triangulate",
     "triangulation_jacobian",
 ]
@@ -59,6 +60,9 @@ class StereoPoints:
     # (N,) right keypoint's row minus the left's (pixels; None: not matched by rows), which a
     # late right shutter moves with the image's vertical motion (shutter_offset.py)
     row_offset: np.ndarray | None = None
+    # The rig's constant disparity offset already taken out of ``disparity`` (pixels; the
+    # matched disparity is ``disparity + disparity_offset_px``; disparity_offset.py)
+    disparity_offset_px: float = 0.0
 
     def __len__(self) -> int:
         return len(self.points)
@@ -131,6 +135,28 @@ def _binary_band_matches(
         (float(disparity_range[0]), float(disparity_range[1])), float(ratio), float(max_distance),
     )  # fmt: skip
     return MatchSet(a, b, distance)
+
+
+def shift_disparities(
+    points: StereoPoints,
+    shift: np.ndarray | float,
+    rectification: Rectification,
+    floor_px: float | None = None,
+) -> StereoPoints:
+    """``points`` with ``shift`` (pixels, per point or one for all) added to each disparity and
+    re-triangulated (their depth sigmas scaled with the depth); a disparity that would not stay
+    positive drops its point, or with ``floor_px`` becomes that."""
+    disparity = points.disparity + shift
+    if floor_px is not None:
+        disparity = np.maximum(disparity, floor_px)
+    keep = disparity > 0
+    kept = points if keep.all() else points.select(keep)
+    disparity = disparity[keep]
+    moved = triangulate(kept.pixels, disparity, rectification)
+    depth_ratio = moved[:, 2] / kept.points[:, 2]
+    return replace(
+        kept, disparity=disparity, points=moved, depth_sigma=kept.depth_sigma * depth_ratio**2
+    )
 
 
 def triangulate(

@@ -9,6 +9,7 @@ import numpy as np
 from estimator.config import SwarmvoConfig
 from estimator.formats.calibration import StereoRig
 from estimator.frontend.detection import FeatureDetector
+from estimator.frontend.disparity_offset import DisparityOffset
 from estimator.frontend.photometric import normalise_contrast
 from estimator.frontend.shutter_offset import StereoTiming
 from estimator.frontend.stereo import StereoMatcher, StereoPoints
@@ -67,6 +68,10 @@ class Odometry:
             self.rectification, self.config.frontend.stereo_time_offset_ms
         )
         track_mode = self.config.frontend.mode == "track"
+        configured_offset = self.config.frontend.disparity_offset_px
+        if configured_offset is None and track_mode:
+            configured_offset = 0.0  # the tracks keep their own disparities
+        self.disparity_offset = DisparityOffset(self.rectification, configured_offset)
         self._tracker = Tracker(self.config.frontend, self.rectification) if track_mode else None
         self._frames = CameraFrames(self.rectification.R_left, self.rectification)
         self._initial_pose = checked_pose(initial_pose) if initial_pose is not None else None
@@ -150,8 +155,9 @@ class Odometry:
         """What another process needs to continue this run after its last frame (JSON-ready).
 
         The last answered pose and its keyframe's pose, the measured motion (the velocity that
-        predicts the next frame) and the back end's biases: the continuation predicts its first
-        frame at constant velocity from here instead of restarting at rest.
+        predicts the next frame), the back end's biases and the disparity offset in use: the
+        continuation predicts its first frame at constant velocity from here instead of
+        restarting at rest.
         """
         references = self._references
         keyframe = references.reference.pose if references.reference is not None else self._pose
@@ -163,6 +169,7 @@ class Odometry:
             "motion": references.motion.tolist(),
             "motion_interval_ns": references.motion_interval_ns,
             "backend": self._fusion.backend.state() if self._fusion is not None else None,
+            "disparity_offset_px": self.disparity_offset.applied,
         }
 
     def restore(self, state: dict[str, Any]) -> None:
@@ -177,6 +184,7 @@ class Odometry:
         self._references.motion_interval_ns = max(int(state["motion_interval_ns"]), 1)
         if self._fusion is not None and state.get("backend"):
             self._fusion.backend.restore(state["backend"])
+        self.disparity_offset.resume(float(state.get("disparity_offset_px", 0.0)))
         self._restored = True
 
     # ------------------------------------------------------------------ the algorithm
@@ -231,6 +239,7 @@ class Odometry:
     ) -> None:
         """What the next frame starts from: the noise level, the poses and the references."""
         self._estimation.measure_noise(estimate)
+        self._measure_disparity_offset(current, estimate)
         if self._tracker is not None and self._references.reference is not None:
             if estimate.reference_from_current is None:  # no frame to follow the tracks by
                 self._tracker.forget_frame()
@@ -242,6 +251,17 @@ class Odometry:
         if self._revisits is not None:
             self._revisits.after_update(current, replaced, estimate)
         self.stereo_timing.learn(self._references.measured_velocity())
+
+    def _measure_disparity_offset(self, current: CurrentFrame, estimate: Estimate) -> None:
+        """Fold the frame's measurement against its reference into the disparity offset."""
+        pairs, result, pose = estimate.pairs, estimate.result, estimate.reference_from_current
+        if pairs is None or result is None or pose is None or estimate.reference is None:
+            return
+        inliers = result.inliers
+        self.disparity_offset.observe(
+            estimate.reference.points, current.points, pairs.reference_index[inliers],
+            pairs.current_index[inliers], pose, self.noise,
+        )  # fmt: skip
 
     def _rectified(
         self, frame: StereoFrame, timings: dict[str, float]
@@ -296,11 +316,12 @@ class Odometry:
         return KeyframeView(keyframe.points, keyframe.image, invert_pose(keyframe_from_current))
 
     def _in_step(self, points: StereoPoints) -> StereoPoints:
-        """``points`` as if both shutters had opened together (frontend/shutter_offset.py);
-        the predicted velocity only when there is an offset to undo."""
+        """``points`` as if both shutters had opened together (frontend/shutter_offset.py;
+        the predicted velocity only when there is an offset to undo) and without the rig's
+        disparity offset (frontend/disparity_offset.py)."""
         timing = self.stereo_timing
         velocity = self._references.velocity(self._frame_interval_ns) if timing.correcting else None
-        return timing.corrected(points, velocity)
+        return self.disparity_offset.corrected(timing.corrected(points, velocity))
 
     def _normalised(self, image: np.ndarray) -> np.ndarray:
         frontend = self.config.frontend

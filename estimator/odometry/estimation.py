@@ -9,6 +9,7 @@ import numpy as np
 
 from estimator.config import SwarmvoConfig
 from estimator.formats.calibration import Rectification
+from estimator.frontend.disparity_offset import aligned
 from estimator.frontend.stereo_noise import StereoNoiseModel
 from estimator.frontend.temporal import Correspondences, PredictionUncertainty, match_temporal
 from estimator.frontend.tracks import match_tracks
@@ -82,15 +83,17 @@ class PoseEstimation:
         """T_ref_cur of the ``current`` frame; ``uncertainty`` of the prediction sizes the
         search windows (None: a wide search)."""
         points, image, timings = current.points, current.image, current.timings
+        # The reference's disparities with the current frame's offset taken out of them.
+        reference_points = aligned(reference.points, points.disparity_offset_px, self.rectification)
         with stage(timings, "temporal"):
             if self.config.frontend.mode == "track":
                 pairs = match_tracks(
-                    reference.points, points, self.config.frontend, self.rectification,
+                    reference_points, points, self.config.frontend, self.rectification,
                     images=(reference.image, image),
                 )  # fmt: skip
             else:
                 pairs = match_temporal(
-                    reference.points,
+                    reference_points,
                     points,
                     self.config.frontend,
                     self.rectification,

@@ -208,6 +208,15 @@ def run(args: argparse.Namespace) -> int:
             f"without a shared trigger cost depth accuracy: set "
             f"frontend.stereo_time_offset_ms: {measured:.1f} to undo it"
         )
+    offset = result.disparity_offset
+    if offset.get("measured") and offset.get("applied_px"):
+        error = offset.get("standard_error_px")
+        spread = "" if error is None else f", +-{error:.3f}"
+        print(
+            f"note: every disparity was {offset['applied_px']:+.2f} px off (measured from the "
+            f"motion{spread}) and that was taken out; the stereo calibration is slightly off "
+            f"(the right camera's principal point or yaw)"
+        )
     kitti_path = kitti_poses_path(result, out)
     print(
         f"wrote {out / 'trajectory.tum'}, {out / 'metrics.json'}, {out / 'trajectory.png'}"
