@@ -30,6 +30,9 @@ ASSUMED_FRAME_INTERVAL_S = 0.05
 # The most keyframes a front end keeps for revisits (frontend.revisit_max_keyframes); the back
 # end keeps the poses of a few times as many frames that were measured against.
 MAX_REVISIT_KEYFRAMES = 64
+# The largest disparity offset believed (frontend.disparity_offset_px, pixels): beyond it the
+# stereo calibration is wrong, not slightly off (estimator/frontend/disparity_offset.py).
+MAX_DISPARITY_OFFSET_PX = 5.0
 
 
 class _Section(BaseModel):
@@ -129,7 +132,9 @@ class FrontendConfig(_Section):
     # camera), taken out of each one. None: measured from the registrations and taken out once
     # measured (detect mode; track mode keeps 0); a number: that offset from the first frame
     # (estimator/frontend/disparity_offset.py).
-    disparity_offset_px: float | None = Field(None, ge=-5, le=5)
+    disparity_offset_px: float | None = Field(
+        None, ge=-MAX_DISPARITY_OFFSET_PX, le=MAX_DISPARITY_OFFSET_PX
+    )
     subpixel_window: int = Field(5, ge=1, le=15)  # half size of the patch
     disparity_sigma_px: float = Field(0.5, gt=0)  # disparity noise behind depth_sigma
     # Pixel noise of a stereo point's image position, for its full covariance (disparity noise

@@ -128,23 +128,20 @@ def test_a_drive_with_a_lead_vehicle_and_traffic_is_tracked(tmp_path) -> None:
     assert metrics["rpe_rot_rmse_deg"] < 0.005  # measured 0.0027 (0.0020 without traffic)
 
 
-def test_bench_driving_refuses_bad_traffic_before_writing(tmp_path, capsys) -> None:
+@pytest.mark.parametrize(
+    ("option", "value", "message"),
+    [
+        ("--traffic", "-2", "traffic must be in [0, 10] vehicles per 100 m, got -2.0"),
+        ("--blur", "2", "blur is an exposure fraction in [0, 1], got 2.0"),
+    ],
+)
+def test_bench_driving_refuses_a_bad_scene_before_writing(
+    tmp_path, capsys, option: str, value: str, message: str
+) -> None:
     out = tmp_path / "results"
-    args = ["bench", "driving", "--traffic", "-2", "--out", str(out), "--data", str(tmp_path)]
+    args = ["bench", "driving", option, value, "--out", str(out), "--data", str(tmp_path)]
     assert main(args) == 2
-    assert capsys.readouterr().err.strip() == (
-        "swarmvo bench: error: traffic must be in [0, 10] vehicles per 100 m, got -2.0"
-    )
-    assert not out.exists()
-
-
-def test_bench_driving_refuses_bad_camera_imperfections_before_writing(tmp_path, capsys) -> None:
-    out = tmp_path / "results"
-    args = ["bench", "driving", "--blur", "2", "--out", str(out), "--data", str(tmp_path)]
-    assert main(args) == 2
-    assert capsys.readouterr().err.strip() == (
-        "swarmvo bench: error: blur is an exposure fraction in [0, 1], got 2.0"
-    )
+    assert capsys.readouterr().err.strip() == f"swarmvo bench: error: {message}"
     assert not out.exists()
 
 

@@ -28,6 +28,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from estimator.config import MAX_DISPARITY_OFFSET_PX
 from estimator.formats.calibration import Rectification
 from estimator.frontend.stereo import StereoPoints, shift_disparities, triangulate
 from estimator.frontend.stereo_noise import StereoNoiseModel
@@ -58,8 +59,6 @@ _MIN_CHANGE_PX = 0.02
 _CHANGE_SIGNIFICANCE = 3.0
 # A disparity the offset would make non-positive becomes this one (a point at infinity, almost).
 _FAR_DISPARITY_PX = 0.05
-# The largest offset believed: beyond it the calibration is wrong, not slightly off.
-MAX_OFFSET_PX = 5.0
 
 
 def aligned(points: StereoPoints, offset_px: float, rectification: Rectification) -> StereoPoints:
@@ -71,6 +70,11 @@ def aligned(points: StereoPoints, offset_px: float, rectification: Rectification
     shift = points.disparity_offset_px - offset_px
     shifted = shift_disparities(points, shift, rectification, floor_px=_FAR_DISPARITY_PX)
     return replace(shifted, disparity_offset_px=float(offset_px))
+
+
+def _believable(offset_px: float) -> float:
+    """``offset_px`` held within the largest offset believed."""
+    return float(np.clip(offset_px, -MAX_DISPARITY_OFFSET_PX, MAX_DISPARITY_OFFSET_PX))
 
 
 class DisparityOffset:
@@ -97,7 +101,7 @@ class DisparityOffset:
         """Continue a session: the offset another process had taken out (a configured one
         stays as configured); it is measured afresh around that value."""
         if self.measuring:
-            self.applied = float(np.clip(applied_px, -MAX_OFFSET_PX, MAX_OFFSET_PX))
+            self.applied = _believable(applied_px)
             self._restart()
 
     def corrected(self, points: StereoPoints) -> StereoPoints:
@@ -151,7 +155,7 @@ class DisparityOffset:
         if curvature <= 0.0:
             return
         slope = (costs[2] - costs[0]) / (2.0 * _STEP_PX)
-        offset = float(np.clip(self.applied - slope / curvature, -MAX_OFFSET_PX, MAX_OFFSET_PX))
+        offset = _believable(self.applied - slope / curvature)
         self._information += curvature
         self._curvature_squares += curvature * curvature
         self._weighted += curvature * offset
