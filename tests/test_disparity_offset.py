@@ -163,3 +163,12 @@ def test_a_continued_session_keeps_the_offset_taken_out(rectification) -> None:
     configured = DisparityOffset(rectification, 0.1)
     configured.resume(-0.4)
     assert configured.applied == 0.1  # a configured offset stays as configured
+
+
+def test_unset_the_offset_is_measured_in_detect_mode_and_zero_in_track_mode() -> None:
+    from estimator.config import FrontendConfig
+    from estimator.frontend.disparity_offset import configured_offset
+
+    assert configured_offset(FrontendConfig()) is None
+    assert configured_offset(FrontendConfig(mode="track")) == 0.0
+    assert configured_offset(FrontendConfig(mode="track", disparity_offset_px=0.2)) == 0.2

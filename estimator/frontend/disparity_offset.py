@@ -28,13 +28,13 @@ from dataclasses import replace
 
 import numpy as np
 
-from estimator.config import MAX_DISPARITY_OFFSET_PX
+from estimator.config import MAX_DISPARITY_OFFSET_PX, FrontendConfig
 from estimator.formats.calibration import Rectification
 from estimator.frontend.stereo import StereoPoints, shift_disparities, triangulate
 from estimator.frontend.stereo_noise import StereoNoiseModel
 from estimator.registration.refine import refine_pose_mahalanobis
 
-__all__ = ["DisparityOffset", "aligned"]
+__all__ = ["DisparityOffset", "aligned", "configured_offset"]
 
 # The profile's half step (pixels): the cost is sampled at -step, 0 and +step of the offset.
 _STEP_PX = 0.1
@@ -70,6 +70,15 @@ def aligned(points: StereoPoints, offset_px: float, rectification: Rectification
     shift = points.disparity_offset_px - offset_px
     shifted = shift_disparities(points, shift, rectification, floor_px=_FAR_DISPARITY_PX)
     return replace(shifted, disparity_offset_px=float(offset_px))
+
+
+def configured_offset(frontend: FrontendConfig) -> float | None:
+    """``frontend.disparity_offset_px``; unset, None (measured) in detect mode and 0 in track
+    mode, whose tracks carry their own disparities."""
+    configured = frontend.disparity_offset_px
+    if configured is None and frontend.mode == "track":
+        return 0.0
+    return configured
 
 
 def _believable(offset_px: float) -> float:
@@ -131,7 +140,10 @@ class DisparityOffset:
     ) -> None:
         """Fold one measurement in: the inlier pairs (indices into ``reference`` and
         ``current``) and the measured pose (rectified, reference from current)."""
-        if not self.measuring or len(pairs_current) < _MIN_INLIERS or self._resting():
+        if not self.measuring or len(pairs_current) < _MIN_INLIERS:
+            return
+        self._offered += 1
+        if self._resting():
             return
         if len(pairs_current) > _MAX_PAIRS:
             chosen = np.linspace(0, len(pairs_current) - 1, _MAX_PAIRS).astype(np.intp)
@@ -167,7 +179,6 @@ class DisparityOffset:
     def _resting(self) -> bool:
         """Whether this frame is skipped: the estimate has settled and it is not the turn of
         one in ``_SETTLED_EVERY``."""
-        self._offered += 1
         estimate = self.estimate
         settled = (
             estimate is not None

@@ -9,7 +9,7 @@ import numpy as np
 from estimator.config import SwarmvoConfig
 from estimator.formats.calibration import StereoRig
 from estimator.frontend.detection import FeatureDetector
-from estimator.frontend.disparity_offset import DisparityOffset
+from estimator.frontend.disparity_offset import DisparityOffset, configured_offset
 from estimator.frontend.photometric import normalise_contrast
 from estimator.frontend.shutter_offset import StereoTiming
 from estimator.frontend.stereo import StereoMatcher, StereoPoints
@@ -68,10 +68,9 @@ class Odometry:
             self.rectification, self.config.frontend.stereo_time_offset_ms
         )
         track_mode = self.config.frontend.mode == "track"
-        configured_offset = self.config.frontend.disparity_offset_px
-        if configured_offset is None and track_mode:
-            configured_offset = 0.0  # the tracks keep their own disparities
-        self.disparity_offset = DisparityOffset(self.rectification, configured_offset)
+        self.disparity_offset = DisparityOffset(
+            self.rectification, configured_offset(self.config.frontend)
+        )
         self._tracker = Tracker(self.config.frontend, self.rectification) if track_mode else None
         self._frames = CameraFrames(self.rectification.R_left, self.rectification)
         self._initial_pose = checked_pose(initial_pose) if initial_pose is not None else None
