@@ -172,3 +172,11 @@ def test_unset_the_offset_is_measured_in_detect_mode_and_zero_in_track_mode() ->
     assert configured_offset(FrontendConfig()) is None
     assert configured_offset(FrontendConfig(mode="track")) == 0.0
     assert configured_offset(FrontendConfig(mode="track", disparity_offset_px=0.2)) == 0.2
+
+
+def test_a_damaged_stored_offset_is_not_taken_out(rectification) -> None:
+    offset = DisparityOffset(rectification, None)
+    offset.resume(float("nan"))  # a stored state that lost its number
+    assert offset.applied == 0.0
+    offset.resume(40.0)  # beyond any calibration that is only slightly off
+    assert offset.applied == 5.0

@@ -82,7 +82,9 @@ def configured_offset(frontend: FrontendConfig) -> float | None:
 
 
 def _believable(offset_px: float) -> float:
-    """``offset_px`` held within the largest offset believed."""
+    """``offset_px`` held within the largest offset believed; a non-finite one is none."""
+    if not math.isfinite(offset_px):
+        return 0.0
     return float(np.clip(offset_px, -MAX_DISPARITY_OFFSET_PX, MAX_DISPARITY_OFFSET_PX))
 
 
